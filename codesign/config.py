@@ -1,0 +1,60 @@
+"""Config-level helpers shared by every experiment: debug shrinking, device and thread selection."""
+from __future__ import annotations
+
+import torch
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+from codesign.errors import ConfigError, require_choice, require_number
+
+
+def apply_debug_overrides(cfg: DictConfig, explicit: frozenset[str] = frozenset()) -> list[str]:
+    """Apply ``cfg.debug.overrides`` (dotted key -> value) after composition; returns the keys applied.
+
+    Keys in ``explicit`` (given on the command line) are left alone: what a user types wins over the shrink.
+    """
+    dbg = cfg.get("debug")
+    if not dbg or not dbg.get("overrides"):
+        return []
+    applied = []
+    with open_dict(cfg):
+        for key, value in dbg.overrides.items():
+            if key in explicit:
+                continue
+            parent = key.rsplit(".", 1)[0] if "." in key else None
+            if (parent is None and key in cfg) or (parent is not None and OmegaConf.select(cfg, parent) is not None):
+                OmegaConf.update(cfg, key, value, merge=False)
+                applied.append(key)
+    return applied
+
+
+def command_line_keys(overrides: list[str]) -> frozenset[str]:
+    """Dotted keys set by Hydra command-line overrides ('+a.b=1', '++a=2', 'a.b=3' -> 'a.b', 'a', 'a.b')."""
+    keys = set()
+    for item in overrides:
+        key = item.split("=", 1)[0].lstrip("+~")
+        if key and not key.startswith("hydra."):
+            keys.add(key)
+    return frozenset(keys)
+
+
+def resolve_device(name: str) -> torch.device:
+    """'auto' -> CUDA when available, else CPU; 'cpu', 'cuda', 'cuda:N' as given (validated)."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cpu":
+        return torch.device("cpu")
+    if isinstance(name, str) and name.startswith("cuda"):
+        if not torch.cuda.is_available():
+            raise ConfigError("device", name, "CUDA is not available on this machine; use device=cpu or auto")
+        return torch.device(name)
+    raise ConfigError("device", name, "must be auto, cpu, cuda or cuda:N")
+
+
+def set_threads(threads) -> int:
+    if threads is not None:
+        torch.set_num_threads(require_number("threads", threads, lo=1, hi=1024, integer=True))
+    return torch.get_num_threads()
+
+
+def resolve_dtype(key: str, name: str) -> torch.dtype:
+    return {"float32": torch.float32, "float64": torch.float64}[require_choice(key, name, ("float32", "float64"))]

@@ -1,0 +1,1 @@
+"""Experiments, I/O and plotting: everything that runs a job and writes a run directory."""

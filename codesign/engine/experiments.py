@@ -1,0 +1,78 @@
+"""Experiment registry and the common run wrapper (validation, debug shrink, threads, device, error reporting)."""
+from __future__ import annotations
+
+import logging
+import shutil
+import sys
+from pathlib import Path
+from typing import Callable
+
+import torch
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
+
+from codesign.config import apply_debug_overrides, command_line_keys, resolve_device, set_threads
+from codesign.errors import ConfigError
+
+log = logging.getLogger("codesign")
+
+
+def _psf(cfg, run_dir, device):
+    from codesign.engine.psf_task import run_psf
+
+    return run_psf(cfg, run_dir, device)
+
+
+EXPERIMENTS: dict[str, Callable] = {"psf": _psf}
+
+
+def _run_dir() -> Path:
+    try:
+        return Path(HydraConfig.get().runtime.output_dir)
+    except ValueError:  # not under Hydra (tests calling run_experiment directly)
+        return Path.cwd()
+
+
+def _explicit_keys() -> frozenset[str]:
+    try:
+        return command_line_keys(list(HydraConfig.get().overrides.task))
+    except ValueError:
+        return frozenset()
+
+
+def _discard_empty_run_dir(run_dir: Path) -> None:
+    """Remove a run dir that holds only Hydra's own files (a run that stopped before writing anything)."""
+    if not run_dir.is_dir():
+        return
+    ours = [p for p in run_dir.iterdir() if p.name != ".hydra" and not p.name.endswith(".log")]
+    if not ours and run_dir.resolve() != Path.cwd().resolve():
+        shutil.rmtree(run_dir, ignore_errors=True)
+        parent = run_dir.parent  # outputs/<task>/ that this run may have created
+        if parent.is_dir() and not any(parent.iterdir()) and parent.resolve() != Path.cwd().resolve():
+            parent.rmdir()
+
+
+def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None:
+    """Validate the common keys, apply ``debug`` shrinking, then run ``cfg.task``; config errors exit with 2."""
+    run_dir = Path(run_dir) if run_dir is not None else _run_dir()
+    try:
+        task = cfg.get("task")
+        if task not in EXPERIMENTS:
+            raise ConfigError("task", task, "choose an experiment with +experiment=NAME; available: "
+                              + ", ".join(sorted(EXPERIMENTS)))
+        applied = apply_debug_overrides(cfg, _explicit_keys())
+        if applied:
+            log.info("debug=%s: applied %s", cfg.debug.name, ", ".join(applied))
+        threads = set_threads(cfg.get("threads"))
+        device = resolve_device(cfg.get("device", "auto"))
+        torch.manual_seed(int(cfg.get("seed", 0)))
+        log.info("task=%s device=%s threads=%d run_dir=%s", task, device, threads, run_dir)
+        return EXPERIMENTS[task](cfg, run_dir, device)
+    except ConfigError as err:
+        _discard_empty_run_dir(run_dir)
+        print(f"codesign: configuration error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+def resolved_config_yaml(cfg: DictConfig) -> str:
+    return OmegaConf.to_yaml(cfg, resolve=True)

@@ -1,0 +1,40 @@
+"""Errors raised for bad user input, with the offending key and what is allowed."""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+
+class ConfigError(ValueError):
+    """A configuration value (or input) is wrong. The message names the key, the value and what is allowed."""
+
+    def __init__(self, key: str, value: Any, allowed: str):
+        self.key, self.value, self.allowed = key, value, allowed
+        super().__init__(f"{key} = {value!r}: {allowed}")
+
+
+def require_number(key: str, value: Any, *, lo: float | None = None, hi: float | None = None,
+                   lo_open: bool = False, hi_open: bool = False, integer: bool = False) -> float:
+    """Check that ``value`` is a finite (integer) number in the given range; return it, else raise ConfigError."""
+    kind = "an integer" if integer else "a finite number"
+    lo_s = "" if lo is None else f"{'>' if lo_open else '>='} {lo:g}"
+    hi_s = "" if hi is None else f"{'<' if hi_open else '<='} {hi:g}"
+    allowed = f"must be {kind}" + (f" {lo_s}" if lo_s else "") + (" and" if lo_s and hi_s else "") + \
+        (f" {hi_s}" if hi_s else "")
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(key, value, allowed)
+    if integer and not float(value).is_integer():
+        raise ConfigError(key, value, allowed)
+    if not math.isfinite(value):
+        raise ConfigError(key, value, allowed)
+    if lo is not None and (value <= lo if lo_open else value < lo):
+        raise ConfigError(key, value, allowed)
+    if hi is not None and (value >= hi if hi_open else value > hi):
+        raise ConfigError(key, value, allowed)
+    return int(value) if integer else float(value)
+
+
+def require_choice(key: str, value: Any, choices: tuple[str, ...]) -> str:
+    if value not in choices:
+        raise ConfigError(key, value, f"must be one of {', '.join(choices)}")
+    return value

@@ -1,0 +1,110 @@
+"""Freeform masks: a per-pixel phase, and a smooth low-dimensional Zernike basis."""
+from __future__ import annotations
+
+import math
+
+import torch
+
+from codesign.errors import require_number
+from codesign.optics.grid import PupilGrid
+from codesign.optics.masks.base import Mask
+
+
+class PixelPhaseMask(Mask):
+    """A learnable phase [rad] at every support sample of the pupil grid.
+
+    ``project()`` wraps the phase into [-pi, pi): a phase plate is built modulo 2 pi, and the wrap leaves the
+    field exp(i phi) unchanged.
+    """
+
+    def __init__(self, grid: PupilGrid, init_phase: torch.Tensor | None = None):
+        super().__init__(grid)
+        n_s = grid.support.numel()
+        if init_phase is None:
+            values = torch.zeros(n_s, dtype=grid.rho.dtype, device=grid.rho.device)
+        else:
+            if tuple(init_phase.shape) != (grid.n, grid.n):
+                raise ValueError(f"mask.init phase has shape {tuple(init_phase.shape)}, the pupil grid is "
+                                 f"{grid.n} x {grid.n}")
+            values = init_phase.detach().reshape(-1)[grid.support].to(grid.rho)
+        if not bool(torch.isfinite(values).all()):
+            raise ValueError("mask.init phase holds NaN or Inf inside the aperture")
+        self.values = torch.nn.Parameter(values.clone())
+
+    def support_phase(self) -> torch.Tensor:
+        return self.values
+
+    @torch.no_grad()
+    def project(self) -> None:
+        self.values.add_(math.pi).remainder_(2 * math.pi).sub_(math.pi)
+
+
+def noll_to_nm(j: int) -> tuple[int, int]:
+    """Noll's single index j >= 1 -> (radial degree n, signed azimuthal frequency m); m < 0 is the sine term."""
+    if j < 1:
+        raise ValueError(f"Noll index must be >= 1, got {j}")
+    n = int((math.isqrt(8 * j - 7) - 1) // 2)
+    k = j - n * (n + 1) // 2 - 1  # position within degree n, from 0
+    m_abs = 2 * ((k + 1) // 2) if n % 2 == 0 else 2 * (k // 2) + 1
+    if m_abs == 0:
+        return n, 0
+    return n, (m_abs if j % 2 == 0 else -m_abs)  # Noll: even j -> cosine, odd j -> sine
+
+
+def zernike(n: int, m: int, rho: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
+    """Orthonormal Zernike polynomial Z_n^m on the unit disk (rho normalized, angle [rad]), float64 inside."""
+    rho64, ang64 = rho.to(torch.float64), angle.to(torch.float64)
+    ma = abs(m)
+    radial = torch.zeros_like(rho64)
+    for k in range((n - ma) // 2 + 1):
+        c = (-1) ** k * math.factorial(n - k) / (
+            math.factorial(k) * math.factorial((n + ma) // 2 - k) * math.factorial((n - ma) // 2 - k))
+        radial = radial + c * rho64 ** (n - 2 * k)
+    if m == 0:
+        z = math.sqrt(n + 1) * radial
+    else:
+        z = math.sqrt(2 * (n + 1)) * radial * (torch.cos(ma * ang64) if m > 0 else torch.sin(ma * ang64))
+    return z.to(rho.dtype)
+
+
+class ZernikeMask(Mask):
+    """Phase = sum_j c_j Z_j (Noll j = 1..n_terms) over the aperture disk of radius W_a / 2; c_j in rad (RMS).
+
+    ``project()`` clamps every coefficient into [-max_coeff_rad, max_coeff_rad] (the plate's depth budget).
+    """
+
+    def __init__(self, grid: PupilGrid, aperture_diameter_m: float, n_terms: int = 36,
+                 init_coeffs: torch.Tensor | None = None, max_coeff_rad: float = 50.0, prefix: str = "mask"):
+        super().__init__(grid)
+        n_terms = require_number(f"{prefix}.n_terms", n_terms, lo=1, hi=1000, integer=True)
+        self.max_coeff_rad = require_number(f"{prefix}.max_coeff_rad", max_coeff_rad, lo=0, lo_open=True)
+        rho = grid.rho.reshape(-1)[grid.support] / (aperture_diameter_m / 2)
+        ang = torch.atan2(grid.v[:, None].expand(grid.n, grid.n), grid.u[None, :].expand(grid.n, grid.n))
+        ang = ang.reshape(-1)[grid.support]
+        basis = torch.stack([zernike(*noll_to_nm(j), rho, ang) for j in range(1, n_terms + 1)], 0)
+        self.register_buffer("basis", basis, persistent=False)
+        c = torch.zeros(n_terms, dtype=grid.rho.dtype, device=grid.rho.device)
+        if init_coeffs is not None:
+            if init_coeffs.numel() != n_terms:
+                raise ValueError(f"{prefix}.init_coeffs has {init_coeffs.numel()} values, n_terms = {n_terms}")
+            c = init_coeffs.detach().to(c).reshape(-1).clone()
+        self.coeffs = torch.nn.Parameter(c)
+
+    def support_phase(self) -> torch.Tensor:
+        return self.coeffs @ self.basis
+
+    def fit(self, phase: torch.Tensor, weight: torch.Tensor | None = None) -> None:
+        """Set the coefficients to the (aperture-weighted) least-squares fit of a full-grid phase."""
+        target = phase.detach().reshape(-1)[self.grid.support].to(torch.float64)
+        w = (self.grid.aperture.reshape(-1)[self.grid.support] if weight is None else weight).to(torch.float64)
+        b = self.basis.to(torch.float64) * w.sqrt()
+        sol = torch.linalg.lstsq(b.T, target * w.sqrt()).solution
+        with torch.no_grad():
+            self.coeffs.copy_(sol.to(self.coeffs))
+
+    @torch.no_grad()
+    def project(self) -> None:
+        self.coeffs.clamp_(-self.max_coeff_rad, self.max_coeff_rad)
+
+    def summary(self) -> dict[str, float]:
+        return {f"zernike_{j + 1}": float(v) for j, v in enumerate(self.coeffs.detach().cpu())}

@@ -1,0 +1,164 @@
+"""The five half-ring phase mask of Eq. (PhaseFunc), with learnable ring radii r_n and angles theta_n.
+
+    phi(xi, Phi) = conv( Im(xi, Phi), Q0(xi) ),   Q0 = sum_n r_n J_0(2 pi xi r_n / W_a),
+    Im = sum_{m=m_min}^{m_max} sum_n a_{m,n} sin(m_o (Phi - theta_n)) J_{m_o}(2 pi xi r_n / W_a),
+    m_o = 2m + 1, a_{m,n} = 4 r_n / (m_o pi).
+
+``conv`` is ``atan`` (atan(Im / Q0), as printed, values in [-pi/2, pi/2]) or ``atan2`` (the argument of the
+complex pupil field Q0 + i Im that the half-ring design synthesizes, values in (-pi, pi]).
+
+``harmonic_sign``: "printed" uses a_{m,n} as printed. "fourier" multiplies order m by (-1)^m: the Fourier
+transform of an angular harmonic e^{i k phi} on a focal-plane ring carries (-i)^k, so a half ring (ring times a
+square wave in angle) needs alternating signs across the odd orders; without them the printed sum synthesizes
+mostly full rings (see docs/optics.md for what each gives).
+
+Fast evaluation: sin(m_o (Phi - theta_n)) = sin(m_o Phi) cos(m_o theta_n) - cos(m_o Phi) sin(m_o theta_n), so
+    Im = sum_m [ sin(m_o Phi) A_m(xi) - cos(m_o Phi) B_m(xi) ],
+    A_m = sum_n a_{m,n} cos(m_o theta_n) J_{m_o}(x_n),  B_m = sum_n a_{m,n} sin(m_o theta_n) J_{m_o}(x_n):
+Bessel functions are needed only as radial profiles, and the angular harmonics sin/cos(m_o Phi) are fixed per grid.
+Strategies: ``exact`` evaluates the profiles at the grid's distinct radii (exact, ~17x fewer points than pixels
+for large grids); ``table`` on a uniform radial table of ``table_size`` points with linear interpolation;
+``direct`` evaluates every Bessel function at every pixel (the reference, for tests and benchmarks).
+"""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import torch
+
+from codesign.errors import ConfigError, require_choice, require_number
+from codesign.optics.atan2 import atan_of_ratio
+from codesign.optics.bessel import bessel_j
+from codesign.optics.grid import PupilGrid
+from codesign.optics.masks.base import Mask
+
+PUBLISHED_R = (13.6, 91.8, 6.3, 10.3, 4.2)
+PUBLISHED_THETA = (1.86, 1.09, 1.15, 1.21, 1.22)
+CONVENTIONS = ("atan", "atan2")
+STRATEGIES = ("exact", "table", "direct")
+HARMONIC_SIGNS = ("printed", "fourier")
+_HARMONIC_CACHE_BYTES = 256 * 2**20  # cache sin/cos(m_o Phi) on the support up to this size
+
+
+class HalfRingMask(Mask):
+    """Half-ring phase mask with learnable radii ``r`` (units of lambda f / W_a) and angles ``theta`` [rad].
+
+    Args:
+        grid: pupil grid; aperture_diameter_m: W_a [m] (the Bessel argument is 2 pi xi r_n / W_a).
+        r, theta: initial ring radii and angles, equal lengths >= 1 (default: the published five rings).
+        m_range: (m_min, m_max), orders m_o = 2m + 1 (default (1, 17) as written: m_o = 3..35).
+        convention: "atan" or "atan2" (see module docstring).
+        harmonic_sign: "printed" or "fourier" (see module docstring).
+        strategy: "exact", "table" or "direct"; table_size: radial samples of the "table" strategy.
+        r_bounds: (lo, hi) box that ``project()`` clamps r into; theta is wrapped into [0, 2 pi).
+        prefix: config key prefix used in error messages.
+    """
+
+    def __init__(self, grid: PupilGrid, aperture_diameter_m: float, r: Sequence[float] = PUBLISHED_R,
+                 theta: Sequence[float] = PUBLISHED_THETA, m_range: Sequence[int] = (1, 17),
+                 convention: str = "atan2", harmonic_sign: str = "printed", strategy: str = "exact",
+                 table_size: int = 4096,
+                 r_bounds: Sequence[float] = (0.5, 200.0), prefix: str = "mask"):
+        super().__init__(grid)
+        r, theta = [float(v) for v in r], [float(v) for v in theta]
+        if len(r) == 0 or len(r) != len(theta):
+            raise ConfigError(f"{prefix}.theta", theta, f"must have the same length as {prefix}.r "
+                              f"({len(r)} values) and at least one value")
+        for i, v in enumerate(r):
+            require_number(f"{prefix}.r[{i}]", v, lo=0, lo_open=True, hi=1e4)
+        for i, v in enumerate(theta):
+            require_number(f"{prefix}.theta[{i}]", v)
+        if len(m_range) != 2:
+            raise ConfigError(f"{prefix}.m_range", list(m_range), "must be [m_min, m_max]")
+        m_lo = require_number(f"{prefix}.m_range[0]", m_range[0], lo=0, hi=99, integer=True)
+        m_hi = require_number(f"{prefix}.m_range[1]", m_range[1], lo=m_lo, hi=99, integer=True)
+        self.convention = require_choice(f"{prefix}.convention", convention, CONVENTIONS)
+        self.harmonic_sign = require_choice(f"{prefix}.harmonic_sign", harmonic_sign, HARMONIC_SIGNS)
+        self.strategy = require_choice(f"{prefix}.strategy", strategy, STRATEGIES)
+        self.table_size = require_number(f"{prefix}.table_size", table_size, lo=16, hi=2**24, integer=True)
+        lo, hi = (require_number(f"{prefix}.r_bounds[{i}]", v, lo=0, lo_open=True) for i, v in enumerate(r_bounds))
+        if lo >= hi:
+            raise ConfigError(f"{prefix}.r_bounds", list(r_bounds), "must be [lo, hi] with 0 < lo < hi")
+        self.r_bounds = (lo, hi)
+        self.aperture_diameter_m = require_number("optics.aperture_diameter_m", aperture_diameter_m, lo=0,
+                                                  lo_open=True)
+        dtype, device = grid.rho.dtype, grid.rho.device
+        self.r = torch.nn.Parameter(torch.tensor(r, dtype=dtype, device=device))
+        self.theta = torch.nn.Parameter(torch.tensor(theta, dtype=dtype, device=device))
+        self.register_buffer("orders", torch.arange(2 * m_lo + 1, 2 * m_hi + 2, 2, device=device), persistent=False)
+        self.n_max = int(self.orders[-1])
+        rho_s = grid.rho.reshape(-1)[grid.support]
+        self._angle_s = grid.angle.reshape(-1)[grid.support]
+        self._harmonics = None
+        if 2 * len(self.orders) * rho_s.numel() * rho_s.element_size() <= _HARMONIC_CACHE_BYTES:
+            self._harmonics = self._angular(self._angle_s)
+        if self.strategy == "exact":
+            self._radii = grid.radii
+        elif self.strategy == "table":
+            r_max = float(grid.radii[-1]) if grid.radii.numel() else 0.0
+            self._radii = torch.linspace(0, r_max, self.table_size, dtype=dtype, device=device)
+            pos = rho_s.to(torch.float64) / max(r_max, 1e-300) * (self.table_size - 1)
+            i0 = pos.floor().clamp(0, self.table_size - 2)
+            self._lerp_index = i0.long()
+            self._lerp_frac = (pos - i0).to(dtype)
+        else:
+            self._radii = rho_s
+
+    # ---- evaluation ---------------------------------------------------------------------------------------
+    def _angular(self, angle: torch.Tensor) -> torch.Tensor:
+        """[sin(m_o Phi); cos(m_o Phi)], shape (2M, S)."""
+        arg = self.orders.to(angle.dtype)[:, None] * angle[None, :]
+        return torch.cat([torch.sin(arg), torch.cos(arg)], 0)
+
+    def radial_profiles(self, radii: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Q0(xi) of shape (U,) and [A_m; -B_m](xi) of shape (2M, U) at the radii xi [m]."""
+        x = (2 * math.pi / self.aperture_diameter_m) * self.r[:, None] * radii[None, :]  # (R, U)
+        j = bessel_j(x, self.n_max)  # (R, U, n_max+1)
+        q0 = (self.r[:, None] * j[..., 0]).sum(0)
+        jm = j[..., self.orders]  # (R, U, M)
+        mo = self.orders.to(x.dtype)
+        a = 4 * self.r[:, None] / (mo[None, :] * math.pi)  # (R, M)
+        if self.harmonic_sign == "fourier":
+            a = a * torch.where((self.orders // 2) % 2 == 0, 1.0, -1.0).to(a)  # (-1)^m, m = (m_o - 1) / 2
+        ang = mo[None, :] * self.theta[:, None]
+        ca, sa = a * torch.cos(ang), a * torch.sin(ang)
+        prof_a = torch.einsum("rm,rum->mu", ca, jm)
+        prof_b = torch.einsum("rm,rum->mu", sa, jm)
+        return q0, torch.cat([prof_a, -prof_b], 0)
+
+    def field_parts(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Real part Q0 and imaginary part Im of the synthesized pupil field at the support samples, (S,) each."""
+        q0, prof = self.radial_profiles(self._radii)
+        if self.strategy == "exact":
+            idx = self.grid.radius_index
+            q0_s, prof_s = q0[idx], prof[:, idx]
+        elif self.strategy == "table":
+            i0, f = self._lerp_index, self._lerp_frac
+            q0_s = torch.lerp(q0[i0], q0[i0 + 1], f)
+            prof_s = torch.lerp(prof[:, i0], prof[:, i0 + 1], f)
+        else:
+            q0_s, prof_s = q0, prof
+        if self._harmonics is not None:
+            im = (prof_s * self._harmonics).sum(0)
+        else:  # large grid: harmonics on the fly, one order at a time, to bound memory
+            m = len(self.orders)
+            im = torch.zeros_like(q0_s)
+            for k in range(m):
+                arg = float(self.orders[k]) * self._angle_s
+                im = im + prof_s[k] * torch.sin(arg) + prof_s[m + k] * torch.cos(arg)
+        return q0_s, im
+
+    def support_phase(self) -> torch.Tensor:
+        q0, im = self.field_parts()
+        return torch.atan2(im, q0) if self.convention == "atan2" else atan_of_ratio(im, q0)
+
+    @torch.no_grad()
+    def project(self) -> None:
+        self.r.clamp_(*self.r_bounds)
+        self.theta.remainder_(2 * math.pi)
+
+    def summary(self) -> dict[str, float]:
+        out = {f"r_{i + 1}": float(v) for i, v in enumerate(self.r.detach().cpu())}
+        out.update({f"theta_{i + 1}": float(v) for i, v in enumerate(self.theta.detach().cpu())})
+        return out

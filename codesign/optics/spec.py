@@ -1,0 +1,167 @@
+"""The optical system's physical parameters (Table 1 of the paper) and its sampling, validated at construction.
+
+All lengths in metres. The pupil grid is square with pitch ``pupil_pitch_m``; the focal window is a square of
+``focal_n`` pixels at ``focal_pitch_m`` (the sensor pitch), centred on the optical axis.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from typing import Any, Mapping
+
+from codesign.errors import ConfigError, require_choice, require_number
+
+PROPAGATORS = ("auto", "mft", "fft")
+
+# The super-Gaussian aperture exp(-(4 rho^2 / W_a^2)^P) is below 1e-20 beyond this radius (in units of W_a / 2)
+# for P = 50; fields beyond it are set to exactly zero, and the grid must hold it.
+_APERTURE_TAIL = 1e-20
+
+
+@dataclass(frozen=True)
+class OpticsSpec:
+    """Physical and sampling parameters of the imaging system (SI units).
+
+    Attributes:
+        wavelength_m: wavelength lambda [m] (Table 1: 633 nm).
+        focal_length_m: effective focal length f [m] (Table 1: 0.11 m).
+        aperture_diameter_m: aperture diameter W_a [m] (Table 1: 3.83 mm).
+        supergaussian_order: exponent P of A = exp(-(4 rho^2 / W_a^2)^P) (Sec. 3.1: 50).
+        pupil_pitch_m: pupil sample pitch Delta_u [m] (Table 1: 3.74 um = 1024 samples across W_a).
+        pupil_n: pupil grid size in samples; None = the smallest even grid that holds the aperture.
+        focal_pitch_m: focal-plane sample pitch [m], the sensor pitch (Table 1: 5.4 um).
+        focal_n: focal window size in samples (centred on the axis).
+        propagator: "mft" (matrix Fourier transform onto the window), "fft" (zero-padded FFT, resampled onto the
+            window if its native pitch differs), or "auto" (the cheaper exact one, by a flop estimate).
+        fft_n: FFT size for the "fft" propagator (paper: 4096); None = the exact size when one exists, else the
+            smallest fast size giving a native pitch <= focal_pitch / 2 (bilinear resampling then stays accurate).
+    """
+
+    wavelength_m: float = 633e-9
+    focal_length_m: float = 0.11
+    aperture_diameter_m: float = 3.83e-3
+    supergaussian_order: float = 50.0
+    pupil_pitch_m: float = 3.74e-6
+    pupil_n: int | None = None
+    focal_pitch_m: float = 5.4e-6
+    focal_n: int = 640
+    propagator: str = "auto"
+    fft_n: int | None = None
+    prefix: str = field(default="optics", compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        p = self.prefix
+        require_number(f"{p}.wavelength_m", self.wavelength_m, lo=1e-8, hi=1e-4)
+        require_number(f"{p}.focal_length_m", self.focal_length_m, lo=0, lo_open=True, hi=100)
+        require_number(f"{p}.aperture_diameter_m", self.aperture_diameter_m, lo=0, lo_open=True, hi=10)
+        require_number(f"{p}.supergaussian_order", self.supergaussian_order, lo=1, hi=1000)
+        require_number(f"{p}.pupil_pitch_m", self.pupil_pitch_m, lo=0, lo_open=True)
+        require_number(f"{p}.focal_pitch_m", self.focal_pitch_m, lo=0, lo_open=True)
+        # Store validated integers (a YAML 640.0 is accepted as 640, and must then be an int everywhere).
+        object.__setattr__(self, "focal_n", require_number(f"{p}.focal_n", self.focal_n, lo=8, hi=16384,
+                                                           integer=True))
+        require_choice(f"{p}.propagator", self.propagator, PROPAGATORS)
+        need = self.min_pupil_n
+        if self.pupil_n is not None:
+            object.__setattr__(self, "pupil_n", require_number(f"{p}.pupil_n", self.pupil_n, lo=2, hi=65536,
+                                                               integer=True))
+            if self.pupil_n < need:
+                raise ConfigError(
+                    f"{p}.pupil_n", self.pupil_n,
+                    f"the pupil grid ({self.pupil_n} x {self.pupil_pitch_m:.3g} m) cannot hold the aperture "
+                    f"(W_a = {self.aperture_diameter_m:.4g} m with its super-Gaussian edge): must be >= {need}, "
+                    f"or null for automatic")
+        if self.fft_n is not None:
+            object.__setattr__(self, "fft_n", require_number(f"{p}.fft_n", self.fft_n, lo=2, hi=65536,
+                                                             integer=True))
+            if self.fft_n < self.grid_n:
+                raise ConfigError(f"{p}.fft_n", self.fft_n,
+                                  f"must be >= the pupil grid size {self.grid_n} (or null for automatic)")
+            native = self.lambda_f / (self.fft_n * self.pupil_pitch_m)
+            if self.lambda_f_over_d / native < 2.0 or self.fft_n * native < self.focal_extent_m:
+                need = math.ceil(max(2 * self.lambda_f / (self.pupil_pitch_m * self.lambda_f_over_d),
+                                     self.grid_n))
+                raise ConfigError(f"{p}.fft_n", self.fft_n,
+                                  f"its native focal pitch {native:.3g} m would alias the PSF "
+                                  f"({self.lambda_f_over_d / native:.3g} samples per lambda*f/W_a, need >= 2) or "
+                                  f"its field is smaller than the window: must be >= {need}, or null")
+        if self.samples_per_lambda_f_over_d < 2.0:
+            raise ConfigError(
+                f"{p}.focal_pitch_m", self.focal_pitch_m,
+                f"the focal sampling would alias the intensity PSF: {self.samples_per_lambda_f_over_d:.3g} samples "
+                f"per lambda*f/W_a, need >= 2, i.e. focal_pitch_m <= {self.lambda_f_over_d / 2:.4g} m")
+        if self.focal_extent_m > self.replica_period_m * (1 + 1e-9):
+            raise ConfigError(
+                f"{p}.pupil_pitch_m", self.pupil_pitch_m,
+                f"the focal window ({self.focal_n} x {self.focal_pitch_m:.3g} m = {self.focal_extent_m:.4g} m) is "
+                f"wider than the period lambda*f/pupil_pitch = {self.replica_period_m:.4g} m of the sampled pupil's "
+                f"spectrum, so it would alias: need pupil_pitch_m <= "
+                f"{self.wavelength_m * self.focal_length_m / self.focal_extent_m:.4g} m or a smaller focal_n")
+
+    # ---- derived quantities -------------------------------------------------------------------------------
+    @property
+    def lambda_f(self) -> float:
+        """lambda * f [m^2]: the Fourier scale between pupil and focal coordinates."""
+        return self.wavelength_m * self.focal_length_m
+
+    @property
+    def lambda_f_over_d(self) -> float:
+        """lambda f / W_a [m]; the Airy first zero is at 1.22 times this."""
+        return self.lambda_f / self.aperture_diameter_m
+
+    @property
+    def samples_per_lambda_f_over_d(self) -> float:
+        return self.lambda_f_over_d / self.focal_pitch_m
+
+    @property
+    def aperture_support_radius_m(self) -> float:
+        """Radius beyond which the super-Gaussian aperture is < 1e-20 (treated as exactly zero)."""
+        return 0.5 * self.aperture_diameter_m * (-math.log(_APERTURE_TAIL)) ** (0.5 / self.supergaussian_order)
+
+    @property
+    def min_pupil_n(self) -> int:
+        n = math.ceil(2 * self.aperture_support_radius_m / self.pupil_pitch_m) + 2
+        return n + n % 2
+
+    @property
+    def grid_n(self) -> int:
+        return self.pupil_n if self.pupil_n is not None else self.min_pupil_n
+
+    @property
+    def samples_across_aperture(self) -> float:
+        return self.aperture_diameter_m / self.pupil_pitch_m
+
+    @property
+    def focal_extent_m(self) -> float:
+        return self.focal_n * self.focal_pitch_m
+
+    @property
+    def replica_period_m(self) -> float:
+        """lambda f / Delta_u: the focal-plane period of the sampled pupil's Fourier transform."""
+        return self.lambda_f / self.pupil_pitch_m
+
+    @property
+    def cutoff_frequency(self) -> float:
+        """Incoherent cutoff W_a / (lambda f) [cycles/m]."""
+        return self.aperture_diameter_m / self.lambda_f
+
+    # ---- construction -------------------------------------------------------------------------------------
+    def replace(self, **changes: Any) -> "OpticsSpec":
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        values.update(changes)
+        return OpticsSpec(**values)
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any], prefix: str = "optics") -> "OpticsSpec":
+        """Build from a mapping (e.g. the Hydra ``optics`` node); unknown keys are an error naming them."""
+        known = {f.name for f in fields(cls)} - {"prefix"}
+        extra = sorted(set(cfg) - known)
+        if extra:
+            raise ConfigError(f"{prefix}.{extra[0]}", cfg[extra[0]], f"unknown key; allowed: {', '.join(sorted(known))}")
+        return cls(**dict(cfg), prefix=prefix)
+
+    @classmethod
+    def with_samples_across(cls, samples: float, **kw: Any) -> "OpticsSpec":
+        """The spec whose pupil pitch puts ``samples`` pupil samples across the aperture diameter."""
+        d = kw.get("aperture_diameter_m", cls.aperture_diameter_m)
+        return cls(pupil_pitch_m=d / samples, **kw)

@@ -1,0 +1,61 @@
+"""Shared fixtures and the --runslow switch for the codesign test suite."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+
+torch.set_num_threads(2)
+
+
+def pytest_addoption(parser):
+    parser.addoption("--runslow", action="store_true", default=False, help="also run tests marked slow")
+
+
+def pytest_collection_modifyitems(config, items):
+    if config.getoption("--runslow"):
+        return
+    skip_slow = pytest.mark.skip(reason="slow: run with --runslow")
+    for item in items:
+        if "slow" in item.keywords:
+            item.add_marker(skip_slow)
+
+
+@pytest.fixture(scope="session")
+def repo_root() -> Path:
+    """The repository root (holds codesign/ and conf/)."""
+    return REPO_ROOT
+
+
+@pytest.fixture(scope="session")
+def small_spec():
+    """64 pupil samples across the aperture, 64 x 64 focal window at the sensor pitch (MFT)."""
+    from codesign.optics import OpticsSpec
+
+    return OpticsSpec.with_samples_across(64, focal_n=64)
+
+
+@pytest.fixture(scope="session")
+def small_system64(small_spec):
+    """float64 optical system on ``small_spec``."""
+    from codesign.optics import OpticalSystem
+
+    return OpticalSystem(small_spec, dtype=torch.float64)
+
+
+@pytest.fixture(scope="session")
+def tiny_spec():
+    """A very small valid spec for gradchecks: 24 samples across the aperture, 32 x 32 focal window."""
+    from codesign.optics import OpticsSpec
+
+    return OpticsSpec.with_samples_across(24, focal_n=32)
+
+
+@pytest.fixture(scope="session")
+def tiny_system64(tiny_spec):
+    from codesign.optics import OpticalSystem
+
+    return OpticalSystem(tiny_spec, dtype=torch.float64)

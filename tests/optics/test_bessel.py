@@ -1,0 +1,146 @@
+"""J_0..J_n of codesign.optics.bessel against scipy.special.jv, its gradient, and its input checks."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy import special
+
+from codesign.optics.bessel import bessel_j
+
+N_MAX = 60
+
+
+def _switch_points(n_max: int) -> list[float]:
+    return [1.0, 25.0, float(max(25, n_max + 2))]
+
+
+def _x_grid(n_max: int) -> np.ndarray:
+    pts = [0.0, 1e-300, 1e-12, 1e-8, 1e-3, 0.5, 0.999999, 999.0, 1000.0]
+    pts += list(np.linspace(0.0, 1000.0, 4001))
+    pts += list(np.geomspace(1e-6, 1000.0, 400))
+    for s in _switch_points(n_max):
+        pts += list(s + np.linspace(-1e-3, 1e-3, 41))
+        pts += list(s + np.array([-1e-9, -1e-12, 0.0, 1e-12, 1e-9]))
+        pts += list(s + np.linspace(-2.0, 2.0, 81))
+    # near the turning points x ~ n, where J_n changes from evanescent to oscillatory
+    pts += list(np.linspace(0.0, 80.0, 1601))
+    x = np.unique(np.clip(np.asarray(pts, dtype=np.float64), 0.0, 1000.0))
+    return x
+
+
+def _reference(x: np.ndarray, n_max: int) -> np.ndarray:
+    return special.jv(np.arange(n_max + 1)[None, :], x[:, None])
+
+
+@pytest.mark.parametrize("n_max", [1, 2, 10, 35, 36, N_MAX])
+def test_bessel_float64_matches_scipy_to_1e10(n_max):
+    x = _x_grid(n_max)
+    got = bessel_j(torch.from_numpy(x), n_max)
+    assert got.dtype == torch.float64
+    assert got.shape == (x.size, n_max + 1)
+    got = got.numpy()
+    assert np.isfinite(got).all()
+    ref = _reference(x, n_max)
+    err = np.abs(got - ref)
+    i, n = np.unravel_index(np.argmax(err), err.shape)
+    assert err.max() <= 1e-10, f"max |error| {err.max():.3e} at x = {x[i]!r}, n = {n}"
+
+
+def test_bessel_float32_matches_scipy_to_1e5():
+    x = _x_grid(N_MAX)
+    xt = torch.from_numpy(x).to(torch.float32)
+    got = bessel_j(xt, N_MAX)
+    assert got.dtype == torch.float32
+    got = got.numpy().astype(np.float64)
+    assert np.isfinite(got).all()
+    ref = _reference(xt.numpy().astype(np.float64), N_MAX)  # reference at the float32-rounded arguments
+    assert np.abs(got - ref).max() <= 1e-5
+
+
+def test_bessel_at_zero_and_tiny_arguments_is_exact():
+    x = torch.tensor([0.0, 1e-300, 1e-12], dtype=torch.float64)
+    j = bessel_j(x, N_MAX)
+    assert torch.isfinite(j).all()
+    assert torch.equal(j[0], torch.cat([torch.ones(1, dtype=torch.float64), torch.zeros(N_MAX, dtype=torch.float64)]))
+    assert abs(float(j[1, 0]) - 1.0) == 0.0
+    assert abs(float(j[2, 0]) - 1.0) <= 1e-20
+    assert abs(float(j[2, 1]) - 5e-13) <= 1e-25
+    assert (j[1:, 2:].abs() <= 1e-23).all()
+
+
+def test_bessel_keeps_input_shape():
+    x = torch.rand(3, 4, 5, dtype=torch.float64) * 50
+    j = bessel_j(x, 7)
+    assert j.shape == (3, 4, 5, 8)
+    ref = _reference(x.reshape(-1).numpy(), 7).reshape(3, 4, 5, 8)
+    np.testing.assert_allclose(j.numpy(), ref, atol=1e-12, rtol=0)
+
+
+def test_bessel_empty_input():
+    j = bessel_j(torch.zeros(0, dtype=torch.float64), 5)
+    assert j.shape == (0, 6)
+
+
+def _jprime(x: np.ndarray, n_max: int) -> np.ndarray:
+    n = np.arange(n_max + 1)[None, :]
+    xx = x[:, None]
+    d = 0.5 * (special.jv(n - 1, xx) - special.jv(n + 1, xx))
+    d[:, 0] = -special.jv(1, x)
+    return d
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-10), (torch.float32, 1e-5)])
+def test_bessel_gradient_matches_recurrence_derivative(dtype, tol):
+    x_np = _x_grid(N_MAX)[::7]
+    x = torch.from_numpy(x_np).to(dtype).requires_grad_(True)
+    j = bessel_j(x, N_MAX)
+    ref = _jprime(x.detach().numpy().astype(np.float64), N_MAX)
+    for n in [0, 1, 2, 3, 17, 35, 59, N_MAX]:
+        (g,) = torch.autograd.grad(j[:, n].sum(), x, retain_graph=True)
+        assert torch.isfinite(g).all()
+        err = np.abs(g.numpy().astype(np.float64) - ref[:, n]).max()
+        assert err <= tol, f"order {n}: max |dJ/dx error| = {err:.3e}"
+    # all orders at once, with random weights
+    w = torch.randn(N_MAX + 1, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    (g,) = torch.autograd.grad((j * w.to(dtype)).sum(), x)
+    np.testing.assert_allclose(g.numpy().astype(np.float64), ref @ w.numpy(), atol=tol * 20, rtol=0)
+
+
+@pytest.mark.parametrize("x0", [0.3, 0.9, 3.7, 24.0, 30.5, 61.0, 70.0, 640.0])
+def test_bessel_gradcheck_float64(x0):
+    x = torch.tensor([x0, x0 * 0.97], dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t: bessel_j(t, N_MAX), (x,), eps=1e-6, atol=1e-7, rtol=1e-6)
+
+
+def test_bessel_gradient_at_zero_is_finite():
+    x = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    j = bessel_j(x, 4)
+    (g,) = torch.autograd.grad(j.sum(), x)
+    # d/dx [J0 + J1 + J2 + J3 + J4] at 0 = -J1(0) + (J0 - J2)/2 + ... = 1/2
+    torch.testing.assert_close(g, torch.full_like(g, 0.5), rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("bad", [[-1.0], [1.0, -1e-300], [float("nan")], [2.0, float("nan"), 3.0]])
+def test_bessel_rejects_negative_or_nan(bad):
+    with pytest.raises(ValueError, match="x must be >= 0 and not NaN"):
+        bessel_j(torch.tensor(bad, dtype=torch.float64), 3)
+
+
+@pytest.mark.parametrize("dtype", [torch.int64, torch.int32, torch.bool, torch.complex128])
+def test_bessel_rejects_non_real_floating_dtype(dtype):
+    with pytest.raises(ValueError, match="x must be a real floating tensor"):
+        bessel_j(torch.ones(3, dtype=dtype), 3)
+
+
+@pytest.mark.parametrize("n_max", [0, -1, 201, 2.0, "3", None])
+def test_bessel_rejects_n_max_out_of_range(n_max):
+    with pytest.raises(ValueError, match=r"n_max must be an integer in \[1, 200\]"):
+        bessel_j(torch.ones(3, dtype=torch.float64), n_max)
+
+
+def test_bessel_accepts_n_max_200():
+    x = torch.tensor([0.5, 10.0, 150.0, 210.0, 999.0], dtype=torch.float64)
+    j = bessel_j(x, 200)
+    ref = _reference(x.numpy(), 200)
+    assert np.abs(j.numpy() - ref).max() <= 1e-10
