@@ -23,7 +23,13 @@ def _psf(cfg, run_dir, device):
     return run_psf(cfg, run_dir, device)
 
 
-EXPERIMENTS: dict[str, Callable] = {"psf": _psf}
+def _simulate(cfg, run_dir, device):
+    from codesign.engine.simulate_task import run_simulate
+
+    return run_simulate(cfg, run_dir, device)
+
+
+EXPERIMENTS: dict[str, Callable] = {"psf": _psf, "simulate": _simulate}
 
 
 def _run_dir() -> Path:

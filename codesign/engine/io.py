@@ -61,6 +61,15 @@ def save_npy(path: Path, array: Any) -> Path:
     return _atomic(path, w, ".npy")
 
 
+def atomic_write_bytes(path: Path, write) -> Path:
+    """Write binary content through ``write(file_object)``, atomically."""
+    def w(tmp: str) -> None:
+        with open(tmp, "wb") as f:
+            write(f)
+
+    return _atomic(path, w, Path(path).suffix)
+
+
 def save_figure(path: Path, fig) -> Path:
     """Save a matplotlib figure as PNG atomically and close it."""
     import matplotlib.pyplot as plt

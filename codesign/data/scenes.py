@@ -1,0 +1,161 @@
+"""Scene batches for training and evaluation, and building them from the ``data`` config.
+
+A batch is a (B, 1, crop, crop) float32 tensor of scene radiance in [0, 1] on the CPU (the caller moves it to
+its device): random crops with random flips for training, centre crops for evaluation.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import torch
+
+from codesign.data.builtin import builtin_scene_names
+from codesign.data.images import UnreadableImage
+from codesign.data.paramconfig import ParamConfig, param_config
+from codesign.data.source import SceneSource
+from codesign.errors import ConfigError, require_choice, require_number
+
+__all__ = ["SceneSampler", "DataConfig", "data_config", "build_scene_source", "build_scene_sampler",
+           "SceneSource", "builtin_scene_names"]
+
+
+class SceneSampler:
+    """Endless random scene crops from one split of a SceneSource; deterministic for a given generator state.
+
+    Each batch: B scenes drawn uniformly with replacement, each upscaled first if its shorter side is below
+    ``crop_size`` (antialiased bicubic), a uniformly placed crop_size x crop_size window, then (flips=True)
+    independent horizontal and vertical flips with probability 1/2. Random draws, in order: scene indices
+    (B,), flips (B, 2), then per scene the crop top and left. ``last_names`` holds the scenes of the last batch.
+    """
+
+    def __init__(self, source: SceneSource, split: str, crop_size: int, batch_size: int,
+                 generator: torch.Generator, flips: bool = True):
+        self.source = source
+        self.split = require_choice("split", split, ("train", "test", "all"))
+        self.crop_size = require_number("crop_size", crop_size, lo=1, integer=True)
+        self.batch_size = require_number("batch_size", batch_size, lo=1, integer=True)
+        if not isinstance(generator, torch.Generator) or generator.device.type != "cpu":
+            raise TypeError(f"generator must be a CPU torch.Generator, got {generator!r}")
+        self.generator, self.flips = generator, bool(flips)
+        self.last_names: list[str] = []
+        self._pool()  # fail now, not at the first batch, when the split is empty
+
+    def _pool(self) -> list[str]:
+        pool = self.source.split_names(self.split)
+        if not pool:
+            n = len(self.source.split_names("all"))
+            raise ConfigError(self.source.key, self.source.origin,
+                              f"has {n} usable scene(s), none in the '{self.split}' split (a test split needs "
+                              f">= 2 scenes; see data.test_fraction)")
+        return pool
+
+    def __iter__(self) -> "SceneSampler":
+        return self
+
+    def __next__(self) -> torch.Tensor:
+        return self.sample()
+
+    def _draw_image(self, name: str) -> tuple[str, torch.Tensor]:
+        """The image of ``name``; if it fails to decode (then dropped from the split), redraw another."""
+        while True:
+            try:
+                return name, self.source.image(name, self.crop_size)
+            except UnreadableImage:
+                pool = self._pool()
+                name = pool[int(torch.randint(len(pool), (1,), generator=self.generator))]
+
+    def sample(self) -> torch.Tensor:
+        """One (B, 1, crop, crop) float32 batch in [0, 1]."""
+        g, c, b = self.generator, self.crop_size, self.batch_size
+        pool = self._pool()
+        idx = torch.randint(len(pool), (b,), generator=g).tolist()
+        flip = (torch.rand(b, 2, generator=g) < 0.5).tolist()
+        out = torch.empty(b, 1, c, c, dtype=torch.float32)
+        self.last_names = []
+        for i in range(b):
+            name, img = self._draw_image(pool[idx[i]])
+            h, w = img.shape
+            top = int(torch.randint(h - c + 1, (1,), generator=g))
+            left = int(torch.randint(w - c + 1, (1,), generator=g))
+            crop = img[top:top + c, left:left + c]
+            dims = [d for d, f in zip((0, 1), flip[i]) if f and self.flips]  # (vertical, horizontal)
+            out[i, 0] = crop.flip(dims) if dims else crop
+            self.last_names.append(name)
+        return out
+
+    def fixed_batch(self, items: Sequence[str | int], crop_size: int | None = None) -> torch.Tensor:
+        """(N, 1, crop, crop) centre crops, no flips: names of any scene of the source, or indices into this
+        sampler's split (evaluation; the same scenes every call)."""
+        return self.source.fixed_batch(items, self.crop_size if crop_size is None else crop_size, self.split)
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    """The validated ``data`` block (see conf/data/default.yaml). Sizes in pixels."""
+
+    scenes: str                 # builtin | folder
+    folder: Path | None         # the image folder when scenes == folder
+    image_size: int             # network image side (the simulated capture is downsampled to it)
+    padded_size: int            # network input side after zero padding, >= image_size
+    batch_size: int
+    test_fraction: float        # share of the scenes held out for testing, in (0, 1)
+    split_seed: int             # seed of the fixed train/test split
+    flips: bool                 # random flips of training crops
+    cache_mb: float             # decoded-image cache, MiB
+    params: ParamConfig         # data.params: the scene-parameter distribution
+
+
+def data_config(cfg: Mapping | Any) -> DataConfig:
+    """Validate the ``data`` config node (or a root config holding one); errors name the ``data.*`` key."""
+    if cfg is not None and "data" in cfg and "scenes" not in cfg:
+        cfg = cfg["data"]
+    if cfg is None or not hasattr(cfg, "get"):
+        raise ConfigError("data", cfg, "must be a mapping (conf/data/default.yaml)")
+    scenes = require_choice("data.scenes", cfg.get("scenes", "builtin"), ("builtin", "folder"))
+    folder = cfg.get("folder")
+    if scenes == "folder":
+        if not isinstance(folder, (str, Path)) or not str(folder).strip():
+            raise ConfigError("data.folder", folder, "must be the path of an image folder when data.scenes=folder")
+        folder = Path(str(folder)).expanduser()
+    elif folder is not None and not isinstance(folder, (str, Path)):
+        raise ConfigError("data.folder", folder, "must be a path or null")
+    image_size = require_number("data.image_size", cfg.get("image_size", 256), lo=1, integer=True)
+    padded = cfg.get("padded_size", 384)
+    padded_size = require_number("data.padded_size", padded, lo=1, integer=True)
+    if padded_size < image_size:
+        raise ConfigError("data.padded_size", padded, f"must be an integer >= data.image_size ({image_size})")
+    flips = cfg.get("flips", True)
+    if not isinstance(flips, bool):
+        raise ConfigError("data.flips", flips, "must be true or false")
+    return DataConfig(
+        scenes=scenes, folder=Path(folder).expanduser() if scenes == "folder" else None,
+        image_size=image_size, padded_size=padded_size,
+        batch_size=require_number("data.batch_size", cfg.get("batch_size", 8), lo=1, integer=True),
+        test_fraction=require_number("data.test_fraction", cfg.get("test_fraction", 0.1), lo=0, hi=1,
+                                     lo_open=True, hi_open=True),
+        split_seed=require_number("data.split_seed", cfg.get("split_seed", 0), lo=0, integer=True),
+        flips=flips,
+        cache_mb=require_number("data.cache_mb", cfg.get("cache_mb", 1024), lo=0),
+        params=param_config(cfg.get("params")),
+    )
+
+
+def build_scene_source(cfg: Mapping | DataConfig) -> SceneSource:
+    """The SceneSource of the ``data`` config (validated first); ``source.config`` holds the DataConfig."""
+    dc = cfg if isinstance(cfg, DataConfig) else data_config(cfg)
+    kw = dict(test_fraction=dc.test_fraction, split_seed=dc.split_seed, cache_mb=dc.cache_mb)
+    source = SceneSource.from_folder(dc.folder, **kw) if dc.scenes == "folder" else SceneSource.builtin(**kw)
+    source.config = dc
+    return source
+
+
+def build_scene_sampler(cfg: Mapping | DataConfig, split: str, generator: torch.Generator,
+                        crop_size: int | None = None, source: SceneSource | None = None) -> SceneSampler:
+    """A SceneSampler over ``split`` with data.batch_size and data.flips (flips only for 'train');
+    crop_size defaults to data.image_size. Pass ``source`` to share one source (and its cache)."""
+    dc = cfg if isinstance(cfg, DataConfig) else data_config(cfg)
+    source = source if source is not None else build_scene_source(dc)
+    crop = dc.image_size if crop_size is None else crop_size
+    return SceneSampler(source, split, crop, dc.batch_size, generator, flips=dc.flips and split == "train")

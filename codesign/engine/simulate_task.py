@@ -1,0 +1,142 @@
+"""``+experiment=simulate``: example sensor images across laser strengths, 16-bit captures, and metrics."""
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from codesign.config import resolve_dtype
+from codesign.data.params import fixed_scene_params, sample_scene_params
+from codesign.data.scenes import build_scene_source
+from codesign.engine import io
+from codesign.engine.plots import plt
+from codesign.errors import ConfigError, require_number
+from codesign.optics import OpticalSystem, OpticsSpec, build_mask
+from codesign.sensor.simulator import SensorSimulator, mask_state_key, psf_state
+from codesign.sensor.spec import SensorSpec
+
+log = logging.getLogger("codesign.simulate")
+
+
+def build_simulator(cfg: DictConfig, device, dtype):
+    """Optics system, mask, sensor spec and simulator from the composed config (all validated first)."""
+    optics = OpticsSpec.from_config(OmegaConf.to_container(cfg.optics, resolve=True))
+    sensor_cfg = OmegaConf.to_container(cfg.sensor, resolve=True)
+    sensor_cfg.update(image_size=cfg.data.image_size, padded_size=cfg.data.padded_size)
+    sensor = SensorSpec.from_config(sensor_cfg)
+    system = OpticalSystem(optics, dtype=dtype, device=device)
+    mask = build_mask(OmegaConf.to_container(cfg.mask, resolve=True), system.grid, optics.aperture_diameter_m)
+    mask.freeze()
+    return system, mask, SensorSimulator(sensor, optics)
+
+
+def _grid_figure(images: np.ndarray, rows: list[str], cols: list[float], log_view: bool, full_scale: float):
+    nr, nc = images.shape[:2]
+    # log view: from the darkest 1% of the laser-free captures (read offset + dim scene) to full scale, so that
+    # faint laser structure (alpha_l = 10, 100) stands out
+    log_lo = float(np.log10(max(np.percentile(images[:, 0], 1), 1.0)))
+    fig, axes = plt.subplots(nr, nc, figsize=(1.9 * nc, 2.0 * nr), squeeze=False)
+    for i in range(nr):
+        for j in range(nc):
+            ax = axes[i][j]
+            img = images[i, j]
+            if log_view:
+                ax.imshow(np.log10(np.maximum(img, 1.0)), cmap="gray", vmin=log_lo, vmax=np.log10(full_scale))
+            else:
+                ax.imshow(img, cmap="gray", vmin=0, vmax=full_scale)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if i == 0:
+                ax.set_title(f"alpha_l = {cols[j]:g}", fontsize=8)
+            if j == 0:
+                ax.set_ylabel(rows[i], fontsize=8)
+    fig.suptitle(("log10 counts" if log_view else "counts (linear, 0 .. G e_sat)") + " of the simulated sensor")
+    fig.tight_layout()
+    return fig
+
+
+def _save_png16(path: Path, dn: np.ndarray) -> None:
+    from PIL import Image
+
+    arr = np.clip(np.rint(dn), 0, 65535).astype(np.uint16)
+    io.atomic_write_bytes(path, lambda f: Image.fromarray(arr).save(f, format="PNG"))
+
+
+def run_simulate(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
+    sim_cfg = cfg.get("simulate")
+    if sim_cfg is None:
+        raise ConfigError("simulate", None, "missing: use +experiment=simulate")
+    dtype = resolve_dtype("precision", cfg.get("precision", "float32"))
+    alphas = [require_number(f"simulate.alpha_l[{i}]", a, lo=0, hi=1e12) for i, a in enumerate(sim_cfg.alpha_l)]
+    n_scenes = require_number("simulate.scenes", sim_cfg.scenes, lo=1, hi=64, integer=True)
+    angle = list(sim_cfg.laser_angle_rad)
+    if len(angle) != 2:
+        raise ConfigError("simulate.laser_angle_rad", angle, "must be [n_u, n_v] in radians")
+    repeats = require_number("simulate.timing_repeats", sim_cfg.get("timing_repeats", 3), lo=1, integer=True)
+    source = build_scene_source(cfg.data)
+    system, mask, sim = build_simulator(cfg, device, dtype)
+    names = source.split_names("test")[:n_scenes]
+    if len(names) < n_scenes:
+        names = source.split_names("all")[:n_scenes]
+    scenes = source.fixed_batch(names, sim.scene_size).to(device=device, dtype=dtype)
+    log.info("sensor path %s: %d x %d network pixels of %.3g m (bin %.3f), scene crop %d, PSF kernel %d",
+             sim.sensor.path, sim.sensor.image_size, sim.sensor.image_size, sim.sensor.coarse_pitch_m,
+             sim.sensor.bin_factor, sim.scene_size, sim.coarse.ksize)
+    with torch.no_grad():
+        state = psf_state(system, mask.phase())
+    key = mask_state_key(mask)
+    seed = int(cfg.get("seed", 0))
+    fixed = OmegaConf.to_container(sim_cfg.params, resolve=True)
+    grid = np.zeros((len(names), len(alphas), sim.sensor.image_size, sim.sensor.image_size))
+    metrics = {}
+    with torch.no_grad():
+        for j, a in enumerate(alphas):
+            params = fixed_scene_params(len(names), dtype=dtype, device=device, alpha_l=a,
+                                        laser_angle_rad=angle, **fixed)
+            out = sim(scenes, params, state, seed=seed + j, mask_key=key)
+            dn = out["sensor_dn"][:, 0].cpu().numpy()
+            grid[:, j] = dn
+            metrics[f"saturated_fraction_alpha_l_{a:g}"] = float(out["saturated"].float().mean())
+            metrics[f"laser_peak_alpha_l_{a:g}"] = float(out["laser"].max())
+            for i, name in enumerate(names):
+                _save_png16(run_dir / f"sensor_{name}_alpha_l_{a:g}.png", dn[i])
+            if j == len(alphas) - 1:
+                io.save_npy(run_dir / "example_sensor.npy", out["sensor"][0, 0])
+                io.save_npy(run_dir / "example_irradiance_target.npy", out["irradiance"][0, 0])
+                io.save_npy(run_dir / "example_scene_target.npy", out["scene"][0, 0])
+        # throughput on a training-like batch (random Sec. 6.2 parameters)
+        gen = torch.Generator().manual_seed(seed)
+        batch = int(cfg.data.batch_size)
+        sp = sample_scene_params(batch, gen, cfg.data.params, sensor_width_m=sim.sensor.resolution *
+                                 sim.sensor.pixel_pitch_m, sensor_height_m=sim.sensor.resolution *
+                                 sim.sensor.pixel_pitch_m, focal_length_m=sim.optics.focal_length_m)
+        sp = sp.to(device, dtype)
+        idx = torch.arange(batch) % scenes.shape[0]
+        bscenes = scenes[idx]
+        sim(bscenes, sp, state, seed=seed, mask_key=key)  # warm-up (fills the kernel cache)
+        t0 = time.perf_counter()
+        for r in range(repeats):
+            sim(bscenes, sp, state, seed=seed + r, mask_key=key)
+        seconds = (time.perf_counter() - t0) / (repeats * batch)
+    full = sim.sensor.gain_dn_per_e * sim.sensor.full_well_e
+    io.save_figure(run_dir / "sensor_grid_linear.png", _grid_figure(grid, names, alphas, False, full))
+    io.save_figure(run_dir / "sensor_grid_log.png", _grid_figure(grid, names, alphas, True, full))
+    lsr = float(state.psf.max()) / state.uncoded_peak
+    metrics.update({
+        "seconds_per_image": seconds, "images_per_second": 1.0 / seconds, "batch_size": batch,
+        "sensor_path": sim.sensor.path, "bsr": float(state.psf.sum()) / state.uncoded_energy, "lsr_sampled": lsr,
+        "image_size": sim.sensor.image_size, "padded_size": sim.sensor.padded_size,
+        "network_pixel_pitch_m": sim.sensor.coarse_pitch_m, "sensor_resolution": sim.sensor.resolution,
+        "scene_size": sim.scene_size, "psf_kernel_size": sim.coarse.ksize, "scenes": len(names),
+        "saturation_irradiance_w_m2": sim.sensor.saturation_irradiance(sim.sensor.wavelength_laser_m),
+        "precision": str(dtype).replace("torch.", ""), "device": str(device), "threads": torch.get_num_threads(),
+    })
+    io.write_json(run_dir / "metrics.json", metrics)
+    log.info("scenes %s; saturated fraction per alpha_l: %s; %.4f s/image (%.1f images/s, batch %d, %s path)",
+             ", ".join(names), ", ".join(f"{a:g}: {metrics[f'saturated_fraction_alpha_l_{a:g}']:.4f}"
+                                         for a in alphas), seconds, 1 / seconds, batch, sim.sensor.path)
+    return seconds

@@ -1,0 +1,285 @@
+"""Physics-based sensor image formation, Sec. 3.2 (Eq. 6-11), differentiable with respect to the PSF.
+
+Irradiances are carried relative to the saturation irradiance I_sat(lambda) of Eq. (ThresSat): r = I / I_sat.
+Then the mean photon count per sensor pixel of Eq. (photon_count) is simply mu_p = r e_sat / Q_e (the exposure
+time cancels: Eq. 8-9 define the scene and the laser relative to I_sat(t)), and
+
+  background  r_b = alpha_b (b * h) / sum(h0)           uncoded uniform scene -> alpha_b, coded -> alpha_b BSR
+  laser       r_l = alpha_l h(x - f n_l) / h0(0)        uncoded peak -> alpha_l, coded peak -> alpha_l LSR
+  electrons   e = Q_e omega + n_c + n_r,  omega ~ N(mu_p, c2^2 mu_p + c1^2 mu_p^2)   (see noise.py)
+  counts      s = crop(min(s_sat, round(G min(e_sat, e) + n_q)))
+
+The laser never passes through the scene's FFT: it is placed by exact Fourier interpolation of the window PSF
+at its sub-pixel focal offset (kernels.resample_psf), evaluated in float64 on its PSF support only, and skipped
+when alpha_l = 0 or its support misses the sensor. Saturation: min(e_sat, e) has zero gradient where a pixel is
+physically saturated (no signal passes, so none flows back).
+
+Two resolutions (``sensor.path``):
+  * full: simulate every sensor pixel (resolution^2, pitch dx), round to integer counts, then downsample to the
+    network resolution (area average or antialiased bicubic, ``sensor.downsample``).
+  * direct: simulate at the network resolution: the PSF integrated over the coarse pixel (side P = k dx), and
+    every noise term given the statistics of the k x k average (std / k, Poisson(k^2 mu_c) / k^2, quantization
+    as Gaussian of the averaged rounding variance). Saturation is applied to the average, which is where the two
+    differ (measured in docs/sensor.md).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from codesign.optics.propagation import next_fast_len
+from codesign.optics.spec import OpticsSpec
+from codesign.sensor import kernels
+from codesign.sensor.noise import NoiseStreams, dark_current, photons, read_noise, round_ste
+from codesign.sensor.spec import SensorSpec, kernel_size
+
+
+@dataclass
+class PSFState:
+    """What the simulator needs of the optics: the coded window PSF and the uncoded normalizers.
+
+    psf: (M, M) unit-energy coded PSF on the optics window (pitch dx); uncoded_peak: h0(0) per window sample;
+    uncoded_energy: sum of h0 over the window.
+    """
+
+    psf: torch.Tensor
+    uncoded_peak: float
+    uncoded_energy: float
+
+
+@dataclass
+class Level:
+    """One simulation grid: pixel pitch, sensor size, kernel size, scene size, FFT size, noise scaling."""
+
+    pitch: float
+    n_sensor: int
+    ksize: int
+    n_scene: int
+    n_fft: int
+    noise_scale: float  # sqrt(sum w^2) of the binning from sensor pixels to this grid's pixels
+    bins: float  # (pitch / dx)^2: sensor pixels per simulated pixel
+
+
+class SensorSimulator(torch.nn.Module):
+    """Scenes + scene parameters + PSF -> sensor counts, network input and ground truths.
+
+    Args:
+        sensor: SensorSpec; optics: OpticsSpec (window PSF pitch and size, focal length).
+    Geometry (direct path, Table 1 defaults): network pixel P = 2532 / 256 * 5.4 um = 53.4 um; PSF kernel
+    ``coarse.ksize`` = 65 pixels (the 640-sample optics window); the scene crop must be
+    ``scene_size`` = padded_size + ksize - 1 pixels (448) so that the irradiance target covers the padded grid.
+    """
+
+    def __init__(self, sensor: SensorSpec, optics: OpticsSpec, skip_unneeded: bool = True):
+        super().__init__()
+        self.skip_unneeded = skip_unneeded  # False computes every term even when it is zero (the reference)
+        self.sensor, self.optics = sensor, optics
+        dx = sensor.pixel_pitch_m
+        if abs(optics.focal_pitch_m - dx) > 1e-12:
+            raise ValueError(f"optics.focal_pitch_m ({optics.focal_pitch_m}) must equal sensor.pixel_pitch_m ({dx}): "
+                             "the optics window is sampled at the sensor pitch")
+        extent = optics.focal_extent_m
+        p = sensor.coarse_pitch_m
+        kc = kernel_size(extent, p)
+        n_scene = sensor.padded_size + kc - 1
+        w2 = 1.0 / sensor.bin_factor**2
+        self.coarse = Level(p, sensor.image_size, kc, n_scene, next_fast_len(n_scene), math.sqrt(w2),
+                            sensor.bin_factor**2)
+        kf = kernel_size(extent, dx)
+        nf_scene = sensor.resolution + kf - 1
+        self.fine = Level(dx, sensor.resolution, kf, nf_scene, next_fast_len(nf_scene), 1.0, 1.0)
+        # DFT size of the zero-padded window PSF: wide enough for the farthest pixel edge of any level's kernel or
+        # laser footprint (ksize / 2 pixels plus half a pixel of sub-pixel offset).
+        reach = max((lv.ksize / 2 + 1) * lv.pitch for lv in (self.coarse, self.fine))
+        self.spectrum_size = kernels.padded_size(optics.focal_n, dx, reach)
+        self._cache_key = None
+        self._cache = {}
+
+    @property
+    def scene_size(self) -> int:
+        """Side of the (B, 1, S, S) scene crop the simulator expects, at the network resolution."""
+        return self.coarse.n_scene
+
+    # ---- PSF kernels, cached per PSF state -----------------------------------------------------------------
+    def _kernels(self, state: PSFState, level: Level, key) -> dict:
+        ck = (key, level.pitch)
+        if key is not None and ck in self._cache:
+            return self._cache[ck]
+        dx = self.sensor.pixel_pitch_m
+        # One float64 spectrum per PSF state serves every level, kernel and laser footprint, so that they are
+        # the same interpolant of the window PSF (the laser's peak reaches 1e8 I_sat: float64 keeps it exact).
+        psf64 = state.psf.to(torch.float64)
+        spectrum = kernels.psf_spectrum(psf64, self.spectrum_size)
+        c = kernels.centred_coords(level.ksize, level.pitch, psf64.device)
+        k = kernels.resample_spectrum(spectrum, dx, c, c, level.pitch, self.sensor.pixel_integration)
+        k = kernels.conserve_energy(k, psf64).to(state.psf.dtype)
+        out = {"otf": kernels.kernel_otf(k, level.n_fft), "kernel": k, "laser_spectrum": spectrum,
+               "psf64_sum": psf64.sum()}
+        if key is not None:
+            if key != self._cache_key:
+                self._cache = {}
+                self._cache_key = key
+            self._cache[ck] = out
+        return out
+
+    def kernel(self, state: PSFState, level: str = "coarse") -> torch.Tensor:
+        """The pixel-integrated PSF kernel (ksize x ksize energy fractions) the simulator convolves with."""
+        return self._kernels(state, self.coarse if level == "coarse" else self.fine, None)["kernel"]
+
+    # ---- laser --------------------------------------------------------------------------------------------
+    def laser_map(self, state: PSFState, alpha_l: torch.Tensor, angle: torch.Tensor, level: Level, dtype,
+                  key=None) -> torch.Tensor | None:
+        """r_l on the sensor grid (B, 1, n, n), or None when no sample has a laser on the sensor."""
+        n, ks, pitch = level.n_sensor, level.ksize, level.pitch
+        f = self.optics.focal_length_m
+        todo = []  # (sample, first row, first col, laser position in pixels, footprint outside the sensor)
+        for i in range(alpha_l.shape[0]):
+            if float(alpha_l[i]) == 0.0 and self.skip_unneeded:
+                continue
+            # angle = (n_u, n_v): u runs along columns (x), v along rows (y), as in the pupil grid.
+            pos = (f * angle[i].detach().to(torch.float64).cpu().flip(-1)) / pitch + (n - 1) / 2  # (row, col)
+            r0, c0 = (int(v) - ks // 2 for v in torch.round(pos).long())
+            outside = r0 >= n or c0 >= n or r0 + ks <= 0 or c0 + ks <= 0
+            if outside and self.skip_unneeded:
+                continue  # footprint entirely outside the sensor
+            todo.append((i, r0, c0, pos, outside))
+        if not todo:
+            return None
+        kd = self._kernels(state, level, key)
+        dev = state.psf.device
+        steps = torch.arange(ks, dtype=torch.float64)
+        ys = torch.stack([(r0 + steps - pos[0]) * pitch for _, r0, _, pos, _ in todo]).to(dev)
+        xs = torch.stack([(c0 + steps - pos[1]) * pitch for _, _, c0, pos, _ in todo]).to(dev)
+        # One product per footprint (a batched product would round differently with the batch's composition and
+        # break the bit-identity of the skip paths); each is normalized to the window's energy, then cropped.
+        foot = [kernels.resample_spectrum(kd["laser_spectrum"], self.sensor.pixel_pitch_m, ys[j], xs[j], pitch,
+                                          self.sensor.pixel_integration) for j in range(len(todo))]
+        foot = [ft * (kd["psf64_sum"] / ft.sum()) for ft in foot]
+        out = torch.zeros(alpha_l.shape[0], 1, n, n, dtype=dtype, device=dev)
+        norm = state.uncoded_peak * level.bins
+        for j, (i, r0, c0, _, outside) in enumerate(todo):
+            if outside:  # reference path only: computed, and nothing of it lands on the sensor
+                continue
+            r_lo, r_hi, c_lo, c_hi = max(r0, 0), min(r0 + ks, n), max(c0, 0), min(c0 + ks, n)
+            patch = foot[j][r_lo - r0: r_hi - r0, c_lo - c0: c_hi - c0].clamp_min(0)
+            block = (alpha_l[i].to(device=dev, dtype=torch.float64) * patch / norm).to(dtype)
+            out = out.index_put((torch.tensor(i), torch.tensor(0), torch.arange(r_lo, r_hi, device=dev)[:, None],
+                                 torch.arange(c_lo, c_hi, device=dev)[None, :]), block, accumulate=True)
+        return out
+
+    # ---- the pipeline -------------------------------------------------------------------------------------
+    def forward(self, scene: torch.Tensor, params, state: PSFState, seed: int, mask_key=None) -> dict:
+        """Simulate a batch.
+
+        Args:
+            scene: (B, 1, S, S) radiance in [0, 1] at the network resolution, S = ``scene_size``.
+            params: SceneParams (batched alpha_l, alpha_b, laser_angle_rad, c1, c2, noise and exposure values).
+            state: PSFState of the current mask; seed: base seed of the noise streams.
+            mask_key: hashable identity of a frozen mask state; kernels are cached under it (None: recompute).
+        Returns dict of tensors:
+            sensor_dn (B,1,n,n) digital counts; sensor (B,1,pad,pad) normalized input DN / (G e_sat), zero padded;
+            irradiance (B,1,pad,pad) target r_b = I_b / I_sat (uncropped); scene (B,1,pad,pad) target b;
+            saturated (B,1,n,n) bool; laser (B,1,n,n) r_l at the network resolution (zeros if none).
+        """
+        s, sp = self.sensor, params
+        if scene.dim() != 4 or scene.shape[1] != 1 or scene.shape[-1] != self.scene_size \
+                or scene.shape[-2] != self.scene_size:
+            raise ValueError(f"scene must have shape (B, 1, {self.scene_size}, {self.scene_size}), got "
+                             f"{tuple(scene.shape)}")
+        dtype, dev = scene.dtype, scene.device
+        col = lambda v: v.to(dtype=dtype, device=dev).reshape(-1, 1, 1, 1)  # noqa: E731
+        c = self.coarse
+        kc = self._kernels(state, c, mask_key)
+        irr = col(sp.alpha_b) * kernels.convolve_valid(scene, kc["otf"].to(dev), c.n_fft, c.ksize) \
+            / state.uncoded_energy
+        pad, n = s.padded_size, s.image_size
+        m = (pad - n) // 2
+        target_scene = scene[..., c.ksize // 2: c.ksize // 2 + pad, c.ksize // 2: c.ksize // 2 + pad]
+        streams = NoiseStreams(seed, dev)
+        if s.path == "direct":
+            r_b = irr[..., m:m + n, m:m + n]
+            lvl, w2 = c, 1.0 / c.bins
+        else:
+            lvl, w2 = self.fine, 1.0
+            r_b = self._fine_background(scene, sp, state, mask_key, dtype)
+        laser = self.laser_map(state, sp.alpha_l, sp.laser_angle_rad, lvl, dtype, mask_key)
+        r = r_b if laser is None else r_b + laser
+        dn, sat = self._digitize(r, sp, col, w2, streams, exact_rounding=(s.path == "full"))
+        if s.path == "full":
+            dn, sat, laser = self._downsample(dn, sat, laser)
+        out = {
+            "sensor_dn": dn,
+            "sensor": F.pad(dn / (s.gain_dn_per_e * s.full_well_e), (m, pad - n - m, m, pad - n - m)),
+            "irradiance": irr, "scene": target_scene, "saturated": sat,
+            "laser": laser if laser is not None else torch.zeros_like(dn),
+        }
+        return out
+
+    def _digitize(self, r, sp, col, w2, streams, exact_rounding: bool):
+        s = self.sensor
+        mu_p = r * (s.full_well_e / s.quantum_efficiency)
+        scale = math.sqrt(w2)
+        skip = self.skip_unneeded
+        omega = photons(mu_p, col(sp.c1), col(sp.c2), scale, streams, skip)
+        e = s.quantum_efficiency * omega
+        dark = dark_current(col(sp.dark_current_mean_e), e, 1.0 / w2, streams, skip)
+        if dark is not None:
+            e = e + dark
+        e = e + read_noise(col(sp.read_noise_mean_e), col(sp.read_noise_std_e), e, scale, streams, skip)
+        sat = e >= s.full_well_e
+        e = e.clamp(0.0, s.full_well_e)  # full well; zero gradient where saturated
+        dn = s.gain_dn_per_e * e
+        if exact_rounding:  # dither U(-0.5, 0.5), then round to integer counts (straight-through gradient)
+            dn = round_ste(dn + streams.uniform("quant", dn))
+        else:  # the k x k average of (dither + rounding), each uniform with variance 1/12; a saturated pixel
+            # reads G e_sat exactly in every sensor pixel, so it gets none
+            dn = dn + math.sqrt(w2 / 6.0) * streams.normal("quant", dn) * (~sat).to(dn.dtype)
+        return dn.clamp(0.0, s.saturation_dn), sat
+
+    def _fine_background(self, scene, sp, state, mask_key, dtype):
+        """r_b at sensor resolution: the scene resampled (bicubic) onto the sensor-pixel grid, then convolved."""
+        f, c = self.fine, self.coarse
+        fine_c = kernels.centred_coords(f.n_scene, f.pitch, scene.device) / c.pitch + (c.n_scene - 1) / 2
+        g = (fine_c * 2 / (c.n_scene - 1) - 1).to(dtype)  # align_corners=True normalization
+        gy, gx = torch.meshgrid(g, g, indexing="ij")
+        grid = torch.stack([gx, gy], -1)[None].expand(scene.shape[0], -1, -1, -1)
+        # border: the outermost sensor-pixel centres lie up to half a network pixel beyond the outermost scene
+        # centres; zeros there would darken the border, the nearest scene value is the better guess.
+        fine_scene = F.grid_sample(scene, grid, mode="bicubic", padding_mode="border",
+                                   align_corners=True).clamp(0, 1)
+        kf = self._kernels(state, f, mask_key)
+        col = sp.alpha_b.to(dtype=dtype, device=scene.device).reshape(-1, 1, 1, 1)
+        return col * kernels.convolve_valid(fine_scene, kf["otf"].to(scene.device), f.n_fft, f.ksize) \
+            / state.uncoded_energy
+
+    def _downsample(self, dn, sat, laser):
+        n = self.sensor.image_size
+        if self.sensor.downsample == "area":
+            down = lambda x: F.adaptive_avg_pool2d(x, n)  # noqa: E731
+        else:
+            down = lambda x: F.interpolate(x, size=(n, n), mode="bicubic", antialias=True,  # noqa: E731
+                                           align_corners=False)
+        # bicubic rings (negative lobes) at the edges of a saturated footprint: clamp back to what can be read
+        laser_d = None if laser is None else down(laser).clamp_min(0)
+        lo, hi = dn.amin(dim=(-2, -1), keepdim=True), dn.amax(dim=(-2, -1), keepdim=True)
+        dn_d = torch.minimum(torch.maximum(down(dn), lo), hi)  # no overshoot beyond what the sensor read
+        return dn_d, down(sat.to(dn.dtype)) >= 0.5, laser_d
+
+
+def psf_state(system, phase: torch.Tensor) -> PSFState:
+    """PSFState of an OpticalSystem for a pupil phase (differentiable through ``psf``)."""
+    psf = system.psf(phase)
+    with torch.no_grad():
+        h0 = system.uncoded_psf()
+    return PSFState(psf=psf, uncoded_peak=system.uncoded_peak, uncoded_energy=float(h0.sum()))
+
+
+def mask_state_key(mask) -> tuple | None:
+    """Identity of a frozen mask's parameter values (None while any parameter is being trained)."""
+    params = list(mask.parameters())
+    if torch.is_grad_enabled() and any(p.requires_grad for p in params):
+        return None
+    return tuple((id(p), p._version, p.data_ptr()) for p in params)
