@@ -6,10 +6,11 @@ All lengths in metres. The pupil grid is square with pitch ``pupil_pitch_m``; th
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
-from typing import Any, Mapping
+from dataclasses import dataclass, field
+from typing import Any
 
 from codesign.errors import ConfigError, require_choice, require_number
+from codesign.spec_base import SpecMixin
 
 PROPAGATORS = ("auto", "mft", "fft")
 
@@ -19,7 +20,7 @@ _APERTURE_TAIL = 1e-20
 
 
 @dataclass(frozen=True)
-class OpticsSpec:
+class OpticsSpec(SpecMixin):
     """Physical and sampling parameters of the imaging system (SI units).
 
     Attributes:
@@ -145,21 +146,7 @@ class OpticsSpec:
         """Incoherent cutoff W_a / (lambda f) [cycles/m]."""
         return self.aperture_diameter_m / self.lambda_f
 
-    # ---- construction -------------------------------------------------------------------------------------
-    def replace(self, **changes: Any) -> "OpticsSpec":
-        values = {f.name: getattr(self, f.name) for f in fields(self)}
-        values.update(changes)
-        return OpticsSpec(**values)
-
-    @classmethod
-    def from_config(cls, cfg: Mapping[str, Any], prefix: str = "optics") -> "OpticsSpec":
-        """Build from a mapping (e.g. the Hydra ``optics`` node); unknown keys are an error naming them."""
-        known = {f.name for f in fields(cls)} - {"prefix"}
-        extra = sorted(set(cfg) - known)
-        if extra:
-            raise ConfigError(f"{prefix}.{extra[0]}", cfg[extra[0]], f"unknown key; allowed: {', '.join(sorted(known))}")
-        return cls(**dict(cfg), prefix=prefix)
-
+    # ---- construction (replace, from_config: SpecMixin) ---------------------------------------------------
     @classmethod
     def with_samples_across(cls, samples: float, **kw: Any) -> "OpticsSpec":
         """The spec whose pupil pitch puts ``samples`` pupil samples across the aperture diameter."""

@@ -2,10 +2,10 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
-from typing import Any, Mapping
+from dataclasses import dataclass, field
 
 from codesign.errors import ConfigError, require_choice, require_number
+from codesign.spec_base import SpecMixin
 
 PLANCK_J_S = 6.62607015e-34
 LIGHT_M_S = 299792458.0
@@ -14,7 +14,7 @@ DOWNSAMPLERS = ("area", "bicubic_aa")
 
 
 @dataclass(frozen=True)
-class SensorSpec:
+class SensorSpec(SpecMixin):
     """Sensor of Table 1 plus how it is simulated.
 
     Attributes:
@@ -97,20 +97,9 @@ class SensorSpec:
             wavelength_m * t * self.pixel_pitch_m**2 * self.quantum_efficiency)
 
     def photons_per_joule(self, wavelength_m: float) -> float:
+        """lambda / (h c): photons per joule at ``wavelength_m`` (Eq. photon_count)."""
         return wavelength_m / (PLANCK_J_S * LIGHT_M_S)
 
-    def replace(self, **changes: Any) -> "SensorSpec":
-        values = {f.name: getattr(self, f.name) for f in fields(self)}
-        values.update(changes)
-        return SensorSpec(**values)
-
-    @classmethod
-    def from_config(cls, cfg: Mapping[str, Any], prefix: str = "sensor") -> "SensorSpec":
-        known = {f.name for f in fields(cls)} - {"prefix"}
-        extra = sorted(set(cfg) - known)
-        if extra:
-            raise ConfigError(f"{prefix}.{extra[0]}", cfg[extra[0]], f"unknown key; allowed: {', '.join(sorted(known))}")
-        return cls(**dict(cfg), prefix=prefix)
 
 
 def kernel_size(extent_m: float, pitch_m: float) -> int:
