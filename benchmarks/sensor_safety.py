@@ -3,7 +3,7 @@
     python -m benchmarks.sensor_safety
 
 For each laser strength and position: NaN/Inf count, and the largest |DN_float32 - DN_float64| outside the
-laser's PSF support (the kernel-sized block around its centre pixel) and inside it. Same seed: the noise is
+laser's PSF support (the footprint-sized block around its centre pixel) and inside it. Same seed: the noise is
 drawn in float64 for both precisions, so the difference is round-off only. Writes results/sensor_safety.json.
 """
 from __future__ import annotations
@@ -33,7 +33,7 @@ def main() -> None:
     sim = sims[torch.float32]
     src = build_scene_source({"scenes": "builtin"})
     scenes = src.fixed_batch(["camera", "astronaut"], sim.scene_size).to(torch.float64)
-    n, ks, pitch, f = sim.sensor.image_size, sim.coarse.ksize, sim.coarse.pitch, optics.focal_length_m
+    n, ks, pitch, f = sim.sensor.image_size, sim.footprint_size(sim.coarse), sim.coarse.pitch, optics.focal_length_m
     positions = {"centre": [0.0, 0.0], "sub-pixel": [0.37 * pitch / f, -0.21 * pitch / f],
                  "edge": [0.0, (n / 2 - 3) * pitch / f], "outside": [0.0, 0.2]}
     rows = []

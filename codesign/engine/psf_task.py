@@ -71,8 +71,10 @@ def run_psf(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     spec = OpticsSpec.from_config(OmegaConf.to_container(cfg.optics, resolve=True))
     dtype = resolve_dtype("precision", cfg.get("precision", "float32"))
     band = tuple(cfg.get("mtf_band", (0.0, 0.5)))
-    if len(band) != 2 or not 0 <= require_number("mtf_band[0]", band[0]) < require_number("mtf_band[1]", band[1]):
-        raise ConfigError("mtf_band", list(band), "must be [low, high] with 0 <= low < high (normalized frequency)")
+    if len(band) != 2 or not 0 <= require_number("mtf_band[0]", band[0]) < require_number("mtf_band[1]", band[1]) \
+            or band[1] > 1:
+        raise ConfigError("mtf_band", list(band), "must be [low, high] with 0 <= low < high <= 1 (frequency "
+                          "normalized to the incoherent cutoff, beyond which the MTF is 0)")
     p = require_number("lsr_smooth_p", cfg.get("lsr_smooth_p", 16), lo=1, hi=1024)
     repeats = require_number("timing_repeats", cfg.get("timing_repeats", 5), lo=1, hi=1000, integer=True)
     mask_cfg = OmegaConf.to_container(cfg.mask, resolve=True)

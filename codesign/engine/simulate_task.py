@@ -128,7 +128,12 @@ def run_simulate(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     lsr = float(state.psf.max()) / state.uncoded_peak
     metrics.update({
         "seconds_per_image": seconds, "images_per_second": 1.0 / seconds, "batch_size": batch,
-        "sensor_path": sim.sensor.path, "bsr": float(state.psf.sum()) / state.uncoded_energy, "lsr_sampled": lsr,
+        "sensor_path": sim.sensor.path, "lsr_sampled": lsr,
+        # uniform-background ratio of the simulated image: 1 with the out-of-window veil (energy conservation),
+        # else the window's (sum h / sum h0); the window's value is always reported
+        "bsr": 1.0 if sim.sensor.background_veil else float(state.psf.sum()) / state.uncoded_energy,
+        "bsr_window": float(state.psf.sum()) / state.uncoded_energy, "window_energy": float(state.psf.sum()),
+        "background_veil": sim.sensor.background_veil,
         "image_size": sim.sensor.image_size, "padded_size": sim.sensor.padded_size,
         "network_pixel_pitch_m": sim.sensor.coarse_pitch_m, "sensor_resolution": sim.sensor.resolution,
         "scene_size": sim.scene_size, "psf_kernel_size": sim.coarse.ksize, "scenes": len(names),

@@ -56,6 +56,15 @@ class OpticalSystem(torch.nn.Module):
         # On-axis value of the uncoded PSF, exact on this grid: E0(0) = sum A, so h0(0) = (sum A)^2 s / sum A^2.
         scale = (spec.pupil_pitch_m * spec.focal_pitch_m / spec.lambda_f) ** 2
         self.uncoded_peak = float(a.sum() ** 2 * scale / (a**2).sum())
+        self._uncoded_energy = None
+
+    @property
+    def uncoded_energy(self) -> float:
+        """Energy of the uncoded PSF inside the focal window (computed once, on first use)."""
+        if self._uncoded_energy is None:
+            with torch.no_grad():
+                self._uncoded_energy = float(self.uncoded_psf().sum())
+        return self._uncoded_energy
 
     @property
     def method(self) -> str:

@@ -4,7 +4,10 @@ Irradiances are carried relative to the saturation irradiance I_sat(lambda) of E
 Then the mean photon count per sensor pixel of Eq. (photon_count) is simply mu_p = r e_sat / Q_e (the exposure
 time cancels: Eq. 8-9 define the scene and the laser relative to I_sat(t)), and
 
-  background  r_b = alpha_b (b * h) / sum(h0)           uncoded uniform scene -> alpha_b, coded -> alpha_b BSR
+  background  r_b = alpha_b [b * h + (1 - E_w) mean(b)]  a uniform scene -> alpha_b through any phase mask
+              (E_w = energy of h in the optics window; the energy a mask scatters beyond the window arrives as a
+              uniform veil of the scene's mean radiance: ``sensor.background_veil``. Without the veil,
+              r_b = alpha_b (b * h) / sum(h0), and a uniform scene gives alpha_b BSR(window), 0.87 by default.)
   laser       r_l = alpha_l h(x - f n_l) / h0(0)        uncoded peak -> alpha_l, coded peak -> alpha_l LSR
   electrons   e = Q_e omega + n_c + n_r,  omega ~ N(mu_p, c2^2 mu_p + c1^2 mu_p^2)   (see noise.py)
   counts      s = crop(min(s_sat, round(G min(e_sat, e) + n_q)))
@@ -24,12 +27,14 @@ Two resolutions (``sensor.path``):
 """
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 
+from codesign.errors import ConfigError
 from codesign.optics.propagation import next_fast_len
 from codesign.optics.spec import OpticsSpec
 from codesign.sensor import kernels
@@ -78,9 +83,14 @@ class SensorSimulator(torch.nn.Module):
         self.skip_unneeded = skip_unneeded  # False computes every term even when it is zero (the reference)
         self.sensor, self.optics = sensor, optics
         dx = sensor.pixel_pitch_m
-        if abs(optics.focal_pitch_m - dx) > 1e-12:
-            raise ValueError(f"optics.focal_pitch_m ({optics.focal_pitch_m}) must equal sensor.pixel_pitch_m ({dx}): "
-                             "the optics window is sampled at the sensor pitch")
+        if abs(optics.focal_pitch_m - dx) > 1e-12 * dx:
+            raise ConfigError("sensor.pixel_pitch_m", dx, f"must equal optics.focal_pitch_m ({optics.focal_pitch_m}):"
+                              " the optics window is sampled at the sensor pitch")
+        for key in ("wavelength_background_m", "wavelength_laser_m"):
+            if abs(getattr(sensor, key) - optics.wavelength_m) > 1e-12 * optics.wavelength_m:
+                raise ConfigError(f"sensor.{key}", getattr(sensor, key),
+                                  f"must equal optics.wavelength_m ({optics.wavelength_m}): one PSF is computed, "
+                                  "per-wavelength PSFs are not implemented")
         extent = optics.focal_extent_m
         p = sensor.coarse_pitch_m
         kc = kernel_size(extent, p)
@@ -93,10 +103,16 @@ class SensorSimulator(torch.nn.Module):
         self.fine = Level(dx, sensor.resolution, kf, nf_scene, next_fast_len(nf_scene), 1.0, 1.0)
         # DFT size of the zero-padded window PSF: wide enough for the farthest pixel edge of any level's kernel or
         # laser footprint (ksize / 2 pixels plus half a pixel of sub-pixel offset).
-        reach = max((lv.ksize / 2 + 1) * lv.pitch for lv in (self.coarse, self.fine))
+        reach = max((self.footprint_size(lv) / 2 + 1) * lv.pitch for lv in (self.coarse, self.fine))
         self.spectrum_size = kernels.padded_size(optics.focal_n, dx, reach)
         self._cache_key = None
         self._cache = {}
+
+    @staticmethod
+    def footprint_size(level: Level) -> int:
+        """Laser footprint side in pixels: the kernel plus one pixel each side, so that a footprint centred on
+        the nearest pixel still covers the whole window at a half-pixel offset."""
+        return level.ksize + 2
 
     @property
     def scene_size(self) -> int:
@@ -131,9 +147,12 @@ class SensorSimulator(torch.nn.Module):
 
     # ---- laser --------------------------------------------------------------------------------------------
     def laser_map(self, state: PSFState, alpha_l: torch.Tensor, angle: torch.Tensor, level: Level, dtype,
-                  key=None) -> torch.Tensor | None:
-        """r_l on the sensor grid (B, 1, n, n), or None when no sample has a laser on the sensor."""
-        n, ks, pitch = level.n_sensor, level.ksize, level.pitch
+                  key=None, kd: dict | None = None) -> torch.Tensor | None:
+        """r_l on the sensor grid (B, 1, n, n), or None when no sample has a laser on the sensor.
+
+        ``kd``: this level's kernels for this PSF state, if the caller already has them.
+        """
+        n, ks, pitch = level.n_sensor, self.footprint_size(level), level.pitch
         f = self.optics.focal_length_m
         todo = []  # (sample, first row, first col, laser position in pixels, footprint outside the sensor)
         for i in range(alpha_l.shape[0]):
@@ -148,7 +167,7 @@ class SensorSimulator(torch.nn.Module):
             todo.append((i, r0, c0, pos, outside))
         if not todo:
             return None
-        kd = self._kernels(state, level, key)
+        kd = kd if kd is not None else self._kernels(state, level, key)
         dev = state.psf.device
         steps = torch.arange(ks, dtype=torch.float64)
         ys = torch.stack([(r0 + steps - pos[0]) * pitch for _, r0, _, pos, _ in todo]).to(dev)
@@ -157,6 +176,7 @@ class SensorSimulator(torch.nn.Module):
         # break the bit-identity of the skip paths); each is normalized to the window's energy, then cropped.
         foot = [kernels.resample_spectrum(kd["laser_spectrum"], self.sensor.pixel_pitch_m, ys[j], xs[j], pitch,
                                           self.sensor.pixel_integration) for j in range(len(todo))]
+        foot = [ft.clamp_min(0) for ft in foot]  # ringing of the truncated window can dip below 0: not light
         foot = [ft * (kd["psf64_sum"] / ft.sum()) for ft in foot]
         out = torch.zeros(alpha_l.shape[0], 1, n, n, dtype=dtype, device=dev)
         norm = state.uncoded_peak * level.bins
@@ -164,7 +184,7 @@ class SensorSimulator(torch.nn.Module):
             if outside:  # reference path only: computed, and nothing of it lands on the sensor
                 continue
             r_lo, r_hi, c_lo, c_hi = max(r0, 0), min(r0 + ks, n), max(c0, 0), min(c0 + ks, n)
-            patch = foot[j][r_lo - r0: r_hi - r0, c_lo - c0: c_hi - c0].clamp_min(0)
+            patch = foot[j][r_lo - r0: r_hi - r0, c_lo - c0: c_hi - c0]
             block = (alpha_l[i].to(device=dev, dtype=torch.float64) * patch / norm).to(dtype)
             out = out.index_put((torch.tensor(i), torch.tensor(0), torch.arange(r_lo, r_hi, device=dev)[:, None],
                                  torch.arange(c_lo, c_hi, device=dev)[None, :]), block, accumulate=True)
@@ -193,19 +213,20 @@ class SensorSimulator(torch.nn.Module):
         col = lambda v: v.to(dtype=dtype, device=dev).reshape(-1, 1, 1, 1)  # noqa: E731
         c = self.coarse
         kc = self._kernels(state, c, mask_key)
-        irr = col(sp.alpha_b) * kernels.convolve_valid(scene, kc["otf"].to(dev), c.n_fft, c.ksize) \
-            / state.uncoded_energy
+        scene_mean = scene.mean(dim=(-2, -1), keepdim=True)
+        irr = col(sp.alpha_b) * self._background(scene, kc, c, state, scene_mean)
         pad, n = s.padded_size, s.image_size
         m = (pad - n) // 2
         target_scene = scene[..., c.ksize // 2: c.ksize // 2 + pad, c.ksize // 2: c.ksize // 2 + pad]
         streams = NoiseStreams(seed, dev)
         if s.path == "direct":
             r_b = irr[..., m:m + n, m:m + n]
-            lvl, w2 = c, 1.0 / c.bins
+            lvl, w2, kl = c, 1.0 / c.bins, kc
         else:
             lvl, w2 = self.fine, 1.0
-            r_b = self._fine_background(scene, sp, state, mask_key, dtype)
-        laser = self.laser_map(state, sp.alpha_l, sp.laser_angle_rad, lvl, dtype, mask_key)
+            kl = self._kernels(state, lvl, mask_key)
+            r_b = self._fine_background(scene, sp, state, kl, dtype, scene_mean)
+        laser = self.laser_map(state, sp.alpha_l, sp.laser_angle_rad, lvl, dtype, mask_key, kl)
         r = r_b if laser is None else r_b + laser
         dn, sat = self._digitize(r, sp, col, w2, streams, exact_rounding=(s.path == "full"))
         if s.path == "full":
@@ -239,7 +260,20 @@ class SensorSimulator(torch.nn.Module):
             dn = dn + math.sqrt(w2 / 6.0) * streams.normal("quant", dn) * (~sat).to(dn.dtype)
         return dn.clamp(0.0, s.saturation_dn), sat
 
-    def _fine_background(self, scene, sp, state, mask_key, dtype):
+    def _background(self, scene: torch.Tensor, kd: dict, level: Level, state: PSFState,
+                    scene_mean: torch.Tensor) -> torch.Tensor:
+        """(b * h) plus the out-of-window veil, normalized so that a uniform scene gives 1 (see module doc).
+
+        ``scene_mean``: (B, 1, 1, 1) mean radiance of the whole scene crop at the network resolution (the widest
+        view the simulator has), shared by both paths so that they add the same veil.
+        """
+        conv = kernels.convolve_valid(scene, kd["otf"].to(scene.device), level.n_fft, level.ksize)
+        if not self.sensor.background_veil:
+            return conv / state.uncoded_energy
+        outside = 1.0 - state.psf.sum()  # energy the mask scatters beyond the window (differentiable)
+        return conv + outside.to(conv.dtype) * scene_mean
+
+    def _fine_background(self, scene, sp, state, kd, dtype, scene_mean):
         """r_b at sensor resolution: the scene resampled (bicubic) onto the sensor-pixel grid, then convolved."""
         f, c = self.fine, self.coarse
         fine_c = kernels.centred_coords(f.n_scene, f.pitch, scene.device) / c.pitch + (c.n_scene - 1) / 2
@@ -250,10 +284,8 @@ class SensorSimulator(torch.nn.Module):
         # centres; zeros there would darken the border, the nearest scene value is the better guess.
         fine_scene = F.grid_sample(scene, grid, mode="bicubic", padding_mode="border",
                                    align_corners=True).clamp(0, 1)
-        kf = self._kernels(state, f, mask_key)
         col = sp.alpha_b.to(dtype=dtype, device=scene.device).reshape(-1, 1, 1, 1)
-        return col * kernels.convolve_valid(fine_scene, kf["otf"].to(scene.device), f.n_fft, f.ksize) \
-            / state.uncoded_energy
+        return col * self._background(fine_scene, kd, f, state, scene_mean)
 
     def _downsample(self, dn, sat, laser):
         n = self.sensor.image_size
@@ -271,15 +303,18 @@ class SensorSimulator(torch.nn.Module):
 
 def psf_state(system, phase: torch.Tensor) -> PSFState:
     """PSFState of an OpticalSystem for a pupil phase (differentiable through ``psf``)."""
-    psf = system.psf(phase)
-    with torch.no_grad():
-        h0 = system.uncoded_psf()
-    return PSFState(psf=psf, uncoded_peak=system.uncoded_peak, uncoded_energy=float(h0.sum()))
+    return PSFState(psf=system.psf(phase), uncoded_peak=system.uncoded_peak, uncoded_energy=system.uncoded_energy)
 
 
 def mask_state_key(mask) -> tuple | None:
-    """Identity of a frozen mask's parameter values (None while any parameter is being trained)."""
+    """Key of a frozen mask's parameter values (None while any parameter is being trained).
+
+    A digest of the values themselves: version counters miss writes through ``.data``.
+    """
     params = list(mask.parameters())
     if torch.is_grad_enabled() and any(p.requires_grad for p in params):
         return None
-    return tuple((id(p), p._version, p.data_ptr()) for p in params)
+    digest = hashlib.blake2b(digest_size=16)
+    for p in params:
+        digest.update(p.detach().cpu().contiguous().numpy().tobytes())
+    return (id(mask), digest.hexdigest())

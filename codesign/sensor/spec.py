@@ -28,6 +28,8 @@ class SensorSpec(SpecMixin):
         path: "direct" (simulate at the network resolution with the PSF integrated over the coarse pixel) or
             "full" (simulate at sensor resolution, then downsample with ``downsample``).
         pixel_integration: integrate the PSF over the pixel (True) or point-sample it (False).
+        background_veil: add the energy scattered beyond the optics window back as a uniform veil of the scene's
+            mean (True), so that a uniform scene keeps its brightness through any phase mask (BSR = 1).
     """
 
     wavelength_background_m: float = 633e-9
@@ -47,6 +49,7 @@ class SensorSpec(SpecMixin):
     path: str = "direct"
     downsample: str = "area"
     pixel_integration: bool = True
+    background_veil: bool = True
     prefix: str = field(default="sensor", compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -72,8 +75,9 @@ class SensorSpec(SpecMixin):
                               f"must be >= {p}.image_size ({self.image_size}): the sensor is binned, never upsampled")
         require_choice(f"{p}.path", self.path, PATHS)
         require_choice(f"{p}.downsample", self.downsample, DOWNSAMPLERS)
-        if not isinstance(self.pixel_integration, bool):
-            raise ConfigError(f"{p}.pixel_integration", self.pixel_integration, "must be true or false")
+        for key in ("pixel_integration", "background_veil"):
+            if not isinstance(getattr(self, key), bool):
+                raise ConfigError(f"{p}.{key}", getattr(self, key), "must be true or false")
 
     # ---- derived -------------------------------------------------------------------------------------------
     @property

@@ -225,7 +225,7 @@ def test_build_freeform_zernike_fits_published(system64):
 @pytest.mark.parametrize("cfg,pattern", [
     ({"kind": "freeform", "basis": "spline"}, r"^mask\.basis = 'spline': must be one of pixel, zernike"),
     ({"kind": "freeform", "init": "random"}, r"^mask\.init = 'random': must be one of published, zero"),
-    ({"kind": "freeform", "r": [1.0]}, r"^mask\.r = \[1\.0\]: unknown key; allowed: basis, init, init_convention, "
+    ({"kind": "freeform", "r": [1.0]}, r"^mask\.r = \[1\.0\]: unknown key for a freeform mask; allowed: basis, init, init_convention, "
                                        r"kind, max_coeff_rad, n_terms"),
     ({"kind": "freeform", "basis": "zernike", "init": "zero", "n_terms": 2.5},
      r"^mask\.n_terms = 2\.5: must be an integer"),

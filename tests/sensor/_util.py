@@ -53,6 +53,9 @@ def states(focal_n: int = ODD, dtype: torch.dtype = torch.float64):
 
 def make_sim(focal_n: int = ODD, resolution: int = 9, image_size: int = 9, padded_size: int | None = None,
              skip_unneeded: bool = True, **sensor_kw) -> SensorSimulator:
+    """A small simulator. The out-of-window veil is off unless asked for: most tests check the window model
+    (r_b = alpha_b (b * h) / sum(h0)) exactly; tests/sensor/test_veil.py covers the veil."""
+    sensor_kw.setdefault("background_veil", False)
     spec = SensorSpec(resolution=resolution, image_size=image_size,
                       padded_size=image_size if padded_size is None else padded_size, **sensor_kw)
     return SensorSimulator(spec, optics(focal_n), skip_unneeded=skip_unneeded)

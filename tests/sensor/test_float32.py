@@ -34,11 +34,11 @@ def _footprint(sim, pos, path: str) -> torch.Tensor:
     k = R // N
     if pos is None:
         pos = ((N - 1) / 2, (N - 1) / 2)
-    if path == "direct":  # ksize x ksize network pixels around the rounded centre
-        (r0, r1), (c0, c1) = (_box(v, sim.coarse.ksize // 2) for v in pos)
-    else:  # ksize x ksize sensor pixels around the rounded fine centre, mapped to the network pixels they touch
+    if path == "direct":  # footprint-size square of network pixels around the rounded centre
+        (r0, r1), (c0, c1) = (_box(v, sim.footprint_size(sim.coarse) // 2) for v in pos)
+    else:  # footprint-size square of sensor pixels around the rounded fine centre, mapped to network pixels
         fine = [(v - (N - 1) / 2) * k + (R - 1) / 2 for v in pos]
-        (r0, r1), (c0, c1) = (_box(v, sim.fine.ksize // 2) for v in fine)
+        (r0, r1), (c0, c1) = (_box(v, sim.footprint_size(sim.fine) // 2) for v in fine)
         r0, r1, c0, c1 = math.floor(r0 / k), math.floor(r1 / k), math.floor(c0 / k), math.floor(c1 / k)
     r0, c0, r1, c1 = max(r0, 0), max(c0, 0), min(r1, N - 1), min(c1, N - 1)
     if r0 <= r1 and c0 <= c1:

