@@ -111,9 +111,9 @@ def run_simulate(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         # throughput on a training-like batch (random Sec. 6.2 parameters)
         gen = torch.Generator().manual_seed(seed)
         batch = int(cfg.data.batch_size)
-        sp = sample_scene_params(batch, gen, cfg.data.params, sensor_width_m=sim.sensor.resolution *
-                                 sim.sensor.pixel_pitch_m, sensor_height_m=sim.sensor.resolution *
-                                 sim.sensor.pixel_pitch_m, focal_length_m=sim.optics.focal_length_m)
+        side_m = sim.sensor.resolution * sim.sensor.pixel_pitch_m  # square sensor crop
+        sp = sample_scene_params(batch, gen, cfg.data.params, sensor_width_m=side_m, sensor_height_m=side_m,
+                                 focal_length_m=sim.optics.focal_length_m)
         sp = sp.to(device, dtype)
         idx = torch.arange(batch) % scenes.shape[0]
         bscenes = scenes[idx]
@@ -126,13 +126,14 @@ def run_simulate(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     io.save_figure(run_dir / "sensor_grid_linear.png", _grid_figure(grid, names, alphas, False, full))
     io.save_figure(run_dir / "sensor_grid_log.png", _grid_figure(grid, names, alphas, True, full))
     lsr = float(state.psf.max()) / state.uncoded_peak
+    bsr_window = float(state.psf.sum()) / state.uncoded_energy
     metrics.update({
         "seconds_per_image": seconds, "images_per_second": 1.0 / seconds, "batch_size": batch,
         "sensor_path": sim.sensor.path, "lsr_sampled": lsr,
         # uniform-background ratio of the simulated image: 1 with the out-of-window veil (energy conservation),
         # else the window's (sum h / sum h0); the window's value is always reported
-        "bsr": 1.0 if sim.sensor.background_veil else float(state.psf.sum()) / state.uncoded_energy,
-        "bsr_window": float(state.psf.sum()) / state.uncoded_energy, "window_energy": float(state.psf.sum()),
+        "bsr": 1.0 if sim.sensor.background_veil else bsr_window,
+        "bsr_window": bsr_window, "window_energy": float(state.psf.sum()),
         "background_veil": sim.sensor.background_veil,
         "image_size": sim.sensor.image_size, "padded_size": sim.sensor.padded_size,
         "network_pixel_pitch_m": sim.sensor.coarse_pitch_m, "sensor_resolution": sim.sensor.resolution,

@@ -76,6 +76,5 @@ class PupilGrid:
     def scatter(self, values: torch.Tensor) -> torch.Tensor:
         """Place per-support-sample values (..., n_support) onto the full (..., n, n) grid, zero elsewhere."""
         out = values.new_zeros(*values.shape[:-1], self.n * self.n)
-        out = out.index_copy(-1, self.support, values) if values.dim() == 1 else \
-            out.index_copy(out.dim() - 1, self.support, values)
+        out = out.index_copy(out.dim() - 1, self.support, values)
         return out.reshape(*values.shape[:-1], self.n, self.n)

@@ -96,10 +96,16 @@ def conserve_energy(patch: torch.Tensor, psf: torch.Tensor) -> torch.Tensor:
     return patch * (psf.sum() / patch.sum())
 
 
-def kernel(psf: torch.Tensor, dx: float, size: int, pitch: float, integrate: bool = True) -> torch.Tensor:
-    """Odd-sized (size x size) PSF kernel at ``pitch``, centred on the axis (index size // 2), energy sum(psf)."""
+def kernel(psf: torch.Tensor, dx: float, size: int, pitch: float, integrate: bool = True,
+           spectrum: torch.Tensor | None = None) -> torch.Tensor:
+    """Odd-sized (size x size) PSF kernel at ``pitch``, centred on the axis (index size // 2), energy sum(psf).
+
+    ``spectrum``: a psf_spectrum of ``psf`` to resample from (default: one padded just enough for this kernel).
+    """
     c = centred_coords(size, pitch, psf.device)
-    return conserve_energy(resample_psf(psf, dx, c, c, pitch, integrate), psf)
+    k = resample_psf(psf, dx, c, c, pitch, integrate) if spectrum is None else \
+        resample_spectrum(spectrum, dx, c, c, pitch, integrate)
+    return conserve_energy(k, psf)
 
 
 def kernel_otf(k: torch.Tensor, n_fft: int) -> torch.Tensor:

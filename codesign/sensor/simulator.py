@@ -13,7 +13,7 @@ time cancels: Eq. 8-9 define the scene and the laser relative to I_sat(t)), and
   counts      s = crop(min(s_sat, round(G min(e_sat, e) + n_q)))
 
 The laser never passes through the scene's FFT: it is placed by exact Fourier interpolation of the window PSF
-at its sub-pixel focal offset (kernels.resample_psf), evaluated in float64 on its PSF support only, and skipped
+at its sub-pixel focal offset (kernels.resample_spectrum), evaluated in float64 on its PSF support only, and skipped
 when alpha_l = 0 or its support misses the sensor. Saturation: min(e_sat, e) has zero gradient where a pixel is
 physically saturated (no signal passes, so none flows back).
 
@@ -64,8 +64,12 @@ class Level:
     ksize: int
     n_scene: int
     n_fft: int
-    noise_scale: float  # sqrt(sum w^2) of the binning from sensor pixels to this grid's pixels
     bins: float  # (pitch / dx)^2: sensor pixels per simulated pixel
+
+    @property
+    def noise_scale(self) -> float:
+        """sqrt(sum w^2) of the k x k average that maps sensor pixels to this grid's pixels: 1 / k."""
+        return self.bins ** -0.5
 
 
 class SensorSimulator(torch.nn.Module):
@@ -95,12 +99,10 @@ class SensorSimulator(torch.nn.Module):
         p = sensor.coarse_pitch_m
         kc = kernel_size(extent, p)
         n_scene = sensor.padded_size + kc - 1
-        w2 = 1.0 / sensor.bin_factor**2
-        self.coarse = Level(p, sensor.image_size, kc, n_scene, next_fast_len(n_scene), math.sqrt(w2),
-                            sensor.bin_factor**2)
+        self.coarse = Level(p, sensor.image_size, kc, n_scene, next_fast_len(n_scene), sensor.bin_factor**2)
         kf = kernel_size(extent, dx)
         nf_scene = sensor.resolution + kf - 1
-        self.fine = Level(dx, sensor.resolution, kf, nf_scene, next_fast_len(nf_scene), 1.0, 1.0)
+        self.fine = Level(dx, sensor.resolution, kf, nf_scene, next_fast_len(nf_scene), 1.0)
         # DFT size of the zero-padded window PSF: wide enough for the farthest pixel edge of any level's kernel or
         # laser footprint (ksize / 2 pixels plus half a pixel of sub-pixel offset).
         reach = max((self.footprint_size(lv) / 2 + 1) * lv.pitch for lv in (self.coarse, self.fine))
@@ -129,11 +131,9 @@ class SensorSimulator(torch.nn.Module):
         # the same interpolant of the window PSF (the laser's peak reaches 1e8 I_sat: float64 keeps it exact).
         psf64 = state.psf.to(torch.float64)
         spectrum = kernels.psf_spectrum(psf64, self.spectrum_size)
-        c = kernels.centred_coords(level.ksize, level.pitch, psf64.device)
-        k = kernels.resample_spectrum(spectrum, dx, c, c, level.pitch, self.sensor.pixel_integration)
-        k = kernels.conserve_energy(k, psf64).to(state.psf.dtype)
-        out = {"otf": kernels.kernel_otf(k, level.n_fft), "kernel": k, "laser_spectrum": spectrum,
-               "psf64_sum": psf64.sum()}
+        k = kernels.kernel(psf64, dx, level.ksize, level.pitch, self.sensor.pixel_integration,
+                           spectrum).to(state.psf.dtype)
+        out = {"otf": kernels.kernel_otf(k, level.n_fft), "kernel": k, "spectrum": spectrum, "psf64": psf64}
         if key is not None:
             if key != self._cache_key:
                 self._cache = {}
@@ -147,7 +147,7 @@ class SensorSimulator(torch.nn.Module):
 
     # ---- laser --------------------------------------------------------------------------------------------
     def laser_map(self, state: PSFState, alpha_l: torch.Tensor, angle: torch.Tensor, level: Level, dtype,
-                  key=None, kd: dict | None = None) -> torch.Tensor | None:
+                  kd: dict | None = None) -> torch.Tensor | None:
         """r_l on the sensor grid (B, 1, n, n), or None when no sample has a laser on the sensor.
 
         ``kd``: this level's kernels for this PSF state, if the caller already has them.
@@ -167,17 +167,17 @@ class SensorSimulator(torch.nn.Module):
             todo.append((i, r0, c0, pos, outside))
         if not todo:
             return None
-        kd = kd if kd is not None else self._kernels(state, level, key)
+        kd = kd if kd is not None else self._kernels(state, level, None)
         dev = state.psf.device
         steps = torch.arange(ks, dtype=torch.float64)
         ys = torch.stack([(r0 + steps - pos[0]) * pitch for _, r0, _, pos, _ in todo]).to(dev)
         xs = torch.stack([(c0 + steps - pos[1]) * pitch for _, _, c0, pos, _ in todo]).to(dev)
         # One product per footprint (a batched product would round differently with the batch's composition and
         # break the bit-identity of the skip paths); each is normalized to the window's energy, then cropped.
-        foot = [kernels.resample_spectrum(kd["laser_spectrum"], self.sensor.pixel_pitch_m, ys[j], xs[j], pitch,
-                                          self.sensor.pixel_integration) for j in range(len(todo))]
-        foot = [ft.clamp_min(0) for ft in foot]  # ringing of the truncated window can dip below 0: not light
-        foot = [ft * (kd["psf64_sum"] / ft.sum()) for ft in foot]
+        # (Ringing of the truncated window can dip below 0, which is not light: clamped before normalizing.)
+        foot = [kernels.conserve_energy(kernels.resample_spectrum(
+            kd["spectrum"], self.sensor.pixel_pitch_m, ys[j], xs[j], pitch, self.sensor.pixel_integration
+        ).clamp_min(0), kd["psf64"]) for j in range(len(todo))]
         out = torch.zeros(alpha_l.shape[0], 1, n, n, dtype=dtype, device=dev)
         norm = state.uncoded_peak * level.bins
         for j, (i, r0, c0, _, outside) in enumerate(todo):
@@ -221,14 +221,14 @@ class SensorSimulator(torch.nn.Module):
         streams = NoiseStreams(seed, dev)
         if s.path == "direct":
             r_b = irr[..., m:m + n, m:m + n]
-            lvl, w2, kl = c, 1.0 / c.bins, kc
+            lvl, kl = c, kc
         else:
-            lvl, w2 = self.fine, 1.0
+            lvl = self.fine
             kl = self._kernels(state, lvl, mask_key)
-            r_b = self._fine_background(scene, sp, state, kl, dtype, scene_mean)
-        laser = self.laser_map(state, sp.alpha_l, sp.laser_angle_rad, lvl, dtype, mask_key, kl)
+            r_b = col(sp.alpha_b) * self._fine_background(scene, state, kl, scene_mean)
+        laser = self.laser_map(state, sp.alpha_l, sp.laser_angle_rad, lvl, dtype, kl)
         r = r_b if laser is None else r_b + laser
-        dn, sat = self._digitize(r, sp, col, w2, streams, exact_rounding=(s.path == "full"))
+        dn, sat = self._digitize(r, sp, col, lvl.noise_scale, streams, exact_rounding=(s.path == "full"))
         if s.path == "full":
             dn, sat, laser = self._downsample(dn, sat, laser)
         out = {
@@ -239,10 +239,11 @@ class SensorSimulator(torch.nn.Module):
         }
         return out
 
-    def _digitize(self, r, sp, col, w2, streams, exact_rounding: bool):
+    def _digitize(self, r, sp, col, scale: float, streams, exact_rounding: bool):
+        """Photons -> electrons -> counts; ``scale`` = the level's noise_scale (1 / k for a k x k average)."""
         s = self.sensor
+        w2 = scale**2
         mu_p = r * (s.full_well_e / s.quantum_efficiency)
-        scale = math.sqrt(w2)
         skip = self.skip_unneeded
         omega = photons(mu_p, col(sp.c1), col(sp.c2), scale, streams, skip)
         e = s.quantum_efficiency * omega
@@ -273,8 +274,10 @@ class SensorSimulator(torch.nn.Module):
         outside = 1.0 - state.psf.sum()  # energy the mask scatters beyond the window (differentiable)
         return conv + outside.to(conv.dtype) * scene_mean
 
-    def _fine_background(self, scene, sp, state, kd, dtype, scene_mean):
-        """r_b at sensor resolution: the scene resampled (bicubic) onto the sensor-pixel grid, then convolved."""
+    def _fine_background(self, scene, state, kd, scene_mean):
+        """r_b / alpha_b at sensor resolution: the scene resampled (bicubic) onto the sensor-pixel grid, then
+        convolved."""
+        dtype = scene.dtype
         f, c = self.fine, self.coarse
         fine_c = kernels.centred_coords(f.n_scene, f.pitch, scene.device) / c.pitch + (c.n_scene - 1) / 2
         g = (fine_c * 2 / (c.n_scene - 1) - 1).to(dtype)  # align_corners=True normalization
@@ -284,8 +287,7 @@ class SensorSimulator(torch.nn.Module):
         # centres; zeros there would darken the border, the nearest scene value is the better guess.
         fine_scene = F.grid_sample(scene, grid, mode="bicubic", padding_mode="border",
                                    align_corners=True).clamp(0, 1)
-        col = sp.alpha_b.to(dtype=dtype, device=scene.device).reshape(-1, 1, 1, 1)
-        return col * self._background(fine_scene, kd, f, state, scene_mean)
+        return self._background(fine_scene, kd, f, state, scene_mean)
 
     def _downsample(self, dn, sat, laser):
         n = self.sensor.image_size

@@ -246,20 +246,9 @@ def test_project_clamps_r_and_wraps_theta(grid32):
 
 
 # ---- gradients ----------------------------------------------------------------------------------------------
-class _PhaseOf(torch.nn.Module):
-    def __init__(self, mask):
-        super().__init__()
-        self.mask = mask
-
-    def forward(self):
-        return self.mask.phase()
-
-
 def _phase_fn(mask):
-    wrapper = _PhaseOf(mask)
-
     def phase(r, theta):
-        return torch.func.functional_call(wrapper, {"mask.r": r, "mask.theta": theta}, ())
+        return torch.func.functional_call(mask, {"r": r, "theta": theta}, ())
 
     return phase
 

@@ -31,21 +31,12 @@ def _sim(path: str, resolution: int = 24, image_size: int = 8) -> SensorSimulato
                                       path=path), spec)
 
 
-class _PhaseOf(torch.nn.Module):
-    def __init__(self, mask):
-        super().__init__()
-        self.mask = mask
-
-    def forward(self):
-        return self.mask.phase()
-
-
 def _pipeline(sim: SensorSimulator, p, scene: torch.Tensor, key: str = "sensor", seed: int = 5):
     spec, system = _tiny()
-    wrapper = _PhaseOf(HalfRingMask(system.grid, spec.aperture_diameter_m))
+    mask = HalfRingMask(system.grid, spec.aperture_diameter_m)
 
     def run(r, theta):
-        phase = torch.func.functional_call(wrapper, {"mask.r": r, "mask.theta": theta}, ())
+        phase = torch.func.functional_call(mask, {"r": r, "theta": theta}, ())
         return sim(scene, p, psf_state(system, phase), seed=seed)
 
     return run

@@ -26,6 +26,10 @@ class Mask(torch.nn.Module):
         """Pupil phase [rad], shape (n, n), on the grid's dtype/device."""
         return self.grid.scatter(self.support_phase())
 
+    def forward(self) -> torch.Tensor:
+        """``mask()`` is ``mask.phase()``, so torch.func.functional_call can evaluate a mask at given parameters."""
+        return self.phase()
+
     @torch.no_grad()
     def project(self) -> None:
         """Clamp parameters to the buildable set (default: nothing to clamp)."""
