@@ -29,7 +29,26 @@ def _simulate(cfg, run_dir, device):
     return run_simulate(cfg, run_dir, device)
 
 
-EXPERIMENTS: dict[str, Callable] = {"psf": _psf, "simulate": _simulate}
+def _baseline(cfg, run_dir, device):
+    from codesign.engine.restoration_tasks import run_baseline
+
+    return run_baseline(cfg, run_dir, device)
+
+
+def _evaluate(cfg, run_dir, device):
+    from codesign.engine.restoration_tasks import run_evaluate
+
+    return run_evaluate(cfg, run_dir, device)
+
+
+def _restore(cfg, run_dir, device):
+    from codesign.engine.restore_task import run_restore
+
+    return run_restore(cfg, run_dir, device)
+
+
+EXPERIMENTS: dict[str, Callable] = {"psf": _psf, "simulate": _simulate, "baseline": _baseline,
+                                    "evaluate": _evaluate, "restore": _restore}
 
 
 def _run_dir() -> Path:

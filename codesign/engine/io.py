@@ -30,6 +30,10 @@ def _atomic(path: Path, write: Callable[[str], None], suffix: str) -> Path:
 
 
 def _jsonable(v: Any) -> Any:
+    if isinstance(v, dict):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
     if isinstance(v, (np.floating, np.integer)):
         v = v.item()
     if hasattr(v, "item") and getattr(v, "ndim", 1) == 0:
@@ -40,7 +44,7 @@ def _jsonable(v: Any) -> Any:
 
 
 def write_json(path: Path, data: dict[str, Any]) -> Path:
-    """Write a flat dict as pretty JSON, atomically."""
+    """Write a dict (nested dicts and lists allowed; NaN/Inf -> null) as pretty JSON, atomically."""
     clean = {k: _jsonable(v) for k, v in data.items()}
 
     def w(tmp: str) -> None:

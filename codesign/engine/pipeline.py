@@ -1,0 +1,100 @@
+"""Online training data: scenes -> sensor simulator (current mask) -> (sensor, I_b, b) batches, and the OTF.
+
+One object owns everything random about the data (scene crops, scene parameters, noise seeds) so that the
+trainer can checkpoint and restore it exactly.
+"""
+from __future__ import annotations
+
+import torch
+from omegaconf import DictConfig
+
+from codesign.data.params import preset_params, sample_scene_params
+from codesign.data.scenes import build_scene_sampler, build_scene_source
+from codesign.engine.simulate_task import build_simulator
+from codesign.models.wiener import otf_from_kernel
+from codesign.sensor.simulator import mask_state_key, psf_state
+
+
+def frozen_psf(system, mask, sim, device):
+    """(PSF state, network-pitch kernel, OTF on the padded grid) of a frozen mask."""
+    with torch.no_grad():
+        state = psf_state(system, mask.phase())
+        kernel = sim.kernel(state)
+    return state, kernel, otf_from_kernel(kernel, sim.sensor.padded_size).to(device)
+
+
+class RestorationData:
+    """Simulated training / validation / evaluation batches for a frozen mask.
+
+    Batch dict: sensor (B,1,P,P) normalized input, irradiance (B,1,P,P) target I_b, scene (B,1,P,P) target b,
+    saturated and laser maps (B,1,n,n). P = data.padded_size, n = data.image_size.
+    """
+
+    def __init__(self, cfg: DictConfig, device: torch.device, seed: int):
+        self.cfg, self.device, self.seed = cfg, device, seed
+        self.system, self.mask, self.sim = build_simulator(cfg, device, torch.float32)
+        self.source = build_scene_source(cfg.data)
+        self.scene_gen = torch.Generator().manual_seed(seed)
+        self.param_gen = torch.Generator().manual_seed(seed + 1)
+        self.sampler = build_scene_sampler(cfg.data, "train", self.scene_gen, crop_size=self.sim.scene_size,
+                                           source=self.source)
+        self.refresh_psf()
+
+    # ---- the optics -----------------------------------------------------------------------------------------
+    def refresh_psf(self) -> None:
+        """Recompute the PSF state, kernel and OTF of the (frozen) mask."""
+        self.state, self.kernel, self.otf = frozen_psf(self.system, self.mask, self.sim, self.device)
+        self.key = mask_state_key(self.mask)
+
+    @property
+    def padded_size(self) -> int:
+        return self.sim.sensor.padded_size
+
+    @property
+    def image_size(self) -> int:
+        return self.sim.sensor.image_size
+
+    # ---- batches --------------------------------------------------------------------------------------------
+    def simulate(self, scenes: torch.Tensor, params, seed: int) -> dict:
+        params = params.to(self.device, torch.float32)
+        with torch.no_grad():
+            out = self.sim(scenes.to(self.device), params, self.state, seed=seed, mask_key=self.key)
+        out["read_noise_mean_e"] = params.read_noise_mean_e  # the black level a classical pipeline subtracts
+        return out
+
+    def train_batch(self, step: int) -> dict:
+        """The batch of training step ``step``: random crops and Sec. 6.2 parameters; noise seeded by step."""
+        scenes = self.sampler.sample()
+        sensor = self.sim.sensor
+        side = sensor.resolution * sensor.pixel_pitch_m
+        params = sample_scene_params(scenes.shape[0], self.param_gen, self.cfg.data.params, sensor_width_m=side,
+                                     sensor_height_m=side, focal_length_m=self.sim.optics.focal_length_m)
+        return self.simulate(scenes, params, seed=self.seed * 1_000_003 + step)
+
+    def validation_batch(self, size: int) -> dict:
+        """A fixed batch from the training distribution (own generators: independent of training's draws)."""
+        gen = torch.Generator().manual_seed(self.seed + 7919)
+        sampler = build_scene_sampler(self.cfg.data, "train", gen, crop_size=self.sim.scene_size,
+                                      source=self.source)
+        sampler.batch_size = size
+        scenes = sampler.sample()
+        side = self.sim.sensor.resolution * self.sim.sensor.pixel_pitch_m
+        params = sample_scene_params(size, gen, self.cfg.data.params, sensor_width_m=side, sensor_height_m=side,
+                                     focal_length_m=self.sim.optics.focal_length_m)
+        return self.simulate(scenes, params, seed=self.seed + 104729)
+
+    def preset_batch(self, scenes: torch.Tensor, preset: str, seed: int, **overrides) -> dict:
+        """Evaluation batch: every scene under the named preset (laser_1e3, E1, ...), optional overrides."""
+        params = preset_params(preset, scenes.shape[0])
+        if overrides:
+            params = params.replace(**overrides)
+        return self.simulate(scenes, params, seed=seed)
+
+    # ---- checkpointing of the random state ------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {"scene_gen": self.scene_gen.get_state(), "param_gen": self.param_gen.get_state(), "seed": self.seed}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.seed = int(state["seed"])  # the noise of step k is seeded from (seed, k)
+        self.scene_gen.set_state(state["scene_gen"])
+        self.param_gen.set_state(state["param_gen"])

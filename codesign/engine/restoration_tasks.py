@@ -1,0 +1,166 @@
+"""``+experiment=baseline`` (train an SGAN with the published mask frozen, then evaluate) and
+``+experiment=evaluate checkpoint=PATH``."""
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from codesign.data.params import LASER_STRENGTHS, ROBUSTNESS_STAGES
+from codesign.engine import io
+from codesign.engine.checkpoint import CHECKPOINT_NAME, load_checkpoint
+from codesign.engine.evaluate import Evaluator, conditions, evaluate, flat_summary
+from codesign.engine.pipeline import RestorationData
+from codesign.engine.train_spec import LossWeights, TrainerSpec
+from codesign.engine.trainer import EMA, RestorationTrainer, init_weights
+from codesign.errors import ConfigError, require_choice, require_number
+from codesign.models import build_sgan, parameter_count
+
+log = logging.getLogger("codesign.restoration")
+
+
+def _container(node) -> dict:
+    return OmegaConf.to_container(node, resolve=True) if node is not None else {}
+
+
+def build_model(cfg: DictConfig):
+    model_cfg = _container(cfg.model)
+    model = build_sgan(model_cfg)
+    model.spec.check_input_size(int(cfg.data.padded_size))
+    return model
+
+
+def loss_weights(cfg: DictConfig) -> LossWeights:
+    return LossWeights.from_config(_container(cfg.model.get("loss")) or {})
+
+
+def make_writer(cfg: DictConfig, run_dir: Path):
+    if not cfg.get("logging", {}).get("tensorboard", True):
+        return None
+    from torch.utils.tensorboard import SummaryWriter
+
+    return SummaryWriter(log_dir=str(run_dir))
+
+
+def eval_settings(cfg: DictConfig) -> dict:
+    ev = cfg.get("evaluate") or {}
+    split = require_choice("evaluate.split", ev.get("split", "test"), ("test", "train", "all"))
+    max_scenes = require_number("evaluate.max_scenes", ev.get("max_scenes", 8), lo=1, hi=1024, integer=True)
+    lasers = [require_number(f"evaluate.laser_strengths[{i}]", a, lo=0, hi=1e12)
+              for i, a in enumerate(ev.get("laser_strengths", LASER_STRENGTHS))]
+    for a in lasers:
+        if a != 0 and abs(round(torch.log10(torch.tensor(a)).item()) - torch.log10(torch.tensor(a)).item()) > 1e-9:
+            raise ConfigError("evaluate.laser_strengths", list(lasers), "must be 0 or powers of ten (presets)")
+    stages = list(ev.get("stages", list(ROBUSTNESS_STAGES)))
+    for s in stages:
+        require_choice("evaluate.stages", s, tuple(ROBUSTNESS_STAGES))
+    tuning = require_number("evaluate.tuning_size", ev.get("tuning_size", 8), lo=1, hi=256, integer=True)
+    angle = ev.get("laser_angle_rad")
+    return {"split": split, "max_scenes": max_scenes, "lasers": lasers, "stages": stages, "tuning": tuning,
+            "lpips": ev.get("lpips_weights"), "dists": ev.get("dists_weights"),
+            "overrides": {} if angle is None else {"laser_angle_rad": list(angle)}}
+
+
+def run_evaluation(cfg: DictConfig, model, generators, data: RestorationData, run_dir: Path, seed: int) -> dict:
+    """Tune baselines on the training distribution, then score every method on the chosen split."""
+    ev = eval_settings(cfg)
+    names = data.source.split_names(ev["split"])[: ev["max_scenes"]]
+    if not names:
+        raise ConfigError("evaluate.split", ev["split"], "has no scenes in this data source")
+    scenes = data.source.fixed_batch(names, data.sim.scene_size)
+    evaluator = Evaluator(model, generators, data, ev["lpips"], ev["dists"])
+    calib = evaluator.tune(data.validation_batch(ev["tuning"]))
+    presets = conditions(ev["lasers"], ev["stages"])
+    results = evaluate(evaluator, scenes, names, presets, seed, run_dir, ev["overrides"])
+    perceptual = {k: ("available" if callable(v) else v) for k, v in evaluator.perceptual.items()}
+    return {"evaluation": results, "evaluation_scenes": names, "baseline_calibration": calib,
+            "perceptual_metrics": perceptual, **flat_summary(results)}
+
+
+def _common_metrics(cfg, model, device) -> dict:
+    return {"variant": model.spec.variant, "size": model.spec.size, "device": str(device),
+            "threads": torch.get_num_threads(), "torch": torch.__version__,
+            "parameters_generators": sum(parameter_count(g) for g in model.generators()),
+            "parameters_critics": sum(parameter_count(d) for d in model.discriminators()),
+            "image_size": int(cfg.data.image_size), "padded_size": int(cfg.data.padded_size)}
+
+
+def run_baseline(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
+    seed = int(cfg.get("seed", 0))
+    spec = TrainerSpec.from_config(_container(cfg.trainer))
+    weights = loss_weights(cfg)
+    model = build_model(cfg)
+    init_weights(model)
+    data = RestorationData(cfg, device, seed)
+    writer = make_writer(cfg, run_dir)
+    trainer = RestorationTrainer(model, data, spec, weights, run_dir, device, _container(cfg), writer, seed)
+    resume = cfg.trainer.get("resume")
+    auto = run_dir / CHECKPOINT_NAME
+    if resume or auto.is_file():
+        state = load_checkpoint(resume or auto, "trainer.resume")
+        trainer.load_state_dict(state)
+        log.info("resumed from %s at step %d", resume or auto, trainer.step)
+    log.info("%s (%s): generators %.2fM parameters, critics %.2fM; %d steps, batch %d, %d px padded to %d; "
+             "VGG loss %s", model.spec.variant, model.spec.size,
+             sum(parameter_count(g) for g in model.generators()) / 1e6,
+             sum(parameter_count(d) for d in model.discriminators()) / 1e6, spec.steps, int(cfg.data.batch_size),
+             data.image_size, data.padded_size, trainer.vgg_status)
+    t0 = time.perf_counter()
+    history = trainer.fit(int(cfg.get("logging", {}).get("log_every", 10)))
+    seconds = time.perf_counter() - t0
+    first, last = (history[0], history[-1]) if history else ({}, {})
+    metrics = {**_common_metrics(cfg, model, device), "steps": trainer.step, "seconds": seconds,
+               "skipped_updates": trainer.skipped, "vgg_loss": trainer.vgg_status,
+               "loss_first": first, "loss_last": last, **getattr(trainer, "last_val", {}),
+               "checkpoint": str(run_dir / CHECKPOINT_NAME)}
+    metrics.update(run_evaluation(cfg, model, trainer.restoring_modules(), data, run_dir, seed))
+    io.write_json(run_dir / "metrics.json", metrics)
+    if writer is not None:
+        writer.add_hparams({"variant": model.spec.variant, "size": model.spec.size, "steps": trainer.step},
+                           {f"hparam/{k}": v for k, v in metrics.items()
+                            if k.startswith(("psnr_sgan", "ssim_sgan")) and isinstance(v, float)},
+                           run_name="hparams")
+        writer.close()
+    return metrics.get("psnr_sgan_laser_1e6", float("nan"))
+
+
+def load_trained(path, device: torch.device):
+    """(model, generators for restoration, checkpoint config) from a checkpoint written by the trainer."""
+    state = load_checkpoint(path, "checkpoint")
+    ckpt_cfg = OmegaConf.create(state["config"])
+    model = build_model(ckpt_cfg)
+    model.load_state_dict(state["model"])
+    model.to(device)
+    generators = model.generators()
+    if state.get("ema"):
+        ema = EMA(generators, 0.0)
+        ema.load_state_dict(state["ema"])
+        generators = [g.to(device) for g in ema.shadow]
+    return model, generators, ckpt_cfg, state
+
+
+def merged_eval_config(cfg: DictConfig, ckpt_cfg: DictConfig) -> DictConfig:
+    """The checkpoint's physics and model with this run's scene source and evaluation settings."""
+    merged = OmegaConf.create(OmegaConf.to_container(ckpt_cfg, resolve=True))
+    for key in ("scenes", "folder", "test_fraction", "split_seed", "cache_mb"):
+        if key in cfg.data:
+            merged.data[key] = cfg.data[key]
+    merged.evaluate = cfg.get("evaluate")
+    return merged
+
+
+def run_evaluate(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
+    path = cfg.get("checkpoint")
+    if not path:
+        raise ConfigError("checkpoint", path, "give the trained model: +experiment=evaluate checkpoint=PATH")
+    model, generators, ckpt_cfg, state = load_trained(path, device)
+    merged = merged_eval_config(cfg, ckpt_cfg)
+    seed = int(cfg.get("seed", 0))
+    data = RestorationData(merged, device, seed)
+    metrics = {**_common_metrics(merged, model, device), "checkpoint": str(path), "steps": int(state["step"])}
+    metrics.update(run_evaluation(merged, model, generators, data, run_dir, seed))
+    io.write_json(run_dir / "metrics.json", metrics)
+    return metrics.get("psnr_sgan_laser_1e6", float("nan"))

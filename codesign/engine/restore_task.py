@@ -1,0 +1,121 @@
+"""``+experiment=restore input=PATH checkpoint=PATH``: restore real or simulated 16-bit sensor captures.
+
+Input: one 16-bit PNG / TIFF, or a folder of them, holding sensor counts (DN) at the checkpoint's network
+resolution (data.image_size square, e.g. the captures +experiment=simulate writes). Every file is checked
+(size, single channel, 16-bit integer samples, counts within the sensor's bit depth) before any restoration
+starts. Output: restored_<name>.png (16-bit, radiance 0..1 -> 0..65535) in the run dir, and metrics.json.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from codesign.engine import io
+from codesign.engine.pipeline import frozen_psf
+from codesign.engine.restoration_tasks import load_trained
+from codesign.engine.simulate_task import build_simulator
+from codesign.engine.trainer import centre, restore_with
+from codesign.errors import ConfigError
+
+log = logging.getLogger("codesign.restore")
+SUFFIXES = (".png", ".tif", ".tiff")
+
+
+def input_files(path) -> list[Path]:
+    if not path:
+        raise ConfigError("input", path, "give a 16-bit PNG/TIFF sensor image or a folder of them: input=PATH")
+    p = Path(str(path)).expanduser()
+    if p.is_file():
+        if p.suffix.lower() not in SUFFIXES:
+            raise ConfigError("input", str(path), f"must be a {', '.join(SUFFIXES)} file")
+        return [p]
+    if p.is_dir():
+        files = sorted(f for f in p.iterdir() if f.suffix.lower() in SUFFIXES and not f.name.startswith("."))
+        if not files:
+            raise ConfigError("input", str(path), f"folder holds no {', '.join(SUFFIXES)} files")
+        return files
+    raise ConfigError("input", str(path), "no such file or folder")
+
+
+def read_counts(path: Path) -> np.ndarray:
+    """The raw integer samples of a single-channel 16-bit PNG or TIFF, as float64 counts."""
+    try:
+        if path.suffix.lower() in (".tif", ".tiff"):
+            import tifffile
+
+            arr = tifffile.imread(path)
+        else:
+            from PIL import Image
+
+            with Image.open(path) as img:
+                mode = img.mode
+                arr = np.array(img)
+                if mode in ("I;16", "I;16B", "I;16L", "I"):
+                    arr = arr.astype(np.uint16) if arr.max(initial=0) < 65536 and arr.min(initial=0) >= 0 else arr
+                elif mode != "L":
+                    raise ConfigError("input", str(path), f"PNG mode {mode}: expected a single-channel 16-bit "
+                                      "image (mode I;16)")
+    except ConfigError:
+        raise
+    except Exception as err:  # noqa: BLE001 - any decoder failure: say which file
+        raise ConfigError("input", str(path), f"cannot be read ({type(err).__name__}: {err})") from None
+    if arr.ndim != 2:
+        raise ConfigError("input", str(path), f"has shape {arr.shape}: expected one channel (H, W)")
+    if arr.dtype != np.uint16:
+        raise ConfigError("input", str(path), f"has {arr.dtype} samples: expected 16-bit sensor counts "
+                          "(8-bit files cannot hold the sensor's range)")
+    return arr.astype(np.float64)
+
+
+def validate(files: list[Path], size: int, saturation_dn: float) -> list[np.ndarray]:
+    images = []
+    for f in files:
+        arr = read_counts(f)
+        if arr.shape != (size, size):
+            raise ConfigError("input", str(f), f"is {arr.shape[1]} x {arr.shape[0]} px: the checkpoint's network "
+                              f"resolution is {size} x {size} (data.image_size)")
+        if arr.max() > saturation_dn:
+            raise ConfigError("input", str(f), f"has counts up to {arr.max():.0f} DN, above the sensor's "
+                              f"{saturation_dn:.0f} DN (sensor.bit_depth)")
+        images.append(arr)
+    return images
+
+
+def run_restore(cfg, run_dir: Path, device: torch.device) -> float:
+    files = input_files(cfg.get("input"))
+    if not cfg.get("checkpoint"):
+        raise ConfigError("checkpoint", cfg.get("checkpoint"), "give the trained model: checkpoint=PATH")
+    model, generators, ckpt_cfg, _ = load_trained(cfg.checkpoint, device)
+    system, mask, sim = build_simulator(ckpt_cfg, device, torch.float32)
+    sensor = sim.sensor
+    images = validate(files, sensor.image_size, sensor.saturation_dn)  # everything checked before any work
+    _, _, otf = frozen_psf(system, mask, sim, device)
+    n, p = sensor.image_size, sensor.padded_size
+    m = (p - n) // 2
+    written, t0 = [], time.perf_counter()
+    with torch.no_grad():
+        for f, arr in zip(files, images):
+            x = torch.from_numpy(arr / (sensor.gain_dn_per_e * sensor.full_well_e)).float()[None, None]
+            x = F.pad(x, (m, p - n - m, m, p - n - m)).to(device)
+            b = centre(restore_with(model, generators, x, otf)["b"][1], n).clamp(0, 1)[0, 0].cpu().numpy()
+            out = run_dir / f"restored_{f.stem}.png"
+            save_png16(out, b)
+            written.append(out.name)
+    seconds = (time.perf_counter() - t0) / len(files)
+    io.write_json(run_dir / "metrics.json", {"inputs": [str(f) for f in files], "outputs": written,
+                                             "seconds_per_image": seconds, "checkpoint": str(cfg.checkpoint),
+                                             "device": str(device), "image_size": n, "padded_size": p})
+    log.info("restored %d image(s) into %s (%.3f s/image)", len(files), run_dir, seconds)
+    return seconds
+
+
+def save_png16(path: Path, radiance: np.ndarray) -> None:
+    from PIL import Image
+
+    arr = np.clip(np.rint(radiance * 65535.0), 0, 65535).astype(np.uint16)
+    io.atomic_write_bytes(path, lambda fh: Image.fromarray(arr).save(fh, format="PNG"))

@@ -1,0 +1,105 @@
+"""Validated trainer settings (``trainer.*``) and loss weights (``model.loss.*``)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from codesign.errors import ConfigError, require_number
+from codesign.spec_base import SpecMixin
+
+
+@dataclass(frozen=True)
+class TrainerSpec(SpecMixin):
+    """steps: generator updates; lr_weights / lr_biases: Adam learning rates (Sec. 6.2: 2e-4 / 4e-4); betas.
+    Schedule (Sec. 6.2, 400 epochs: halved after 100, then "reduced by 70 percent" every 50): the learning rate
+    is multiplied by ``first_factor`` at ``first_fraction`` of the steps, then by ``factor`` every
+    ``every_fraction`` (defaults 0.25, 0.5, 0.125, 0.3). critic_steps: critic updates per generator update.
+    grad_clip: max global gradient norm (null = off). ema: generator EMA decay (null = off).
+    checkpoint_every / val_every / image_every: in steps (0 = only at the end). val_size: fixed validation batch.
+    resume: checkpoint path (null = resume from the run dir's checkpoint.pt when one exists).
+    time_budget_s: stop training (then checkpoint and evaluate) once this much wall time has passed; the
+    schedule still refers to ``steps`` (null = no budget).
+    """
+
+    steps: int = 200
+    lr_weights: float = 2e-4
+    lr_biases: float = 4e-4
+    betas: tuple = (0.9, 0.999)
+    first_fraction: float = 0.25
+    first_factor: float = 0.5
+    every_fraction: float = 0.125
+    factor: float = 0.3
+    critic_steps: int = 1
+    grad_clip: float | None = None
+    ema: float | None = None
+    checkpoint_every: int = 100
+    val_every: int = 50
+    image_every: int = 100
+    val_size: int = 4
+    resume: str | None = None
+    time_budget_s: float | None = None
+    prefix: str = field(default="trainer", compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        p = self.prefix
+        require_number(f"{p}.steps", self.steps, lo=1, integer=True)
+        for k in ("lr_weights", "lr_biases"):
+            require_number(f"{p}.{k}", getattr(self, k), lo=0, lo_open=True, hi=1)
+        betas = list(self.betas) if hasattr(self.betas, "__len__") and not isinstance(self.betas, str) else None
+        if betas is None or len(betas) != 2 or not all(isinstance(b, (int, float)) and 0 <= b < 1 for b in betas):
+            raise ConfigError(f"{p}.betas", self.betas, "must be [beta1, beta2], each in [0, 1)")
+        object.__setattr__(self, "betas", tuple(float(b) for b in betas))
+        for k in ("first_fraction", "every_fraction"):
+            require_number(f"{p}.{k}", getattr(self, k), lo=0, lo_open=True, hi=1)
+        for k in ("first_factor", "factor"):
+            require_number(f"{p}.{k}", getattr(self, k), lo=0, lo_open=True, hi=1)
+        require_number(f"{p}.critic_steps", self.critic_steps, lo=1, hi=100, integer=True)
+        if self.grad_clip is not None:
+            require_number(f"{p}.grad_clip", self.grad_clip, lo=0, lo_open=True)
+        if self.ema is not None:
+            require_number(f"{p}.ema", self.ema, lo=0, lo_open=True, hi=1, hi_open=True)
+        for k in ("checkpoint_every", "val_every", "image_every"):
+            require_number(f"{p}.{k}", getattr(self, k), lo=0, integer=True)
+        require_number(f"{p}.val_size", self.val_size, lo=1, hi=256, integer=True)
+        if self.time_budget_s is not None:
+            require_number(f"{p}.time_budget_s", self.time_budget_s, lo=0, lo_open=True)
+
+    def lr_factor(self, step: int) -> float:
+        """Multiplier of the initial learning rates at (0-based) ``step``."""
+        first = self.first_fraction * self.steps
+        if step < first:
+            return 1.0
+        k = int((step - first) // (self.every_fraction * self.steps))
+        return self.first_factor * self.factor**k
+
+
+@dataclass(frozen=True)
+class LossWeights(SpecMixin):
+    """Loss weights of one variant (supplement, Table "Values of Hyperparameters in Model Training").
+
+    l1_stage1: Charbonnier L1 on I_b (s1); l1_stage2: Charbonnier L1 on both scales of b (s2); mdf: multiscale
+    discriminator feature matching; vgg: VGG19 perceptual (needs vgg_weights); fft: FFT loss; adv: lambda_ADV of
+    both GANs; gp: lambda_GP. charbonnier_eps: the epsilon of sqrt(|x|^2 + eps).
+    """
+
+    l1_stage1: float = 200.0
+    l1_stage2: float = 50.0
+    mdf: float = 50.0
+    vgg: float = 0.0
+    fft: float = 0.0
+    adv: float = 1.0
+    gp: float = 10.0
+    charbonnier_eps: float = 1e-6
+    vgg_weights: str | None = None
+    vgg_layers: tuple = (3, 8, 17, 26, 35)
+    prefix: str = field(default="model.loss", compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        for k in ("l1_stage1", "l1_stage2", "mdf", "vgg", "fft", "adv", "gp"):
+            require_number(f"{self.prefix}.{k}", getattr(self, k), lo=0)
+        require_number(f"{self.prefix}.charbonnier_eps", self.charbonnier_eps, lo=0, lo_open=True, hi=1)
+        object.__setattr__(self, "vgg_layers", tuple(self.vgg_layers))
+
+    @property
+    def adversarial(self) -> bool:
+        """Whether the critics are needed at all (adversarial or feature-matching terms on)."""
+        return self.adv > 0 or self.mdf > 0

@@ -1,0 +1,102 @@
+"""ModelSpec: which SGAN variant and how large, validated before any module is built.
+
+Sizes: ``paper`` is the supplement's listing (G: C64 + ERRA 64..512 x 7 levels; D: E64-E128-E256-E512);
+``cpu`` is a 4-level, 16..64-wide network that trains on two CPU cores; ``tiny`` is for tests. Any of
+stem_width / widths / d_widths given explicitly overrides the size preset.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from codesign.errors import ConfigError, require_choice, require_number
+from codesign.spec_base import SpecMixin
+
+VARIANTS = ("sgan_b", "sgan_e", "sgan_f")
+SIZES: dict[str, dict] = {
+    "paper": {"stem_width": 64, "widths": (64, 128, 256, 512, 512, 512, 512), "d_widths": (64, 128, 256, 512)},
+    "cpu": {"stem_width": 16, "widths": (16, 32, 64, 64), "d_widths": (16, 32, 64, 64)},
+    "tiny": {"stem_width": 4, "widths": (8, 8), "d_widths": (4, 8, 8, 8)},
+}
+
+
+def _widths(key: str, value, n_min: int) -> tuple[int, ...]:
+    if not isinstance(value, (list, tuple)) or len(value) < n_min:
+        raise ConfigError(key, value, f"must be a list of at least {n_min} positive integers")
+    return tuple(require_number(f"{key}[{i}]", v, lo=1, hi=4096, integer=True) for i, v in enumerate(value))
+
+
+@dataclass(frozen=True)
+class ModelSpec(SpecMixin):
+    """variant: sgan_b | sgan_e | sgan_f (SGAN-F: RFT blocks in G1/G2 and FTC blocks in D1/D2).
+    size: paper | cpu | tiny; stem_width, widths (generator levels), d_widths (critic levels): null = preset.
+    fe_features / fe_kernel: FE = C R R R with this many features and kernel (paper: 16, 5).
+    attention: efficient self-attention in every generator and critic level; key_channels: d_k (paper: 8).
+    gamma_init: initial learned noise power of the Wiener module.
+    g2_heads_layers: input layers G2 keeps per scale (paper: 2); coarse_to_fine: the fine head also sees the
+    upsampled coarse estimate.
+    g1_residual: G1 predicts a correction to its input, I_b^ = s + G1(s, x, y) (a global skip); g2_linear_skip:
+    each G2 output adds a 1x1 convolution of its input features (a direct, linear Wiener-like readout). Neither is
+    in the paper, which leaves these details open; both make the first thousand steps far more productive.
+    """
+
+    variant: str = "sgan_b"
+    size: str = "cpu"
+    stem_width: int | None = None
+    widths: tuple | None = None
+    d_widths: tuple | None = None
+    fe_features: int = 16
+    fe_kernel: int = 5
+    attention: bool = True
+    key_channels: int = 8
+    gamma_init: float = 1e-2
+    g2_head_layers: int = 2
+    coarse_to_fine: bool = True
+    g1_residual: bool = True
+    g2_linear_skip: bool = True
+    prefix: str = field(default="model", compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        p = self.prefix
+        require_choice(f"{p}.variant", self.variant, VARIANTS)
+        require_choice(f"{p}.size", self.size, tuple(SIZES))
+        preset = SIZES[self.size]
+        stem = preset["stem_width"] if self.stem_width is None else self.stem_width
+        object.__setattr__(self, "stem_width", require_number(f"{p}.stem_width", stem, lo=1, hi=4096,
+                                                              integer=True))
+        object.__setattr__(self, "widths", _widths(f"{p}.widths", list(self.widths or preset["widths"]), 1))
+        object.__setattr__(self, "d_widths", _widths(f"{p}.d_widths", list(self.d_widths or preset["d_widths"]),
+                                                     2))
+        require_number(f"{p}.fe_features", self.fe_features, lo=1, hi=1024, integer=True)
+        require_number(f"{p}.fe_kernel", self.fe_kernel, lo=1, hi=15, integer=True)
+        if self.fe_kernel % 2 == 0:
+            raise ConfigError(f"{p}.fe_kernel", self.fe_kernel, "must be odd (same-size convolution)")
+        require_number(f"{p}.key_channels", self.key_channels, lo=1, hi=1024, integer=True)
+        require_number(f"{p}.gamma_init", self.gamma_init, lo=1e-7, hi=1e6)
+        require_number(f"{p}.g2_head_layers", self.g2_head_layers, lo=1, hi=8, integer=True)
+        for key in ("attention", "coarse_to_fine", "g1_residual", "g2_linear_skip"):
+            if not isinstance(getattr(self, key), bool):
+                raise ConfigError(f"{p}.{key}", getattr(self, key), "must be true or false")
+
+    @property
+    def generator_block(self) -> str:
+        return "rft" if self.variant == "sgan_f" else "res"
+
+    @property
+    def critic_block(self) -> str:
+        return "ftc" if self.variant == "sgan_f" else "conv"
+
+    @property
+    def depth(self) -> int:
+        return len(self.widths)
+
+    def check_input_size(self, padded_size: int, key: str = "data.padded_size") -> None:
+        """The coarse G2 scale (padded / 2) must survive the generator's encoder and the critics' patches: an
+        L-level PatchGAN outputs floor(c / 2^(L-1)) - 2 values, so c >= 3 * 2^(L-1); a depth-d UNet needs c >= 2^d."""
+        if padded_size % 2:
+            raise ConfigError(key, padded_size, "must be even (G2's coarse scale is half of it)")
+        coarse = padded_size // 2
+        need = max(3 * 2 ** (len(self.d_widths) - 1), 2 ** self.depth)
+        if coarse < need:
+            raise ConfigError(key, padded_size, f"too small for model.size={self.size} ({self.depth} generator "
+                              f"levels, {len(self.d_widths)} critic levels): the coarse scale ({coarse} px) must "
+                              f"be >= {need} px, i.e. padded_size >= {2 * need}")

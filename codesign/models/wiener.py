@@ -1,0 +1,104 @@
+"""Wiener deconvolution: the classical filter and the learnable feature-space module G_v = {FE, deconv}.
+
+Both solve the L2-regularized least squares problem in closed form on the (circular) padded grid:
+    x^ = F^-1{ Y conj(H) / (|H|^2 + nsr) }.
+Classical: nsr is one constant (tuned). Learnable (Eq. Deconvolution): nsr_i = gamma_i / E|F_i|^2 per feature
+and per image, with E|F_i|^2 the mean power of feature i (ortho FFT, so it equals the spatial mean of f_i^2 by
+Parseval) and gamma_i > 0 a learned noise power. The filter is written as  Y conj(H) P / (|H|^2 P + gamma),
+which is finite at zero feature power (P = 0 -> 0) and at OTF zeros (H = 0 -> 0) because gamma > 0.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from codesign.models.unet import _residual
+from codesign.models.blocks import conv_norm_act
+
+
+def otf_from_kernel(kernel: torch.Tensor, size: int) -> torch.Tensor:
+    """rfft2 (size x size // 2 + 1) of a centred (k, k) PSF kernel zero-padded to size x size, its centre moved
+    to pixel (0, 0) so that filtering does not shift the image. H(0) = sum(kernel)."""
+    k = kernel.shape[-1]
+    if k > size:
+        raise ValueError(f"kernel ({k} px) larger than the deconvolution grid ({size} px)")
+    big = kernel.new_zeros(kernel.shape[:-2] + (size, size))
+    big[..., :k, :k] = kernel
+    big = torch.roll(big, shifts=(-(k // 2), -(k // 2)), dims=(-2, -1))
+    return torch.fft.rfft2(big.to(torch.float64)).to(torch.complex64 if kernel.dtype != torch.float64
+                                                        else torch.complex128)
+
+
+def wiener_filter(y: torch.Tensor, otf: torch.Tensor, power: torch.Tensor | float,
+                  noise: torch.Tensor | float) -> torch.Tensor:
+    """F^-1{ Y conj(H) P / (|H|^2 P + noise) } for y (..., H, W) and otf (H, W // 2 + 1).
+
+    power, noise broadcast against (..., 1, 1); nsr = noise / power. Computed in float32 or wider.
+    """
+    h, w = y.shape[-2:]
+    dtype = torch.promote_types(y.dtype, torch.float32)
+    spec = torch.fft.rfft2(y.to(dtype), norm="ortho")
+    otf = otf.to(device=spec.device, dtype=spec.dtype)
+    num = spec * otf.conj() * power
+    den = otf.real**2 + otf.imag**2
+    out = torch.fft.irfft2(num / (den * power + noise), s=(h, w), norm="ortho")
+    return out.to(y.dtype)
+
+
+def classical_wiener(y: torch.Tensor, otf: torch.Tensor, nsr: float) -> torch.Tensor:
+    """Classical Wiener deconvolution with one noise-to-signal ratio (nsr > 0)."""
+    if not nsr > 0:
+        raise ValueError(f"nsr must be > 0, got {nsr}")
+    return wiener_filter(y, otf, 1.0, nsr)
+
+
+class FeatureExtractor(nn.Module):
+    """FE = CRRR16 with kernel 5 (supplement Sec. 2.2): N feature images of the pre-restored irradiance."""
+
+    def __init__(self, in_channels: int = 1, features: int = 16, kernel: int = 5, residual_blocks: int = 3,
+                 block: str = "res"):
+        super().__init__()
+        self.net = nn.Sequential(conv_norm_act(in_channels, features, kernel),
+                                 *[_residual(block, features, kernel) for _ in range(residual_blocks)])
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x)
+
+
+class LearnableWiener(nn.Module):
+    """deconv of Eq. (Deconvolution): each feature deconvolved with nsr_i = gamma_i / E|F_i|^2.
+
+    gamma_i = softplus(rho_i) + gamma_min is kept positive; ``gamma`` reports it.
+    """
+
+    def __init__(self, features: int = 16, gamma_init: float = 1e-2, gamma_min: float = 1e-8):
+        super().__init__()
+        if not gamma_init > gamma_min:
+            raise ValueError(f"gamma_init must be > gamma_min ({gamma_min}), got {gamma_init}")
+        g = gamma_init - gamma_min
+        # inverse softplus, stable for small g
+        self.rho = nn.Parameter(torch.full((features,), g + math.log(-math.expm1(-g))))
+        self.gamma_min = gamma_min
+
+    @property
+    def gamma(self) -> torch.Tensor:
+        return F.softplus(self.rho) + self.gamma_min
+
+    def forward(self, f: torch.Tensor, otf: torch.Tensor) -> torch.Tensor:
+        power = f.to(torch.promote_types(f.dtype, torch.float32)).square().mean(dim=(-2, -1), keepdim=True)  # E|F_i|^2
+        return wiener_filter(f, otf, power, self.gamma.view(1, -1, 1, 1))
+
+
+class DeconvModule(nn.Module):
+    """G_v = {FE, deconv}: features of the pre-restored irradiance, each deconvolved with the system OTF."""
+
+    def __init__(self, features: int = 16, kernel: int = 5, gamma_init: float = 1e-2, block: str = "res"):
+        super().__init__()
+        self.fe = FeatureExtractor(1, features, kernel, block=block)
+        self.deconv = LearnableWiener(features, gamma_init)
+
+    def forward(self, i_b: torch.Tensor, otf: torch.Tensor) -> torch.Tensor:
+        return self.deconv(self.fe(i_b), otf)

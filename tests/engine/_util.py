@@ -1,0 +1,30 @@
+"""A tiny, fast restoration setup for trainer tests: smoke optics, 48 px images padded to 64, tiny SGAN."""
+from __future__ import annotations
+
+import torch
+from hydra import compose, initialize_config_dir
+
+from codesign.engine.pipeline import RestorationData
+from codesign.engine.restoration_tasks import build_model, loss_weights
+from codesign.engine.train_spec import TrainerSpec
+from codesign.engine.trainer import RestorationTrainer, init_weights
+from tests.conftest import REPO_ROOT
+
+TINY = ["optics.pupil_pitch_m=2.0e-5", "optics.focal_n=160", "data.image_size=48", "data.padded_size=64",
+        "data.batch_size=2", "model.size=tiny", "trainer.val_size=2"]
+
+
+def tiny_cfg(*overrides: str):
+    with initialize_config_dir(config_dir=str(REPO_ROOT / "conf"), version_base="1.3"):
+        return compose("config", overrides=["+experiment=baseline", *TINY, *overrides])
+
+
+def tiny_trainer(tmp_path, *overrides: str, seed: int = 0, **spec_changes) -> RestorationTrainer:
+    cfg = tiny_cfg(*overrides)
+    torch.manual_seed(seed)
+    model = build_model(cfg)
+    init_weights(model)
+    data = RestorationData(cfg, torch.device("cpu"), seed)
+    spec = TrainerSpec.from_config(dict(cfg.trainer)).replace(**spec_changes)
+    return RestorationTrainer(model, data, spec, loss_weights(cfg), tmp_path, torch.device("cpu"), {"test": 1},
+                              None, seed)
