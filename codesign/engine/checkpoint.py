@@ -24,24 +24,33 @@ def load_checkpoint(path: str | Path, key: str = "checkpoint") -> dict:
     if not p.is_file():
         raise ConfigError(key, str(path), "no such checkpoint file")
     try:
-        state = torch.load(p, map_location="cpu", weights_only=False)
+        # weights_only: a checkpoint holds tensors and plain Python values only, so a file from elsewhere can
+        # never run code while it is read
+        state = torch.load(p, map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 - any unpickling failure means "not our checkpoint"
-        raise ConfigError(key, str(path), f"cannot be read as a checkpoint ({type(err).__name__}: {err})") from None
+        first = str(err).strip().splitlines()[0][:200] if str(err).strip() else ""
+        raise ConfigError(key, str(path), f"cannot be read as a codesign checkpoint (tensors and plain values "
+                          f"only): {type(err).__name__}: {first}") from None
     if not isinstance(state, dict) or "model" not in state or "config" not in state:
         raise ConfigError(key, str(path), "is not a codesign checkpoint (no 'model' / 'config' entries)")
     return state
 
 
 def rng_state() -> dict:
-    out = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
-    if torch.cuda.is_available():
+    """Global RNG states as tensors and plain values (loadable with weights_only=True)."""
+    name, keys, pos, has_gauss, cached = np.random.get_state()
+    out = {"torch": torch.get_rng_state(), "numpy": [name, torch.from_numpy(keys.astype(np.int64)), int(pos),
+                                                     int(has_gauss), float(cached)],
+           "python": random.getstate()}
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
         out["cuda"] = torch.cuda.get_rng_state_all()
     return out
 
 
 def set_rng_state(state: dict) -> None:
     torch.set_rng_state(state["torch"])
-    np.random.set_state(state["numpy"])
-    random.setstate(state["python"])
+    name, keys, pos, has_gauss, cached = state["numpy"]
+    np.random.set_state((name, keys.numpy().astype(np.uint32), pos, has_gauss, cached))
+    random.setstate(tuple(tuple(x) if isinstance(x, list) else x for x in state["python"]))
     if "cuda" in state and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(state["cuda"])

@@ -53,11 +53,13 @@ def replicate_pad(x: torch.Tensor, n: int) -> torch.Tensor:
 
 
 def fit_affine(x: torch.Tensor, y: torch.Tensor) -> tuple[float, float]:
-    """Least-squares gain and offset with y ~ a x + c over all pixels."""
+    """Least-squares gain and offset with y ~ a x + c over all pixels (closed form, float64; a constant x gives
+    a = 0, c = mean y)."""
     xf, yf = x.double().flatten(), y.double().flatten()
-    a_mat = torch.stack([xf, torch.ones_like(xf)], 1)
-    sol = torch.linalg.lstsq(a_mat, yf[:, None]).solution
-    return float(sol[0]), float(sol[1])
+    xm, ym = xf.mean(), yf.mean()
+    var = (xf - xm).square().mean()
+    a = float(((xf - xm) * (yf - ym)).mean() / var) if float(var) > 0 else 0.0
+    return a, float(ym - a * xm)
 
 
 def affine_match(x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -70,43 +72,55 @@ def affine_match(x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return (a * (x - xm) + tm).clamp(0, 1)
 
 
+def wiener_sweep(y: torch.Tensor, otf: torch.Tensor, grid) -> list[torch.Tensor]:
+    """classical_wiener(y, otf, k) for every k of the grid, sharing one forward FFT."""
+    h, w = y.shape[-2:]
+    dtype = torch.promote_types(y.dtype, torch.float32)
+    spec = torch.fft.rfft2(y.to(dtype), norm="ortho")
+    otf = otf.to(device=spec.device, dtype=spec.dtype)
+    num, den = spec * otf.conj(), otf.real**2 + otf.imag**2
+    return [torch.fft.irfft2(num / (den + k), s=(h, w), norm="ortho").to(y.dtype) for k in grid]
+
+
 class Evaluator:
     """Tune the baselines once, then score every method on any simulated batch."""
 
-    def __init__(self, model, generators, data, lpips_path=None, dists_path=None):
+    def __init__(self, model, generators, data, perceptual: dict | None = None, batch_size: int = 8):
         self.model, self.generators, self.data = model, generators, data
         self.n = data.image_size
-        self.perceptual = quality.perceptual_metrics(lpips_path, dists_path)
+        self.perceptual = perceptual if perceptual is not None else quality.perceptual_metrics(None, None)
+        self.batch_size = batch_size
         self.calib: dict[str, dict] = {}
 
     # ---- raw outputs of each method (before calibration) ----------------------------------------------------
     @torch.no_grad()
-    def raw_outputs(self, batch: dict, nsr: dict | None = None) -> dict:
+    def _network(self, batch: dict) -> dict:
+        """Black-level-corrected sensor image and the network's outputs, in chunks of ``batch_size``."""
         s = remove_black_level(batch, self.data.sim.sensor.full_well_e)
-        out = restore_with(self.model, self.generators, batch["sensor"], self.data.otf)
+        outs = [restore_with(self.model, self.generators, chunk, self.data.otf)
+                for chunk in batch["sensor"].split(self.batch_size)]
+        return {"s": s, "i_b": torch.cat([o["i_b"] for o in outs]), "b": torch.cat([o["b"][1] for o in outs])}
+
+    def _outputs(self, net: dict, nsr: dict) -> dict:
         otf = self.data.otf
-        res = {"sensor": centre(s, self.n), "sgan": centre(out["b"][1], self.n), "_i_b": out["i_b"]}
-        if nsr is not None:
-            res["wiener"] = centre(classical_wiener(replicate_pad(s, self.n), otf, nsr["wiener"]), self.n)
-            res["g1_wiener"] = centre(classical_wiener(out["i_b"], otf, nsr["g1_wiener"]), self.n)
-        return res
+        return {"sensor": centre(net["s"], self.n), "sgan": centre(net["b"], self.n),
+                "wiener": centre(classical_wiener(replicate_pad(net["s"], self.n), otf, nsr["wiener"]), self.n),
+                "g1_wiener": centre(classical_wiener(net["i_b"], otf, nsr["g1_wiener"]), self.n)}
 
     @torch.no_grad()
     def tune(self, batch: dict) -> dict:
-        """Choose each Wiener's nsr (best PSNR after an affine fit) and each baseline's gain/offset."""
+        """Choose each Wiener's nsr (best affine-matched PSNR) and each baseline's global gain/offset."""
         target = centre(batch["scene"], self.n)
-        base = self.raw_outputs(batch, None)
-        s = remove_black_level(batch, self.data.sim.sensor.full_well_e)
-        candidates = {"wiener": lambda k: classical_wiener(replicate_pad(s, self.n), self.data.otf, k),
-                      "g1_wiener": lambda k: classical_wiener(base["_i_b"], self.data.otf, k)}
+        net = self._network(batch)
+        inputs = {"wiener": replicate_pad(net["s"], self.n), "g1_wiener": net["i_b"]}
         best_nsr = {}
-        for name, fn in candidates.items():
+        for name, y in inputs.items():
             # tuned for structure (per-image gain/offset matched): a global gain fitted across images of
             # unknown alpha_b shrinks every candidate towards the mean and would make the choice arbitrary
-            scores = [float(quality.psnr(affine_match(centre(fn(k), self.n), target), target).mean())
-                      for k in NSR_GRID]
+            scores = [float(quality.psnr(affine_match(centre(x, self.n), target), target).mean())
+                      for x in wiener_sweep(y, self.data.otf, NSR_GRID)]
             best_nsr[name] = NSR_GRID[int(np.argmax(scores))]
-        tuned = self.raw_outputs(batch, best_nsr)
+        tuned = self._outputs(net, best_nsr)
         self.calib = {"nsr": best_nsr}
         for name in ("sensor", "wiener", "g1_wiener"):
             self.calib[name] = fit_affine(tuned[name], target)
@@ -117,7 +131,7 @@ class Evaluator:
     # ---- scoring --------------------------------------------------------------------------------------------
     @torch.no_grad()
     def restore_all(self, batch: dict) -> dict:
-        raw = self.raw_outputs(batch, self.calib["nsr"])
+        raw = self._outputs(self._network(batch), self.calib["nsr"])
         out = {}
         for name in METHODS:
             x = raw[name]

@@ -58,7 +58,8 @@ def _run_dir() -> Path:
         return Path.cwd()
 
 
-def _explicit_keys() -> frozenset[str]:
+def explicit_keys() -> frozenset[str]:
+    """Dotted keys typed on the command line of this Hydra run (empty outside Hydra)."""
     try:
         return command_line_keys(list(HydraConfig.get().overrides.task))
     except ValueError:
@@ -85,7 +86,7 @@ def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None
         if task not in EXPERIMENTS:
             raise ConfigError("task", task, "choose an experiment with +experiment=NAME; available: "
                               + ", ".join(sorted(EXPERIMENTS)))
-        applied = apply_debug_overrides(cfg, _explicit_keys())
+        applied = apply_debug_overrides(cfg, explicit_keys())
         if applied:
             log.info("debug=%s: applied %s", cfg.debug.name, ", ".join(applied))
         threads = set_threads(cfg.get("threads"))

@@ -11,8 +11,19 @@ from omegaconf import DictConfig
 from codesign.data.params import preset_params, sample_scene_params
 from codesign.data.scenes import build_scene_sampler, build_scene_source
 from codesign.engine.simulate_task import build_simulator
+from codesign.errors import ConfigError
 from codesign.models.wiener import otf_from_kernel
 from codesign.sensor.simulator import mask_state_key, psf_state
+
+
+def check_padding(sim) -> None:
+    """The padded grid must hold the field plus the PSF's reach, or the (circular) Wiener deconvolution of G_v
+    and of the baselines wraps the blur of one border onto the other."""
+    s, k = sim.sensor, sim.coarse.ksize
+    need = s.image_size + k - 1
+    if s.padded_size < need:
+        raise ConfigError("data.padded_size", s.padded_size, f"must be >= data.image_size + PSF kernel - 1 = "
+                          f"{s.image_size} + {k} - 1 = {need} at this pitch, so that deconvolution does not wrap")
 
 
 def frozen_psf(system, mask, sim, device):
@@ -33,6 +44,7 @@ class RestorationData:
     def __init__(self, cfg: DictConfig, device: torch.device, seed: int):
         self.cfg, self.device, self.seed = cfg, device, seed
         self.system, self.mask, self.sim = build_simulator(cfg, device, torch.float32)
+        check_padding(self.sim)
         self.source = build_scene_source(cfg.data)
         self.scene_gen = torch.Generator().manual_seed(seed)
         self.param_gen = torch.Generator().manual_seed(seed + 1)

@@ -9,7 +9,8 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from codesign.data.params import LASER_STRENGTHS, ROBUSTNESS_STAGES
+from codesign import quality
+from codesign.data.params import LASER_STRENGTHS, PRESETS, ROBUSTNESS_STAGES, _laser_name
 from codesign.engine import io
 from codesign.engine.checkpoint import CHECKPOINT_NAME, load_checkpoint
 from codesign.engine.evaluate import Evaluator, conditions, evaluate, flat_summary
@@ -37,45 +38,50 @@ def loss_weights(cfg: DictConfig) -> LossWeights:
     return LossWeights.from_config(_container(cfg.model.get("loss")) or {})
 
 
-def make_writer(cfg: DictConfig, run_dir: Path):
+def make_writer(cfg: DictConfig, run_dir: Path, purge_step: int | None = None):
     if not cfg.get("logging", {}).get("tensorboard", True):
         return None
     from torch.utils.tensorboard import SummaryWriter
 
-    return SummaryWriter(log_dir=str(run_dir))
+    return SummaryWriter(log_dir=str(run_dir), purge_step=purge_step or None)
 
 
 def eval_settings(cfg: DictConfig) -> dict:
+    """Validate ``evaluate.*`` (and load LPIPS / DISTS when given), before any training or simulation."""
     ev = cfg.get("evaluate") or {}
     split = require_choice("evaluate.split", ev.get("split", "test"), ("test", "train", "all"))
-    max_scenes = require_number("evaluate.max_scenes", ev.get("max_scenes", 8), lo=1, hi=1024, integer=True)
-    lasers = [require_number(f"evaluate.laser_strengths[{i}]", a, lo=0, hi=1e12)
-              for i, a in enumerate(ev.get("laser_strengths", LASER_STRENGTHS))]
-    for a in lasers:
-        if a != 0 and abs(round(torch.log10(torch.tensor(a)).item()) - torch.log10(torch.tensor(a)).item()) > 1e-9:
-            raise ConfigError("evaluate.laser_strengths", list(lasers), "must be 0 or powers of ten (presets)")
+    max_scenes = require_number("evaluate.max_scenes", ev.get("max_scenes", 8), lo=1, hi=100000, integer=True)
+    lasers = list(ev.get("laser_strengths", LASER_STRENGTHS))
+    allowed = ", ".join(f"{a:g}" for a in LASER_STRENGTHS)
+    for i, a in enumerate(lasers):
+        a = require_number(f"evaluate.laser_strengths[{i}]", a, lo=0)
+        if _laser_name(float(a)) not in PRESETS or PRESETS[_laser_name(float(a))]["alpha_l"] != float(a):
+            raise ConfigError(f"evaluate.laser_strengths[{i}]", a, f"must be one of the paper's strengths {allowed}")
     stages = list(ev.get("stages", list(ROBUSTNESS_STAGES)))
-    for s in stages:
-        require_choice("evaluate.stages", s, tuple(ROBUSTNESS_STAGES))
+    for i, st in enumerate(stages):
+        require_choice(f"evaluate.stages[{i}]", st, tuple(ROBUSTNESS_STAGES))
     tuning = require_number("evaluate.tuning_size", ev.get("tuning_size", 8), lo=1, hi=256, integer=True)
+    batch = require_number("evaluate.batch_size", ev.get("batch_size", 8), lo=1, hi=4096, integer=True)
     angle = ev.get("laser_angle_rad")
-    return {"split": split, "max_scenes": max_scenes, "lasers": lasers, "stages": stages, "tuning": tuning,
-            "lpips": ev.get("lpips_weights"), "dists": ev.get("dists_weights"),
+    if angle is not None and (len(angle) != 2 or not all(isinstance(v, (int, float)) for v in angle)):
+        raise ConfigError("evaluate.laser_angle_rad", angle, "must be [n_u, n_v] in radians, or null")
+    return {"split": split, "max_scenes": max_scenes, "lasers": [float(a) for a in lasers], "stages": stages,
+            "tuning": tuning, "batch_size": batch,
+            "perceptual": quality.perceptual_metrics(ev.get("lpips_weights"), ev.get("dists_weights")),
             "overrides": {} if angle is None else {"laser_angle_rad": list(angle)}}
 
 
-def run_evaluation(cfg: DictConfig, model, generators, data: RestorationData, run_dir: Path, seed: int) -> dict:
+def run_evaluation(ev: dict, model, generators, data: RestorationData, run_dir: Path, seed: int) -> dict:
     """Tune baselines on the training distribution, then score every method on the chosen split."""
-    ev = eval_settings(cfg)
     names = data.source.split_names(ev["split"])[: ev["max_scenes"]]
     if not names:
         raise ConfigError("evaluate.split", ev["split"], "has no scenes in this data source")
     scenes = data.source.fixed_batch(names, data.sim.scene_size)
-    evaluator = Evaluator(model, generators, data, ev["lpips"], ev["dists"])
+    evaluator = Evaluator(model, generators, data, ev["perceptual"], ev["batch_size"])
     calib = evaluator.tune(data.validation_batch(ev["tuning"]))
     presets = conditions(ev["lasers"], ev["stages"])
     results = evaluate(evaluator, scenes, names, presets, seed, run_dir, ev["overrides"])
-    perceptual = {k: ("available" if callable(v) else v) for k, v in evaluator.perceptual.items()}
+    perceptual = {k: ("available" if callable(v) else v) for k, v in ev["perceptual"].items()}
     return {"evaluation": results, "evaluation_scenes": names, "baseline_calibration": calib,
             "perceptual_metrics": perceptual, **flat_summary(results)}
 
@@ -88,36 +94,61 @@ def _common_metrics(cfg, model, device) -> dict:
             "image_size": int(cfg.data.image_size), "padded_size": int(cfg.data.padded_size)}
 
 
+# Config blocks that must match between a checkpoint and the run that resumes it (trainer.* may change).
+RESUME_MUST_MATCH = ("model", "optics", "mask", "sensor", "data.image_size", "data.padded_size",
+                     "data.batch_size", "data.scenes", "data.folder", "data.test_fraction", "data.split_seed")
+
+
+def check_resume_config(saved: dict, cfg: DictConfig, key: str) -> None:
+    """A checkpoint resumed under a different model, physics or data geometry is a ConfigError naming the keys."""
+    current = _container(cfg)
+    differ = []
+    for dotted in RESUME_MUST_MATCH:
+        a, b = OmegaConf.select(OmegaConf.create(saved), dotted), OmegaConf.select(OmegaConf.create(current), dotted)
+        a = OmegaConf.to_container(a) if OmegaConf.is_config(a) else a
+        b = OmegaConf.to_container(b) if OmegaConf.is_config(b) else b
+        if a != b:
+            differ.append(dotted)
+    if differ:
+        raise ConfigError(key, "checkpoint", "was trained with different " + ", ".join(differ) + ": resume with the "
+                          "same settings, or start a new run directory")
+
+
 def run_baseline(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     seed = int(cfg.get("seed", 0))
     spec = TrainerSpec.from_config(_container(cfg.trainer))
     weights = loss_weights(cfg)
+    ev = eval_settings(cfg)  # every evaluation setting checked before training starts
+    log_every = require_number("logging.log_every", cfg.get("logging", {}).get("log_every", 10), lo=1,
+                               integer=True)
     model = build_model(cfg)
     init_weights(model)
     data = RestorationData(cfg, device, seed)
-    writer = make_writer(cfg, run_dir)
-    trainer = RestorationTrainer(model, data, spec, weights, run_dir, device, _container(cfg), writer, seed)
+    trainer = RestorationTrainer(model, data, spec, weights, run_dir, device, _container(cfg), None, seed)
     resume = cfg.trainer.get("resume")
     auto = run_dir / CHECKPOINT_NAME
     if resume or auto.is_file():
         state = load_checkpoint(resume or auto, "trainer.resume")
+        check_resume_config(state["config"], cfg, "trainer.resume")
         trainer.load_state_dict(state)
         log.info("resumed from %s at step %d", resume or auto, trainer.step)
+    trainer.writer = make_writer(cfg, run_dir, purge_step=trainer.step)  # drops events logged after the checkpoint
     log.info("%s (%s): generators %.2fM parameters, critics %.2fM; %d steps, batch %d, %d px padded to %d; "
              "VGG loss %s", model.spec.variant, model.spec.size,
              sum(parameter_count(g) for g in model.generators()) / 1e6,
              sum(parameter_count(d) for d in model.discriminators()) / 1e6, spec.steps, int(cfg.data.batch_size),
              data.image_size, data.padded_size, trainer.vgg_status)
     t0 = time.perf_counter()
-    history = trainer.fit(int(cfg.get("logging", {}).get("log_every", 10)))
+    history = trainer.fit(log_every)
     seconds = time.perf_counter() - t0
     first, last = (history[0], history[-1]) if history else ({}, {})
     metrics = {**_common_metrics(cfg, model, device), "steps": trainer.step, "seconds": seconds,
                "skipped_updates": trainer.skipped, "vgg_loss": trainer.vgg_status,
                "loss_first": first, "loss_last": last, **getattr(trainer, "last_val", {}),
                "checkpoint": str(run_dir / CHECKPOINT_NAME)}
-    metrics.update(run_evaluation(cfg, model, trainer.restoring_modules(), data, run_dir, seed))
+    metrics.update(run_evaluation(ev, model, trainer.restoring_modules(), data, run_dir, seed))
     io.write_json(run_dir / "metrics.json", metrics)
+    writer = trainer.writer
     if writer is not None:
         writer.add_hparams({"variant": model.spec.variant, "size": model.spec.size, "steps": trainer.step},
                            {f"hparam/{k}": v for k, v in metrics.items()
@@ -142,25 +173,30 @@ def load_trained(path, device: torch.device):
     return model, generators, ckpt_cfg, state
 
 
-def merged_eval_config(cfg: DictConfig, ckpt_cfg: DictConfig) -> DictConfig:
-    """The checkpoint's physics and model with this run's scene source and evaluation settings."""
+def merged_eval_config(cfg: DictConfig, ckpt_cfg: DictConfig, typed: frozenset[str]) -> DictConfig:
+    """The checkpoint's physics, model and data split, with the scene-source keys typed on this command line
+    (``typed``: e.g. data.scenes, data.folder) and this run's ``evaluate`` block. Untyped data keys keep the
+    checkpoint's values, so the test split is the one held out during training."""
     merged = OmegaConf.create(OmegaConf.to_container(ckpt_cfg, resolve=True))
     for key in ("scenes", "folder", "test_fraction", "split_seed", "cache_mb"):
-        if key in cfg.data:
-            merged.data[key] = cfg.data[key]
+        if f"data.{key}" in typed or "data" in typed:
+            merged.data[key] = cfg.data.get(key)
     merged.evaluate = cfg.get("evaluate")
     return merged
 
 
 def run_evaluate(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
+    from codesign.engine.experiments import explicit_keys
+
     path = cfg.get("checkpoint")
     if not path:
         raise ConfigError("checkpoint", path, "give the trained model: +experiment=evaluate checkpoint=PATH")
+    ev = eval_settings(cfg)
     model, generators, ckpt_cfg, state = load_trained(path, device)
-    merged = merged_eval_config(cfg, ckpt_cfg)
+    merged = merged_eval_config(cfg, ckpt_cfg, explicit_keys())
     seed = int(cfg.get("seed", 0))
     data = RestorationData(merged, device, seed)
     metrics = {**_common_metrics(merged, model, device), "checkpoint": str(path), "steps": int(state["step"])}
-    metrics.update(run_evaluation(merged, model, generators, data, run_dir, seed))
+    metrics.update(run_evaluation(ev, model, generators, data, run_dir, seed))
     io.write_json(run_dir / "metrics.json", metrics)
     return metrics.get("psnr_sgan_laser_1e6", float("nan"))

@@ -38,6 +38,11 @@ def input_files(path) -> list[Path]:
         files = sorted(f for f in p.iterdir() if f.suffix.lower() in SUFFIXES and not f.name.startswith("."))
         if not files:
             raise ConfigError("input", str(path), f"folder holds no {', '.join(SUFFIXES)} files")
+        stems = [f.stem for f in files]
+        clash = sorted({s for s in stems if stems.count(s) > 1})
+        if clash:
+            raise ConfigError("input", str(path), f"holds files that would write the same output "
+                              f"restored_{clash[0]}.png: rename one of {[f.name for f in files if f.stem == clash[0]]}")
         return files
     raise ConfigError("input", str(path), "no such file or folder")
 

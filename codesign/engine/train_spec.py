@@ -12,7 +12,8 @@ class TrainerSpec(SpecMixin):
     """steps: generator updates; lr_weights / lr_biases: Adam learning rates (Sec. 6.2: 2e-4 / 4e-4); betas.
     Schedule (Sec. 6.2, 400 epochs: halved after 100, then "reduced by 70 percent" every 50): the learning rate
     is multiplied by ``first_factor`` at ``first_fraction`` of the steps, then by ``factor`` every
-    ``every_fraction`` (defaults 0.25, 0.5, 0.125, 0.3). critic_steps: critic updates per generator update.
+    ``every_fraction`` (defaults 0.25, 0.5, 0.125, 0.3). critic_steps: critic updates per generator update
+    (on the same batch and the same generator outputs).
     grad_clip: max global gradient norm (null = off). ema: generator EMA decay (null = off).
     checkpoint_every / val_every / image_every: in steps (0 = only at the end). val_size: fixed validation batch.
     resume: checkpoint path (null = resume from the run dir's checkpoint.pt when one exists).
@@ -98,8 +99,6 @@ class LossWeights(SpecMixin):
             require_number(f"{self.prefix}.{k}", getattr(self, k), lo=0)
         require_number(f"{self.prefix}.charbonnier_eps", self.charbonnier_eps, lo=0, lo_open=True, hi=1)
         object.__setattr__(self, "vgg_layers", tuple(self.vgg_layers))
-
-    @property
-    def adversarial(self) -> bool:
-        """Whether the critics are needed at all (adversarial or feature-matching terms on)."""
-        return self.adv > 0 or self.mdf > 0
+        if self.mdf > 0 and self.adv == 0:
+            raise ConfigError(f"{self.prefix}.mdf", self.mdf, "needs model.loss.adv > 0: the critics whose features "
+                              "it matches are trained only by the adversarial term")

@@ -101,26 +101,33 @@ class RestorationTrainer:
         self.gp_gen = torch.Generator(device=device).manual_seed(seed + 2)  # interpolation weights of the GP
         self.step = 0
         self.skipped = 0
-        self.history: list[dict] = []
+        self.first_terms: dict = {}  # loss terms of the first and the last step of this process's run
+        self.last_terms: dict = {}
         self._val = None
 
     # ---- losses ---------------------------------------------------------------------------------------------
     def _gp(self, critic, real, fake, cond=None):
         return losses.gradient_penalty(critic, real, fake, cond=cond, generator=self.gp_gen)
 
-    def critic_step(self, batch: dict) -> dict:
+    def critic_step(self, batch: dict, out: dict | None = None) -> dict:
+        """One critic update. ``out``: the generators' outputs for this batch (detached here); None = compute."""
         m, w = self.model, self.w
         s, i_b = batch["sensor"], batch["irradiance"]
-        targets = pyramid(batch["scene"])
-        with torch.no_grad():
-            out = m(s, self.data.otf)
-        cond = m.condition1(s)
-        d1 = losses.critic_loss(m.critic1(s, i_b)[0], m.critic1(s, out["i_b"])[0])
-        gp1 = self._gp(m.d1, i_b, out["i_b"], cond)
-        d2 = sum(losses.critic_loss(m.d2[k](targets[k])[0], m.d2[k](out["b"][k])[0]) for k in range(2))
-        gp2 = sum(self._gp(m.d2[k], targets[k], out["b"][k]) for k in range(2))
-        total = w.adv * (d1 + d2) + w.gp * (gp1 + gp2)
-        terms = {"d1_wasserstein": -d1, "d2_wasserstein": -d2, "d1_gp": gp1, "d2_gp": gp2, "critic_total": total}
+        targets = batch.get("targets") or pyramid(batch["scene"])
+        if out is None:
+            with torch.no_grad():
+                out = m(s, self.data.otf)
+        fake_i, fake_b = out["i_b"].detach(), [b.detach() for b in out["b"]]
+        d1 = losses.critic_loss(m.critic1(s, i_b)[0], m.critic1(s, fake_i)[0])
+        d2 = sum(losses.critic_loss(m.d2[k](targets[k])[0], m.d2[k](fake_b[k])[0]) for k in range(2))
+        total = w.adv * (d1 + d2)
+        terms = {"d1_wasserstein": -d1, "d2_wasserstein": -d2}
+        if w.gp > 0:  # the penalty's double backward is the critic step's largest cost: only when weighted
+            gp1 = self._gp(m.d1, i_b, fake_i, m.condition1(s))
+            gp2 = sum(self._gp(m.d2[k], targets[k], fake_b[k]) for k in range(2))
+            total = total + w.gp * (gp1 + gp2)
+            terms.update(d1_gp=gp1, d2_gp=gp2)
+        terms["critic_total"] = total
         if not self._apply(self.opt_d, total, m.discriminators()):
             terms["critic_skipped"] = torch.tensor(1.0)
         return terms
@@ -128,7 +135,7 @@ class RestorationTrainer:
     def generator_losses(self, batch: dict, out: dict) -> dict:
         m, w, eps = self.model, self.w, self.w.charbonnier_eps
         s, i_b = batch["sensor"], batch["irradiance"]
-        targets = pyramid(batch["scene"])
+        targets = batch.get("targets") or pyramid(batch["scene"])
         terms = {"rec1": losses.charbonnier(out["i_b"], i_b, eps),
                  "rec2": sum(losses.charbonnier(out["b"][k], targets[k], eps) for k in range(2))}
         total = w.l1_stage1 * terms["rec1"] + w.l1_stage2 * terms["rec2"]
@@ -152,12 +159,15 @@ class RestorationTrainer:
         terms["generator_total"] = total
         return terms
 
-    def generator_step(self, batch: dict) -> dict:
+    def generator_step(self, batch: dict, out: dict | None = None) -> dict:
+        """One generator update with every critic frozen. ``out``: this batch's generator outputs with their
+        graph (the generators have not changed since they were computed); None = compute."""
         m = self.model
         crits = m.discriminators()
         set_requires_grad(crits, False)  # critics frozen: no gradient accumulates in them
         try:
-            out = m(batch["sensor"], self.data.otf)
+            if out is None:
+                out = m(batch["sensor"], self.data.otf)
             terms = self.generator_losses(batch, out)
         finally:
             set_requires_grad(crits, True)
@@ -188,13 +198,17 @@ class RestorationTrainer:
 
     # ---- loop -----------------------------------------------------------------------------------------------
     def train_step(self) -> dict:
+        """Critic update(s), then the generator update, on one simulated batch. The generators run once: the
+        critic steps see their outputs detached, the generator step reuses them with their graph."""
         self.model.train()
         batch = self.data.train_batch(self.step)
+        batch["targets"] = pyramid(batch["scene"])
+        out = self.model(batch["sensor"], self.data.otf)
         terms = {}
         if self.w.adv > 0:
             for _ in range(self.spec.critic_steps):
-                terms.update(self.critic_step(batch))
-        terms.update(self.generator_step(batch))
+                terms.update(self.critic_step(batch, out))
+        terms.update(self.generator_step(batch, out))
         self.sched_g.step()
         self.sched_d.step()
         self.step += 1
@@ -206,7 +220,8 @@ class RestorationTrainer:
         while self.step < spec.steps:
             terms = self.train_step()
             terms["step"] = self.step
-            self.history.append(terms)
+            self.first_terms = self.first_terms or terms
+            self.last_terms = terms
             self._log_scalars(terms)
             over = spec.time_budget_s is not None and time.perf_counter() - t0 >= spec.time_budget_s
             last = self.step == spec.steps or over
@@ -223,7 +238,7 @@ class RestorationTrainer:
             if over:
                 log.info("time budget of %.0f s reached at step %d/%d", spec.time_budget_s, self.step, spec.steps)
                 break
-        return self.history
+        return [t for t in (self.first_terms, self.last_terms) if t]
 
     # ---- validation and logging ---------------------------------------------------------------------------
     def restoring_modules(self) -> list[nn.Module]:
@@ -275,9 +290,10 @@ class RestorationTrainer:
             "model": self.model.state_dict(), "opt_g": self.opt_g.state_dict(), "opt_d": self.opt_d.state_dict(),
             "sched_g": self.sched_g.state_dict(), "sched_d": self.sched_d.state_dict(), "step": self.step,
             "skipped": self.skipped, "ema": self.ema.state_dict() if self.ema else None,
-            "rng": {**rng_state(), "gp": self.gp_gen.get_state(), "data": self.data.state_dict()},
+            "rng": {**rng_state(), "gp": self.gp_gen.get_state(), "gp_device": self.gp_gen.device.type,
+                    "data": self.data.state_dict()},
             "config": self.config, "model_spec": dict(vars(self.model.spec)),
-            "versions": {"torch": torch.__version__},
+            "versions": {"torch": str(torch.__version__)},
         }
 
     def save(self, path: Path | None = None) -> Path:
@@ -290,11 +306,19 @@ class RestorationTrainer:
         self.sched_g.load_state_dict(state["sched_g"])
         self.sched_d.load_state_dict(state["sched_d"])
         self.step, self.skipped = int(state["step"]), int(state.get("skipped", 0))
-        if self.ema is not None and state.get("ema"):
-            self.ema.load_state_dict(state["ema"])
+        if self.ema is not None:
+            if state.get("ema"):
+                self.ema.load_state_dict(state["ema"])
+            else:  # EMA switched on at resume: start the average from the loaded weights, not the random init
+                self.ema = EMA(self.model.generators(), self.ema.decay)
         rng = state["rng"]
         set_rng_state(rng)
-        self.gp_gen.set_state(rng["gp"])
+        if rng.get("gp_device", "cpu") == self.gp_gen.device.type:
+            self.gp_gen.set_state(rng["gp"])
+        else:  # CPU and CUDA generators have different states: the next steps differ from the original run's
+            log.warning("checkpoint from a %s run resumed on %s: gradient-penalty draws re-seeded",
+                        rng.get("gp_device", "cpu"), self.gp_gen.device.type)
+            self.gp_gen.manual_seed(int(self.step) + 2)
         self.data.load_state_dict(rng["data"])
 
 

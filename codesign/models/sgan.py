@@ -97,6 +97,10 @@ class SGAN(nn.Module):
 
         Returns i_b (B,1,P,P), features (B,N,P,P) after deconvolution, b = [b^0 (B,1,P/2,P/2), b^1 (B,1,P,P)].
         """
+        p = sensor.shape[-1]
+        if sensor.shape[-2] != p or tuple(otf.shape[-2:]) != (p, p // 2 + 1):
+            raise ValueError(f"sensor must be (B, 1, P, P) with an OTF of shape (P, P // 2 + 1); got sensor "
+                             f"{tuple(sensor.shape)} and OTF {tuple(otf.shape)}")
         i_b = self.pre_restore(sensor)
         features = self.gv(i_b, otf)
         return {"i_b": i_b, "features": features, "b": self.g2(features)}

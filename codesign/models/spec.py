@@ -32,7 +32,7 @@ class ModelSpec(SpecMixin):
     fe_features / fe_kernel: FE = C R R R with this many features and kernel (paper: 16, 5).
     attention: efficient self-attention in every generator and critic level; key_channels: d_k (paper: 8).
     gamma_init: initial learned noise power of the Wiener module.
-    g2_heads_layers: input layers G2 keeps per scale (paper: 2); coarse_to_fine: the fine head also sees the
+    g2_head_layers: input layers G2 keeps per scale (paper: 2); coarse_to_fine: the fine head also sees the
     upsampled coarse estimate.
     g1_residual: G1 predicts a correction to its input, I_b^ = s + G1(s, x, y) (a global skip); g2_linear_skip:
     each G2 output adds a 1x1 convolution of its input features (a direct, linear Wiener-like readout). Neither is

@@ -94,11 +94,18 @@ def test_restore_folder_of_captures(baseline_run, tmp_path):
     assert len(m["outputs"]) == 2 and m["image_size"] == 128
 
 
-def test_rerun_in_the_same_dir_resumes_instead_of_retraining(baseline_run):
-    proc = _run("+experiment=baseline", "debug=smoke", f"hydra.run.dir={baseline_run}")
+def test_rerun_in_the_same_dir_resumes_instead_of_retraining(baseline_run, tmp_path):
+    import shutil
+
+    copy = tmp_path / "again"
+    shutil.copytree(baseline_run, copy)  # leave the module's run untouched for the other tests
+    proc = _run("+experiment=baseline", "debug=smoke", f"hydra.run.dir={copy}")
     assert proc.returncode == 0, proc.stderr[-4000:]
     assert "resumed from" in proc.stderr and "at step 4" in proc.stderr
     assert "step 1/4" not in proc.stderr
+    proc = _run("+experiment=baseline", "debug=smoke", "model=sgan_f", f"hydra.run.dir={copy}")
+    assert proc.returncode == 2
+    assert "trainer.resume = 'checkpoint': was trained with different model" in proc.stderr
 
 
 def test_evaluate_without_checkpoint_is_a_config_error(tmp_path):

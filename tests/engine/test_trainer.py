@@ -168,3 +168,20 @@ def test_every_variant_trains_one_step_with_its_preset(tmp_path, variant):
     terms = tr.train_step()
     expected = {"sgan_b": {"mdf", "adv"}, "sgan_e": {"mdf", "adv"}, "sgan_f": {"mdf", "adv", "fft"}}[variant]
     assert expected <= set(terms) and all(math.isfinite(v) for v in terms.values())
+
+
+def test_generator_total_is_the_weighted_sum_of_its_terms(tmp_path):
+    tr = tiny_trainer(tmp_path, "model=sgan_f")
+    batch = tr.data.train_batch(0)
+    with torch.no_grad():
+        terms = tr.generator_losses(batch, tr.model(batch["sensor"], tr.data.otf))
+    w = tr.w
+    expected = (w.l1_stage1 * terms["rec1"] + w.l1_stage2 * terms["rec2"] + w.adv * terms["adv"]
+                + w.mdf * terms["mdf"] + w.fft * terms["fft"])
+    assert (w.l1_stage1, w.l1_stage2, w.mdf, w.fft, w.adv) == (10.0, 10.0, 0.1, 100.0, 0.1)  # the SGAN-F preset
+    torch.testing.assert_close(terms["generator_total"], expected)
+
+
+def test_mdf_without_adversarial_training_is_refused():
+    with pytest.raises(ConfigError, match="model.loss.mdf = 1.0: needs model.loss.adv > 0"):
+        LossWeights.from_config({"adv": 0.0, "mdf": 1.0})

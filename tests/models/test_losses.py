@@ -155,3 +155,20 @@ def test_vgg_loss(vgg19_path):
 def test_vgg_loss_missing_file(tmp_path):
     with pytest.raises(ConfigError, match="model.loss.vgg_weights.*nope.pth.*not found"):
         build_vgg_loss(tmp_path / "nope.pth", None)
+
+
+class HalfSquare(nn.Module):
+    """D(z) = 0.5 ||z||^2 per sample: its gradient is z itself, so the penalty sees where x~ was taken."""
+
+    def forward(self, z):
+        return 0.5 * z.flatten(1).square().sum(1, keepdim=True), [z]
+
+
+def test_gradient_penalty_samples_on_the_straight_line():
+    real, fake = pair((4, 1, 3, 3))
+    gen = torch.Generator().manual_seed(5)
+    gp = gradient_penalty(HalfSquare(), real, fake, generator=torch.Generator().manual_seed(5))
+    eps = torch.rand((4, 1, 1, 1), generator=gen, dtype=torch.float64)  # the same draws
+    x = eps * real + (1 - eps) * fake
+    expected = ((x.flatten(1).norm(dim=1) - 1) ** 2).mean()
+    torch.testing.assert_close(gp, expected, rtol=1e-12, atol=0)
