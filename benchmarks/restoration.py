@@ -59,18 +59,68 @@ def speed(sizes, image: int, padded: int, repeats: int) -> dict:
     return {"machine": machine(), "device": str(dev), "image": image, "padded": padded, "rows": rows}
 
 
-def quality(run_dirs: list[str]) -> dict:
+def quality(run_dirs: list[str], speed_json: Path | None = None, tag: str = "") -> dict:
+    """Rows (run, method, condition, metrics) from the runs' metrics.json; a markdown table on stdout; a plot of
+    ms/image (from the speed results, CPU size) against PSNR at alpha_l = 1e6 when those results exist."""
     rows = []
     for d in run_dirs:
         m = json.loads((Path(d) / "metrics.json").read_text())
-        ev = m["evaluation"]
-        for cond, table in ev.items():
+        for cond, table in m["evaluation"].items():
             for method, metrics in table.items():
-                name = m.get("variant", "?") if method == "sgan" else method
-                rows.append({"run": str(d), "variant": m.get("variant"), "method": name, "condition": cond,
+                rows.append({"run": str(d), "variant": m.get("variant"), "method": method, "condition": cond,
                              "steps": m.get("steps"), "train_seconds": m.get("seconds"),
                              "scenes": ",".join(m.get("evaluation_scenes", [])), **metrics})
+    _print_markdown(rows)
+    speed = json.loads(speed_json.read_text()) if speed_json and speed_json.is_file() else None
+    if speed:
+        _plot(rows, speed, tag)
     return {"machine": machine(), "rows": rows}
+
+
+def _label(row: dict) -> str:
+    return {"sgan": row["variant"].replace("sgan_", "SGAN-").upper(),
+            "g1_wiener": f"G1({row['variant'][-1].upper()}) + Wiener"}.get(row["method"], row["method"])
+
+
+def _print_markdown(rows: list[dict]) -> None:
+    conds = [c for c in ("laser_0", "laser_1e3", "laser_1e6") if any(r["condition"] == c for r in rows)]
+    seen, methods = set(), []
+    for r in rows:
+        key = (r["method"], r["variant"]) if r["method"] in ("sgan", "g1_wiener") else (r["method"], None)
+        if key not in seen:
+            seen.add(key)
+            methods.append(key)
+    print("| method | " + " | ".join(f"{c}: PSNR / SSIM / PSNR aff." for c in conds) + " |")
+    print("|---|" + "---|" * len(conds))
+    for method, variant in methods:
+        cells = []
+        for c in conds:
+            sel = [r for r in rows if r["condition"] == c and r["method"] == method
+                   and (variant is None or r["variant"] == variant)]
+            r = sel[0]
+            cells.append(f"{r['psnr']:.2f} / {r['ssim']:.3f} / {r['psnr_affine']:.2f}")
+        print(f"| {_label(sel[0])} | " + " | ".join(cells) + " |")
+
+
+def _plot(rows: list[dict], speed: dict, tag: str = "") -> None:
+    from codesign.engine.plots import plt
+
+    ms = {(r["variant"], r["size"]): r["ms_per_image"] for r in speed["rows"]}
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for r in rows:
+        if r["condition"] != "laser_1e6" or r["method"] not in ("sgan", "wiener"):
+            continue
+        x = ms.get((r["variant"], "cpu")) if r["method"] == "sgan" else ms.get(("wiener", "-"))
+        if x is None:
+            continue
+        ax.scatter(x, r["psnr_affine"], label=_label(r))
+        ax.annotate(_label(r), (x, r["psnr_affine"]), fontsize=7)
+    ax.set(xscale="log", xlabel="ms / image (CPU, 2 threads)", ylabel="PSNR after gain/offset match [dB]",
+           title="restoration at alpha_l = 1e6: time against quality")
+    ax.grid(alpha=0.3)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    fig.savefig(RESULTS / f"restoration_quality{tag}.png", dpi=120, bbox_inches="tight")
+    plt.close(fig)
 
 
 def main(argv=None) -> None:
@@ -85,12 +135,13 @@ def main(argv=None) -> None:
     qp = sub.add_parser("quality")
     qp.add_argument("runs", nargs="+")
     qp.add_argument("--tag", default="")
+    qp.add_argument("--speed", type=Path, default=RESULTS / "restoration_speed.json")
     args = ap.parse_args(argv)
     if args.cmd == "speed":
         res = speed(args.sizes, args.image, args.padded, args.repeats)
         print(write_result(f"restoration_speed{args.tag}", res))
     else:
-        res = quality(args.runs)
+        res = quality(args.runs, args.speed, args.tag)
         print(write_result(f"restoration_quality{args.tag}", res))
 
 

@@ -34,7 +34,7 @@ from codesign.models.wiener import classical_wiener
 log = logging.getLogger("codesign.evaluate")
 
 METHODS = ("sensor", "wiener", "g1_wiener", "sgan")
-NSR_GRID = tuple(10.0 ** e for e in np.arange(-6.0, 0.01, 0.25))
+NSR_GRID = tuple(10.0 ** e for e in np.arange(-6.0, 2.01, 0.25))
 
 
 def remove_black_level(batch: dict, full_well_e: float) -> torch.Tensor:

@@ -48,15 +48,19 @@ def activation(name: str) -> nn.Module:
     raise ValueError(f"activation must be relu or leaky_relu, got {name!r}")
 
 
+def conv_pair(channels: int, kernel: int) -> nn.Sequential:
+    """Conv-IN-ReLU-Conv-IN at constant width: the body of R and the spatial branch of RFT."""
+    p = kernel // 2
+    return nn.Sequential(nn.Conv2d(channels, channels, kernel, 1, p), InstanceNorm(channels), nn.ReLU(inplace=True),
+                         nn.Conv2d(channels, channels, kernel, 1, p), InstanceNorm(channels))
+
+
 class ResBlock(nn.Module):
     """R: x + [Conv-IN-ReLU, Conv-IN](x), then ReLU (He et al. 2016, as the supplement's residual block)."""
 
     def __init__(self, channels: int, kernel: int = 3):
         super().__init__()
-        p = kernel // 2
-        self.body = nn.Sequential(nn.Conv2d(channels, channels, kernel, 1, p), InstanceNorm(channels),
-                                  nn.ReLU(inplace=True), nn.Conv2d(channels, channels, kernel, 1, p),
-                                  InstanceNorm(channels))
+        self.body = conv_pair(channels, kernel)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return F.relu(x + self.body(x))
@@ -86,10 +90,7 @@ class ResFFTBlock(nn.Module):
 
     def __init__(self, channels: int, kernel: int = 3):
         super().__init__()
-        p = kernel // 2
-        self.spatial = nn.Sequential(nn.Conv2d(channels, channels, kernel, 1, p), InstanceNorm(channels),
-                                     nn.ReLU(inplace=True), nn.Conv2d(channels, channels, kernel, 1, p),
-                                     InstanceNorm(channels))
+        self.spatial = conv_pair(channels, kernel)
         self.spectral = SpectralBranch(channels, channels)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

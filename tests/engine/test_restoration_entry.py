@@ -101,8 +101,9 @@ def test_rerun_in_the_same_dir_resumes_instead_of_retraining(baseline_run, tmp_p
     shutil.copytree(baseline_run, copy)  # leave the module's run untouched for the other tests
     proc = _run("+experiment=baseline", "debug=smoke", f"hydra.run.dir={copy}")
     assert proc.returncode == 0, proc.stderr[-4000:]
-    assert "resumed from" in proc.stderr and "at step 4" in proc.stderr
-    assert "step 1/4" not in proc.stderr
+    log = proc.stdout + proc.stderr  # Hydra's console log goes to stdout
+    assert "resumed from" in log and "at step 4" in log
+    assert "step 1/4" not in log
     proc = _run("+experiment=baseline", "debug=smoke", "model=sgan_f", f"hydra.run.dir={copy}")
     assert proc.returncode == 2
     assert "trainer.resume = 'checkpoint': was trained with different model" in proc.stderr

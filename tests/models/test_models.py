@@ -21,15 +21,6 @@ from codesign.models.sgan import Refiner
 from codesign.models.unet import ResUNet
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    """These networks are tiny: one intra-op thread is as fast and avoids OpenMP spin-waits on a busy 2-core box."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _gen(seed: int = 0) -> torch.Generator:
     return torch.Generator().manual_seed(seed)
 

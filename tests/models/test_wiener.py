@@ -12,15 +12,6 @@ from codesign.models import classical_wiener, otf_from_kernel, wiener_filter
 from codesign.models.wiener import DeconvModule, LearnableWiener
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    """These networks are tiny: one intra-op thread is as fast and avoids OpenMP spin-waits on a busy 2-core box."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def _gaussian(k: int, sigma: float) -> np.ndarray:
     r = np.arange(k) - k // 2
     g = np.exp(-(r[:, None] ** 2 + r[None, :] ** 2) / (2 * sigma**2))
