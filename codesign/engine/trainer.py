@@ -182,7 +182,7 @@ class RestorationTrainer:
         opt.zero_grad(set_to_none=True)
         if not torch.isfinite(loss):
             self.skipped += 1
-            log.warning("step %d: non-finite loss %s, update skipped", self.step, float(loss))
+            log.warning("step %d: non-finite loss %s, update skipped", self.step, float(loss.detach()))
             return False
         loss.backward()
         params = [p for mod in modules for p in mod.parameters() if p.grad is not None]
