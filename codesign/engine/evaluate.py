@@ -29,7 +29,7 @@ from codesign.data.params import LASER_STRENGTHS, ROBUSTNESS_STAGES, _laser_name
 from codesign.engine import io
 from codesign.engine.plots import plt
 from codesign.engine.trainer import centre, restore_with
-from codesign.models.wiener import classical_wiener
+from codesign.models.wiener import classical_wiener, classical_wiener_sweep
 
 log = logging.getLogger("codesign.evaluate")
 
@@ -72,16 +72,6 @@ def affine_match(x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return (a * (x - xm) + tm).clamp(0, 1)
 
 
-def wiener_sweep(y: torch.Tensor, otf: torch.Tensor, grid) -> list[torch.Tensor]:
-    """classical_wiener(y, otf, k) for every k of the grid, sharing one forward FFT."""
-    h, w = y.shape[-2:]
-    dtype = torch.promote_types(y.dtype, torch.float32)
-    spec = torch.fft.rfft2(y.to(dtype), norm="ortho")
-    otf = otf.to(device=spec.device, dtype=spec.dtype)
-    num, den = spec * otf.conj(), otf.real**2 + otf.imag**2
-    return [torch.fft.irfft2(num / (den + k), s=(h, w), norm="ortho").to(y.dtype) for k in grid]
-
-
 class Evaluator:
     """Tune the baselines once, then score every method on any simulated batch."""
 
@@ -118,7 +108,7 @@ class Evaluator:
             # tuned for structure (per-image gain/offset matched): a global gain fitted across images of
             # unknown alpha_b shrinks every candidate towards the mean and would make the choice arbitrary
             scores = [float(quality.psnr(affine_match(centre(x, self.n), target), target).mean())
-                      for x in wiener_sweep(y, self.data.otf, NSR_GRID)]
+                      for x in classical_wiener_sweep(y, self.data.otf, NSR_GRID)]
             best_nsr[name] = NSR_GRID[int(np.argmax(scores))]
         tuned = self._outputs(net, best_nsr)
         self.calib = {"nsr": best_nsr}

@@ -9,7 +9,7 @@ import torch
 from omegaconf import DictConfig
 
 from codesign.data.params import preset_params, sample_scene_params
-from codesign.data.scenes import build_scene_sampler, build_scene_source
+from codesign.data.scenes import SceneSampler, build_scene_sampler, build_scene_source
 from codesign.engine.simulate_task import build_simulator
 from codesign.errors import ConfigError
 from codesign.models.wiener import otf_from_kernel
@@ -74,26 +74,22 @@ class RestorationData:
         out["read_noise_mean_e"] = params.read_noise_mean_e  # the black level a classical pipeline subtracts
         return out
 
+    def _params(self, batch: int, generator: torch.Generator):
+        side = self.sim.sensor.side_m
+        return sample_scene_params(batch, generator, self.cfg.data.params, sensor_width_m=side,
+                                   sensor_height_m=side, focal_length_m=self.sim.optics.focal_length_m)
+
     def train_batch(self, step: int) -> dict:
         """The batch of training step ``step``: random crops and Sec. 6.2 parameters; noise seeded by step."""
         scenes = self.sampler.sample()
-        sensor = self.sim.sensor
-        side = sensor.resolution * sensor.pixel_pitch_m
-        params = sample_scene_params(scenes.shape[0], self.param_gen, self.cfg.data.params, sensor_width_m=side,
-                                     sensor_height_m=side, focal_length_m=self.sim.optics.focal_length_m)
-        return self.simulate(scenes, params, seed=self.seed * 1_000_003 + step)
+        return self.simulate(scenes, self._params(scenes.shape[0], self.param_gen), seed=self.seed * 1_000_003 + step)
 
     def validation_batch(self, size: int) -> dict:
         """A fixed batch from the training distribution (own generators: independent of training's draws)."""
         gen = torch.Generator().manual_seed(self.seed + 7919)
-        sampler = build_scene_sampler(self.cfg.data, "train", gen, crop_size=self.sim.scene_size,
-                                      source=self.source)
-        sampler.batch_size = size
+        sampler = SceneSampler(self.source, "train", self.sim.scene_size, size, gen, flips=self.sampler.flips)
         scenes = sampler.sample()
-        side = self.sim.sensor.resolution * self.sim.sensor.pixel_pitch_m
-        params = sample_scene_params(size, gen, self.cfg.data.params, sensor_width_m=side, sensor_height_m=side,
-                                     focal_length_m=self.sim.optics.focal_length_m)
-        return self.simulate(scenes, params, seed=self.seed + 104729)
+        return self.simulate(scenes, self._params(size, gen), seed=self.seed + 104729)
 
     def preset_batch(self, scenes: torch.Tensor, preset: str, seed: int, **overrides) -> dict:
         """Evaluation batch: every scene under the named preset (laser_1e3, E1, ...), optional overrides."""

@@ -101,10 +101,10 @@ RESUME_MUST_MATCH = ("model", "optics", "mask", "sensor", "data.image_size", "da
 
 def check_resume_config(saved: dict, cfg: DictConfig, key: str) -> None:
     """A checkpoint resumed under a different model, physics or data geometry is a ConfigError naming the keys."""
-    current = _container(cfg)
+    saved_cfg, current = OmegaConf.create(saved), OmegaConf.create(_container(cfg))
     differ = []
     for dotted in RESUME_MUST_MATCH:
-        a, b = OmegaConf.select(OmegaConf.create(saved), dotted), OmegaConf.select(OmegaConf.create(current), dotted)
+        a, b = OmegaConf.select(saved_cfg, dotted), OmegaConf.select(current, dotted)
         a = OmegaConf.to_container(a) if OmegaConf.is_config(a) else a
         b = OmegaConf.to_container(b) if OmegaConf.is_config(b) else b
         if a != b:
@@ -133,16 +133,16 @@ def run_baseline(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         trainer.load_state_dict(state)
         log.info("resumed from %s at step %d", resume or auto, trainer.step)
     trainer.writer = make_writer(cfg, run_dir, purge_step=trainer.step)  # drops events logged after the checkpoint
+    common = _common_metrics(cfg, model, device)
     log.info("%s (%s): generators %.2fM parameters, critics %.2fM; %d steps, batch %d, %d px padded to %d; "
-             "VGG loss %s", model.spec.variant, model.spec.size,
-             sum(parameter_count(g) for g in model.generators()) / 1e6,
-             sum(parameter_count(d) for d in model.discriminators()) / 1e6, spec.steps, int(cfg.data.batch_size),
-             data.image_size, data.padded_size, trainer.vgg_status)
+             "VGG loss %s", model.spec.variant, model.spec.size, common["parameters_generators"] / 1e6,
+             common["parameters_critics"] / 1e6, spec.steps, int(cfg.data.batch_size), data.image_size,
+             data.padded_size, trainer.vgg_status)
     t0 = time.perf_counter()
     history = trainer.fit(log_every)
     seconds = time.perf_counter() - t0
     first, last = (history[0], history[-1]) if history else ({}, {})
-    metrics = {**_common_metrics(cfg, model, device), "steps": trainer.step, "seconds": seconds,
+    metrics = {**common, "steps": trainer.step, "seconds": seconds,
                "skipped_updates": trainer.skipped, "vgg_loss": trainer.vgg_status,
                "loss_first": first, "loss_last": last, **getattr(trainer, "last_val", {}),
                "checkpoint": str(run_dir / CHECKPOINT_NAME)}

@@ -111,7 +111,7 @@ def run_simulate(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         # throughput on a training-like batch (random Sec. 6.2 parameters)
         gen = torch.Generator().manual_seed(seed)
         batch = int(cfg.data.batch_size)
-        side_m = sim.sensor.resolution * sim.sensor.pixel_pitch_m  # square sensor crop
+        side_m = sim.sensor.side_m
         sp = sample_scene_params(batch, gen, cfg.data.params, sensor_width_m=side_m, sensor_height_m=side_m,
                                  focal_length_m=sim.optics.focal_length_m)
         sp = sp.to(device, dtype)

@@ -1,10 +1,10 @@
 """The restoration trainer: owns every optimizer, the GAN step order, schedules, EMA, logging and checkpoints.
 
-Step order (one generator update):
-  1. critics (trainer.critic_steps times, when lambda_ADV > 0): generator outputs computed without gradient
-     (fakes detached), loss = lambda_ADV (E[D(fake)] - E[D(real)]) + lambda_GP GP for D1 and both D2 scales.
-  2. generators: critics frozen (requires_grad False), loss = adversarial + Charbonnier L1 (I_b; both scales of b)
-     + MDF + VGG + FFT with the variant's weights.
+Step order (one generator update), after one forward pass of the generators:
+  1. critics (trainer.critic_steps times, when lambda_ADV > 0) on that pass's outputs detached:
+     loss = lambda_ADV (E[D(fake)] - E[D(real)]) + lambda_GP GP for D1 and both D2 scales.
+  2. generators, reusing the pass (they have not changed): critics frozen (requires_grad False), loss =
+     adversarial + Charbonnier L1 (I_b; both scales of b) + MDF + VGG + FFT with the variant's weights.
 Adam (betas of Sec. 6.2), weights and biases in separate groups (2e-4 / 4e-4), the Sec. 6.2 step schedule,
 optional gradient clipping and generator EMA. A non-finite loss skips the update (logged, counted).
 """
@@ -23,7 +23,7 @@ from codesign import losses
 from codesign.engine.checkpoint import CHECKPOINT_NAME, rng_state, save_checkpoint, set_rng_state
 from codesign.engine.train_spec import LossWeights, TrainerSpec
 from codesign.models import SGAN, pyramid
-from codesign.models.sgan import pre_restore
+from codesign.models.sgan import sandwich
 from codesign.quality import psnr, ssim
 
 log = logging.getLogger("codesign.train")
@@ -331,14 +331,11 @@ def centre(x: torch.Tensor, n: int) -> torch.Tensor:
 
 def restore_with(model: SGAN, generators: list[nn.Module], sensor: torch.Tensor, otf: torch.Tensor) -> dict:
     """Run the sandwich with the given (g1, gv, g2) modules (e.g. EMA copies) in eval mode."""
-    g1, gv, g2 = generators
     modes = [g.training for g in generators]
     for g in generators:
         g.eval()
     try:
-        i_b = pre_restore(g1, sensor, model.spec.g1_residual)
-        feats = gv(i_b, otf)
-        return {"i_b": i_b, "features": feats, "b": g2(feats)}
+        return sandwich(generators, sensor, otf, model.spec.g1_residual)
     finally:
         for g, mode in zip(generators, modes):
             g.train(mode)

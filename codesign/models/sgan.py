@@ -43,6 +43,18 @@ def pre_restore(g1: nn.Module, sensor: torch.Tensor, residual: bool) -> torch.Te
     return sensor + out if residual else out
 
 
+def sandwich(generators, sensor: torch.Tensor, otf: torch.Tensor, g1_residual: bool) -> dict:
+    """G2(G_v(G1(s, x, y), h)) with the given (g1, gv, g2) modules (the model's own, or e.g. EMA copies)."""
+    p = sensor.shape[-1]
+    if sensor.shape[-2] != p or tuple(otf.shape[-2:]) != (p, p // 2 + 1):
+        raise ValueError(f"sensor must be (B, 1, P, P) with an OTF of shape (P, P // 2 + 1); got sensor "
+                         f"{tuple(sensor.shape)} and OTF {tuple(otf.shape)}")
+    g1, gv, g2 = generators
+    i_b = pre_restore(g1, sensor, g1_residual)
+    features = gv(i_b, otf)
+    return {"i_b": i_b, "features": features, "b": g2(features)}
+
+
 class Refiner(nn.Module):
     """G2: one head per scale (the first ``head_layers`` layers), one shared UNet body."""
 
@@ -97,13 +109,7 @@ class SGAN(nn.Module):
 
         Returns i_b (B,1,P,P), features (B,N,P,P) after deconvolution, b = [b^0 (B,1,P/2,P/2), b^1 (B,1,P,P)].
         """
-        p = sensor.shape[-1]
-        if sensor.shape[-2] != p or tuple(otf.shape[-2:]) != (p, p // 2 + 1):
-            raise ValueError(f"sensor must be (B, 1, P, P) with an OTF of shape (P, P // 2 + 1); got sensor "
-                             f"{tuple(sensor.shape)} and OTF {tuple(otf.shape)}")
-        i_b = self.pre_restore(sensor)
-        features = self.gv(i_b, otf)
-        return {"i_b": i_b, "features": features, "b": self.g2(features)}
+        return sandwich(self.generators(), sensor, otf, self.spec.g1_residual)
 
     def critic1(self, sensor: torch.Tensor, i_b: torch.Tensor):
         """D1(s, x, y, I_b) -> (patch scores, level features)."""

@@ -15,8 +15,9 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from codesign.models.unet import _residual
 from codesign.models.blocks import conv_norm_act
+from codesign.models.unet import _residual
+from codesign.sensor.kernels import kernel_otf
 
 
 def otf_from_kernel(kernel: torch.Tensor, size: int) -> torch.Tensor:
@@ -25,11 +26,8 @@ def otf_from_kernel(kernel: torch.Tensor, size: int) -> torch.Tensor:
     k = kernel.shape[-1]
     if k > size:
         raise ValueError(f"kernel ({k} px) larger than the deconvolution grid ({size} px)")
-    big = kernel.new_zeros(kernel.shape[:-2] + (size, size))
-    big[..., :k, :k] = kernel
-    big = torch.roll(big, shifts=(-(k // 2), -(k // 2)), dims=(-2, -1))
-    return torch.fft.rfft2(big.to(torch.float64)).to(torch.complex64 if kernel.dtype != torch.float64
-                                                        else torch.complex128)
+    otf = kernel_otf(kernel.to(torch.float64), size)  # the simulator's own convention (same centring)
+    return otf.to(torch.complex128 if kernel.dtype == torch.float64 else torch.complex64)
 
 
 def wiener_filter(y: torch.Tensor, otf: torch.Tensor, power: torch.Tensor | float,
@@ -38,21 +36,31 @@ def wiener_filter(y: torch.Tensor, otf: torch.Tensor, power: torch.Tensor | floa
 
     power, noise broadcast against (..., 1, 1); nsr = noise / power. Computed in float32 or wider.
     """
+    return _wiener_filters(y, otf, power, [noise])[0]
+
+
+def _wiener_filters(y: torch.Tensor, otf: torch.Tensor, power, noises) -> list[torch.Tensor]:
+    """The Wiener filter for each noise value, sharing one forward FFT of y."""
     h, w = y.shape[-2:]
     dtype = torch.promote_types(y.dtype, torch.float32)
     spec = torch.fft.rfft2(y.to(dtype), norm="ortho")
     otf = otf.to(device=spec.device, dtype=spec.dtype)
     num = spec * otf.conj() * power
-    den = otf.real**2 + otf.imag**2
-    out = torch.fft.irfft2(num / (den * power + noise), s=(h, w), norm="ortho")
-    return out.to(y.dtype)
+    den = (otf.real**2 + otf.imag**2) * power
+    return [torch.fft.irfft2(num / (den + n), s=(h, w), norm="ortho").to(y.dtype) for n in noises]
 
 
 def classical_wiener(y: torch.Tensor, otf: torch.Tensor, nsr: float) -> torch.Tensor:
     """Classical Wiener deconvolution with one noise-to-signal ratio (nsr > 0)."""
-    if not nsr > 0:
-        raise ValueError(f"nsr must be > 0, got {nsr}")
-    return wiener_filter(y, otf, 1.0, nsr)
+    return classical_wiener_sweep(y, otf, [nsr])[0]
+
+
+def classical_wiener_sweep(y: torch.Tensor, otf: torch.Tensor, nsrs) -> list[torch.Tensor]:
+    """classical_wiener(y, otf, k) for every k in ``nsrs`` (one forward FFT for all: for tuning)."""
+    for k in nsrs:
+        if not k > 0:
+            raise ValueError(f"nsr must be > 0, got {k}")
+    return _wiener_filters(y, otf, 1.0, nsrs)
 
 
 class FeatureExtractor(nn.Module):

@@ -109,12 +109,12 @@ def kernel(psf: torch.Tensor, dx: float, size: int, pitch: float, integrate: boo
 
 
 def kernel_otf(k: torch.Tensor, n_fft: int) -> torch.Tensor:
-    """rfft2 of an odd kernel wrapped so its centre sits at index 0, on an n_fft x n_fft grid."""
+    """rfft2 of an odd (..., k, k) kernel wrapped so its centre sits at index 0, on an n_fft x n_fft grid."""
     size = k.shape[-1]
     c = size // 2
-    padded = k.new_zeros(n_fft, n_fft)
-    padded[:size, :size] = k
-    padded = torch.roll(padded, shifts=(-c, -c), dims=(0, 1))
+    padded = k.new_zeros(k.shape[:-2] + (n_fft, n_fft))
+    padded[..., :size, :size] = k
+    padded = torch.roll(padded, shifts=(-c, -c), dims=(-2, -1))
     return torch.fft.rfft2(padded)
 
 

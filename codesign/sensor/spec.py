@@ -91,6 +91,11 @@ class SensorSpec(SpecMixin):
         return self.resolution / self.image_size
 
     @property
+    def side_m(self) -> float:
+        """Side of the (square) simulated sensor crop, W_s = H_s = resolution x pitch [m]."""
+        return self.resolution * self.pixel_pitch_m
+
+    @property
     def coarse_pitch_m(self) -> float:
         return self.pixel_pitch_m * self.bin_factor
 
