@@ -4,13 +4,12 @@ from __future__ import annotations
 import json
 import re
 import math
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from tests.cli import run_codesign as _run
 
 REPO = Path(__file__).resolve().parent.parent
 CONF = REPO / "conf"
@@ -20,12 +19,6 @@ ARTIFACTS = ["phase.npy", "psf.npy", "mtf2d.npy", "mtf_radial.npy", "phase.png",
 METRIC_KEYS = ["lsr", "lsr_smooth", "bsr", "mtf_mean", "mtf_min", "pupil_n", "pupil_pitch_m", "focal_pitch_m",
                "focal_n", "samples_per_lambda_f_over_d", "psf_energy_in_window", "phase_convention",
                "seconds_forward", "seconds_backward"]
-
-
-def _run(*overrides: str, timeout: float = 120) -> subprocess.CompletedProcess:
-    env = {**os.environ, "OMP_NUM_THREADS": "2", "MKL_NUM_THREADS": "2"}
-    return subprocess.run([sys.executable, "-m", "codesign", *overrides], cwd=REPO, env=env,
-                          capture_output=True, text=True, timeout=timeout)
 
 
 @pytest.fixture(scope="module")

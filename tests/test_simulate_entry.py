@@ -2,25 +2,19 @@
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image
 
-REPO = Path(__file__).resolve().parent.parent
+from tests.cli import run_codesign
 
 
 @pytest.fixture(scope="module")
 def simulate_run(tmp_path_factory) -> Path:
     run_dir = tmp_path_factory.mktemp("simulate") / "run"
-    env = {**os.environ, "OMP_NUM_THREADS": "2"}
-    proc = subprocess.run([sys.executable, "-m", "codesign", "+experiment=simulate", "debug=smoke",
-                           f"hydra.run.dir={run_dir}"], cwd=REPO, env=env, capture_output=True, text=True,
-                          timeout=180)
+    proc = run_codesign("+experiment=simulate", "debug=smoke", f"hydra.run.dir={run_dir}", timeout=180)
     assert proc.returncode == 0, proc.stderr[-4000:]
     return run_dir
 

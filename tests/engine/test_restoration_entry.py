@@ -2,23 +2,19 @@
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image
 
-REPO = Path(__file__).resolve().parents[2]
+from tests.cli import run_codesign
+
 METHODS = ("sensor", "wiener", "g1_wiener", "sgan")
 
 
-def _run(*args: str, timeout: int = 300) -> subprocess.CompletedProcess:
-    env = {**os.environ, "OMP_NUM_THREADS": "2"}
-    return subprocess.run([sys.executable, "-m", "codesign", *args], cwd=REPO, env=env, capture_output=True,
-                          text=True, timeout=timeout)
+def _run(*args: str):
+    return run_codesign(*args, timeout=300)
 
 
 @pytest.fixture(scope="module")
