@@ -47,8 +47,20 @@ def _restore(cfg, run_dir, device):
     return run_restore(cfg, run_dir, device)
 
 
-EXPERIMENTS: dict[str, Callable] = {"psf": _psf, "simulate": _simulate, "baseline": _baseline,
-                                    "evaluate": _evaluate, "restore": _restore}
+def _joint(cfg, run_dir, device):
+    from codesign.engine.joint_task import run_joint
+
+    return run_joint(cfg, run_dir, device)
+
+
+def _mask_search(cfg, run_dir, device):
+    from codesign.engine.search_task import run_mask_search
+
+    return run_mask_search(cfg, run_dir, device)
+
+
+EXPERIMENTS: dict[str, Callable] = {"joint": _joint, "psf": _psf, "simulate": _simulate, "baseline": _baseline,
+                                    "evaluate": _evaluate, "restore": _restore, "mask_search": _mask_search}
 
 
 def _run_dir() -> Path:

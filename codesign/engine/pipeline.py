@@ -50,13 +50,30 @@ class RestorationData:
         self.param_gen = torch.Generator().manual_seed(seed + 1)
         self.sampler = build_scene_sampler(cfg.data, "train", self.scene_gen, crop_size=self.sim.scene_size,
                                            source=self.source)
+        self._psf = None
         self.refresh_psf()
 
     # ---- the optics -----------------------------------------------------------------------------------------
     def refresh_psf(self) -> None:
-        """Recompute the PSF state, kernel and OTF of the (frozen) mask."""
-        self.state, self.kernel, self.otf = frozen_psf(self.system, self.mask, self.sim, self.device)
-        self.key = mask_state_key(self.mask)
+        """Recompute the PSF state, kernel and OTF of the mask's current parameters (no gradient)."""
+        state, kernel, otf = frozen_psf(self.system, self.mask, self.sim, self.device)
+        with torch.no_grad():
+            key = mask_state_key(self.mask)
+        self._psf = (state, kernel, otf, key)
+
+    def invalidate_psf(self) -> None:
+        """The mask has changed: recompute the frozen PSF on next use."""
+        self._psf = None
+
+    def _frozen(self, i: int):
+        if self._psf is None:
+            self.refresh_psf()
+        return self._psf[i]
+
+    state = property(lambda self: self._frozen(0), doc="PSFState of the current mask (no gradient)")
+    kernel = property(lambda self: self._frozen(1), doc="network-pitch PSF kernel of the current mask")
+    otf = property(lambda self: self._frozen(2), doc="OTF on the padded grid of the current mask")
+    key = property(lambda self: self._frozen(3), doc="cache key of the current mask's parameter values")
 
     @property
     def padded_size(self) -> int:

@@ -12,6 +12,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from codesign.config import resolve_dtype
 from codesign.engine import io, plots
+from codesign.engine.monitor import (MaskMonitor, log_summary, mask_figures_of_merit, open_writer,
+                                     published_mask_config, tensorboard_enabled)
 from codesign.errors import ConfigError, require_number
 from codesign.optics import OpticalSystem, OpticsSpec, RadialMTF, build_mask, circular_mtf, metrics
 
@@ -40,30 +42,20 @@ def time_forward_backward(system: OpticalSystem, mask, p: float, repeats: int) -
 
 def evaluate_mask(system: OpticalSystem, mask, band: tuple[float, float], p: float) -> tuple[dict, dict]:
     """All figures of merit of a mask on a system; returns (flat metrics, arrays for saving/plotting)."""
-    spec = system.spec
-    radial = RadialMTF(spec, device=system.grid.rho.device)
+    radial = RadialMTF(system.spec, device=system.grid.rho.device)
+    values, arr = mask_figures_of_merit(system, mask, radial, band, p, refine=True)
     with torch.no_grad():
-        phase = mask.phase()
-        psf = system.psf(phase)
         psf0 = system.uncoded_psf()
-        h0 = system.uncoded_peak
-        lsr = system.refined_peak(phase, psf) / h0
-        lsr_s = float(metrics.lsr_sampled(psf, h0))
-        lsr_sm = float(metrics.lsr_smooth(psf, h0, p))
-        mtf2d, mtf2d0 = metrics.mtf(psf), metrics.mtf(psf0)
-        rad, rad0 = radial(mtf2d), radial(mtf2d0)
-        mean, mn = radial.summary(rad, band)
+        rad0 = radial(metrics.mtf(psf0))
         mean0, mn0 = radial.summary(rad0, band)
     out = {
-        "lsr": lsr, "lsr_sampled": lsr_s, "lsr_smooth": lsr_sm, "lsr_smooth_gap": lsr_sm / lsr - 1,
-        "lsr_smooth_p": p, "bsr": float(metrics.bsr(psf, psf0)),
-        "mtf_mean": float(mean), "mtf_min": float(mn), "mtf_mean_uncoded": float(mean0), "mtf_min_uncoded": float(mn0),
+        **values, "lsr_smooth_p": p, "mtf_mean_uncoded": float(mean0), "mtf_min_uncoded": float(mn0),
         "mtf_band_low": band[0], "mtf_band_high": band[1],
-        "psf_energy_in_window": float(psf.sum()), "psf_uncoded_energy_in_window": float(psf0.sum()),
-        "psf_peak": float(psf.max()), "psf_uncoded_peak": h0,
+        "psf_energy_in_window": float(arr["psf"].sum()), "psf_uncoded_energy_in_window": float(psf0.sum()),
+        "psf_peak": float(arr["psf"].max()), "psf_uncoded_peak": system.uncoded_peak,
     }
-    arrays = {"phase": phase, "psf": psf, "psf_uncoded": psf0, "mtf2d": torch.fft.fftshift(mtf2d),
-              "mtf_radial": torch.stack([radial.freqs.to(rad), rad, rad0])}
+    arrays = {"phase": arr["phase"], "psf": arr["psf"], "psf_uncoded": psf0, "mtf2d": arr["mtf2d"],
+              "mtf_radial": torch.stack([radial.freqs.to(rad0), arr["mtf_radial"], rad0])}
     return out, arrays
 
 
@@ -118,6 +110,11 @@ def run_psf(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     step = 1.0 / (spec.focal_n * spec.focal_pitch_m * spec.cutoff_frequency)
     io.save_figure(run_dir / "mtf2d.png", plots.mtf2d_figure(np_["mtf2d"], step, f"2-D MTF, {label}"))
     io.write_json(run_dir / "metrics.json", metrics_out)
+    writer = open_writer(run_dir, tensorboard_enabled(cfg))
+    if writer is not None:
+        reference = build_mask(published_mask_config(mask_cfg), system.grid, spec.aperture_diameter_m).freeze()
+        MaskMonitor(system, reference, band, p).log(writer, 0, mask, images=True)
+    log_summary(writer, {"mask": mask_cfg["kind"], "propagator": system.method, "pupil_n": spec.grid_n}, metrics_out)
     log.info("lsr=%.4g (sampled %.4g, smooth %.4g) bsr=%.4f mtf_mean=%.4g mtf_min=%.4g energy_in_window=%.4f "
              "forward %.3f s backward %.3f s", values["lsr"], values["lsr_sampled"], values["lsr_smooth"],
              values["bsr"], values["mtf_mean"], values["mtf_min"], values["psf_energy_in_window"], t_fwd, t_bwd)

@@ -14,6 +14,7 @@ from codesign.data.params import LASER_STRENGTHS, PRESETS, ROBUSTNESS_STAGES, _l
 from codesign.engine import io
 from codesign.engine.checkpoint import CHECKPOINT_NAME, load_checkpoint
 from codesign.engine.evaluate import Evaluator, conditions, evaluate, flat_summary
+from codesign.engine.monitor import log_summary, open_writer, tensorboard_enabled
 from codesign.engine.pipeline import RestorationData
 from codesign.engine.train_spec import LossWeights, TrainerSpec
 from codesign.engine.trainer import EMA, RestorationTrainer, init_weights
@@ -36,14 +37,6 @@ def build_model(cfg: DictConfig):
 
 def loss_weights(cfg: DictConfig) -> LossWeights:
     return LossWeights.from_config(_container(cfg.model.get("loss")) or {})
-
-
-def make_writer(cfg: DictConfig, run_dir: Path, purge_step: int | None = None):
-    if not cfg.get("logging", {}).get("tensorboard", True):
-        return None
-    from torch.utils.tensorboard import SummaryWriter
-
-    return SummaryWriter(log_dir=str(run_dir), purge_step=purge_step or None)
 
 
 def eval_settings(cfg: DictConfig) -> dict:
@@ -99,11 +92,11 @@ RESUME_MUST_MATCH = ("model", "optics", "mask", "sensor", "data.image_size", "da
                      "data.batch_size", "data.scenes", "data.folder", "data.test_fraction", "data.split_seed")
 
 
-def check_resume_config(saved: dict, cfg: DictConfig, key: str) -> None:
+def check_resume_config(saved: dict, cfg: DictConfig, key: str, extra_keys: tuple = ()) -> None:
     """A checkpoint resumed under a different model, physics or data geometry is a ConfigError naming the keys."""
     saved_cfg, current = OmegaConf.create(saved), OmegaConf.create(_container(cfg))
     differ = []
-    for dotted in RESUME_MUST_MATCH:
+    for dotted in RESUME_MUST_MATCH + tuple(extra_keys):
         a, b = OmegaConf.select(saved_cfg, dotted), OmegaConf.select(current, dotted)
         a = OmegaConf.to_container(a) if OmegaConf.is_config(a) else a
         b = OmegaConf.to_container(b) if OmegaConf.is_config(b) else b
@@ -112,6 +105,23 @@ def check_resume_config(saved: dict, cfg: DictConfig, key: str) -> None:
     if differ:
         raise ConfigError(key, "checkpoint", "was trained with different " + ", ".join(differ) + ": resume with the "
                           "same settings, or start a new run directory")
+
+
+def resume_if_possible(trainer, cfg: DictConfig, run_dir: Path, extra_keys: tuple = ()) -> None:
+    """Load ``trainer.resume`` or, when there is one, the run dir's own checkpoint (a killed run started again)."""
+    resume = cfg.trainer.get("resume")
+    auto = Path(run_dir) / CHECKPOINT_NAME
+    if resume or auto.is_file():
+        state = load_checkpoint(resume or auto, "trainer.resume")
+        check_resume_config(state["config"], cfg, "trainer.resume", extra_keys)
+        trainer.load_state_dict(state)
+        log.info("resumed from %s at step %d", resume or auto, trainer.step)
+
+
+def apply_checkpoint_mask(mask, state: dict) -> None:
+    """A co-design checkpoint carries its learned mask: load it over the configured one."""
+    if state.get("mask") is not None:
+        mask.load_state_dict(state["mask"])
 
 
 def run_baseline(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
@@ -125,14 +135,9 @@ def run_baseline(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     init_weights(model)
     data = RestorationData(cfg, device, seed)
     trainer = RestorationTrainer(model, data, spec, weights, run_dir, device, _container(cfg), None, seed)
-    resume = cfg.trainer.get("resume")
-    auto = run_dir / CHECKPOINT_NAME
-    if resume or auto.is_file():
-        state = load_checkpoint(resume or auto, "trainer.resume")
-        check_resume_config(state["config"], cfg, "trainer.resume")
-        trainer.load_state_dict(state)
-        log.info("resumed from %s at step %d", resume or auto, trainer.step)
-    trainer.writer = make_writer(cfg, run_dir, purge_step=trainer.step)  # drops events logged after the checkpoint
+    resume_if_possible(trainer, cfg, run_dir)
+    # purge_step drops the events a killed run logged after its last checkpoint
+    trainer.writer = open_writer(run_dir, tensorboard_enabled(cfg), purge_step=trainer.step)
     common = _common_metrics(cfg, model, device)
     log.info("%s (%s): generators %.2fM parameters, critics %.2fM; %d steps, batch %d, %d px padded to %d; "
              "VGG loss %s", model.spec.variant, model.spec.size, common["parameters_generators"] / 1e6,
@@ -196,7 +201,11 @@ def run_evaluate(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     merged = merged_eval_config(cfg, ckpt_cfg, explicit_keys())
     seed = int(cfg.get("seed", 0))
     data = RestorationData(merged, device, seed)
+    apply_checkpoint_mask(data.mask, state)
+    data.refresh_psf()
     metrics = {**_common_metrics(merged, model, device), "checkpoint": str(path), "steps": int(state["step"])}
     metrics.update(run_evaluation(ev, model, generators, data, run_dir, seed))
     io.write_json(run_dir / "metrics.json", metrics)
+    log_summary(open_writer(run_dir, tensorboard_enabled(cfg)),
+                {"variant": model.spec.variant, "size": model.spec.size, "checkpoint": str(path)}, metrics)
     return metrics.get("psnr_sgan_laser_1e6", float("nan"))

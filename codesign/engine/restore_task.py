@@ -16,8 +16,9 @@ import torch
 import torch.nn.functional as F
 
 from codesign.engine import io
+from codesign.engine.monitor import log_summary, open_writer, tensorboard_enabled
 from codesign.engine.pipeline import frozen_psf
-from codesign.engine.restoration_tasks import load_trained
+from codesign.engine.restoration_tasks import apply_checkpoint_mask, load_trained
 from codesign.engine.simulate_task import build_simulator
 from codesign.engine.trainer import centre, restore_with
 from codesign.errors import ConfigError
@@ -95,8 +96,9 @@ def run_restore(cfg, run_dir: Path, device: torch.device) -> float:
     files = input_files(cfg.get("input"))
     if not cfg.get("checkpoint"):
         raise ConfigError("checkpoint", cfg.get("checkpoint"), "give the trained model: checkpoint=PATH")
-    model, generators, ckpt_cfg, _ = load_trained(cfg.checkpoint, device)
+    model, generators, ckpt_cfg, state = load_trained(cfg.checkpoint, device)
     system, mask, sim = build_simulator(ckpt_cfg, device, torch.float32)
+    apply_checkpoint_mask(mask, state)
     sensor = sim.sensor
     images = validate(files, sensor.image_size, sensor.saturation_dn)  # everything checked before any work
     _, _, otf = frozen_psf(system, mask, sim, device)
@@ -112,9 +114,15 @@ def run_restore(cfg, run_dir: Path, device: torch.device) -> float:
             save_png16(out, b)
             written.append(out.name)
     seconds = (time.perf_counter() - t0) / len(files)
-    io.write_json(run_dir / "metrics.json", {"inputs": [str(f) for f in files], "outputs": written,
-                                             "seconds_per_image": seconds, "checkpoint": str(cfg.checkpoint),
-                                             "device": str(device), "image_size": n, "padded_size": p})
+    metrics = {"inputs": [str(f) for f in files], "outputs": written, "seconds_per_image": seconds,
+               "checkpoint": str(cfg.checkpoint), "device": str(device), "image_size": n, "padded_size": p}
+    io.write_json(run_dir / "metrics.json", metrics)
+    writer = open_writer(run_dir, tensorboard_enabled(cfg))
+    if writer is not None:
+        for f, arr in zip(files, images):
+            writer.add_image(f"input/{f.stem}", (arr / sensor.saturation_dn).astype(np.float32)[None], 0)
+            writer.add_image(f"restored/{f.stem}", read_counts(run_dir / f"restored_{f.stem}.png")[None] / 65535.0, 0)
+    log_summary(writer, {"checkpoint": str(cfg.checkpoint)}, metrics)
     log.info("restored %d image(s) into %s (%.3f s/image)", len(files), run_dir, seconds)
     return seconds
 

@@ -13,6 +13,7 @@ from codesign.config import resolve_dtype
 from codesign.data.params import fixed_scene_params, sample_scene_params
 from codesign.data.scenes import build_scene_source
 from codesign.engine import io
+from codesign.engine.monitor import log_summary, open_writer, tensorboard_enabled
 from codesign.engine.plots import plt
 from codesign.errors import ConfigError, require_number
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask
@@ -142,6 +143,12 @@ def run_simulate(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         "precision": str(dtype).replace("torch.", ""), "device": str(device), "threads": torch.get_num_threads(),
     })
     io.write_json(run_dir / "metrics.json", metrics)
+    writer = open_writer(run_dir, tensorboard_enabled(cfg))
+    if writer is not None:
+        for j, a in enumerate(alphas):  # log10 counts, full scale = 1: the laser structure stays visible
+            img = np.log10(np.maximum(grid[:, j], 1.0))[:, None] / np.log10(full)
+            writer.add_images(f"sensor_log10/alpha_l_{a:g}", img.astype(np.float32), 0)
+    log_summary(writer, {"sensor_path": sim.sensor.path, "image_size": sim.sensor.image_size}, metrics)
     log.info("scenes %s; saturated fraction per alpha_l: %s; %.4f s/image (%.1f images/s, batch %d, %s path)",
              ", ".join(names), ", ".join(f"{a:g}: {metrics[f'saturated_fraction_alpha_l_{a:g}']:.4f}"
                                          for a in alphas), seconds, 1 / seconds, batch, sim.sensor.path)

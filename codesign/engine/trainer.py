@@ -112,11 +112,13 @@ class RestorationTrainer:
     def critic_step(self, batch: dict, out: dict | None = None) -> dict:
         """One critic update. ``out``: the generators' outputs for this batch (detached here); None = compute."""
         m, w = self.model, self.w
-        s, i_b = batch["sensor"], batch["irradiance"]
+        # detached: with a trainable mask the sensor image carries the optics' graph, which the critics'
+        # update must neither consume nor write gradients into
+        s, i_b = batch["sensor"].detach(), batch["irradiance"].detach()
         targets = batch.get("targets") or pyramid(batch["scene"])
         if out is None:
             with torch.no_grad():
-                out = m(s, self.data.otf)
+                out = m(s, batch.get("otf", self.data.otf))
         fake_i, fake_b = out["i_b"].detach(), [b.detach() for b in out["b"]]
         d1 = losses.critic_loss(m.critic1(s, i_b)[0], m.critic1(s, fake_i)[0])
         d2 = sum(losses.critic_loss(m.d2[k](targets[k])[0], m.d2[k](fake_b[k])[0]) for k in range(2))
@@ -167,7 +169,7 @@ class RestorationTrainer:
         set_requires_grad(crits, False)  # critics frozen: no gradient accumulates in them
         try:
             if out is None:
-                out = m(batch["sensor"], self.data.otf)
+                out = m(batch["sensor"], batch.get("otf", self.data.otf))
             terms = self.generator_losses(batch, out)
         finally:
             set_requires_grad(crits, True)
@@ -176,6 +178,13 @@ class RestorationTrainer:
         elif self.ema is not None:
             self.ema.update(m.generators())
         return terms
+
+    def extra_parameters(self, opt) -> list:
+        """Parameters that ``opt`` updates beyond the modules' (a trainable mask): gradient-checked, not clipped."""
+        return []
+
+    def after_update(self, opt) -> None:
+        """Called right after a successful ``opt.step()`` (a trainable mask projects itself here)."""
 
     def _apply(self, opt, loss: torch.Tensor, modules) -> bool:
         """Backward, clip, step; False (and no update) when the loss or a gradient is not finite."""
@@ -188,12 +197,14 @@ class RestorationTrainer:
         params = [p for mod in modules for p in mod.parameters() if p.grad is not None]
         max_norm = self.spec.grad_clip if self.spec.grad_clip else math.inf
         norm = torch.nn.utils.clip_grad_norm_(params, max_norm)
-        if not torch.isfinite(norm):
+        extra = [p.grad for p in self.extra_parameters(opt) if p.grad is not None]
+        if not torch.isfinite(norm) or not all(bool(torch.isfinite(g).all()) for g in extra):
             opt.zero_grad(set_to_none=True)
             self.skipped += 1
-            log.warning("step %d: non-finite gradient norm, update skipped", self.step)
+            log.warning("step %d: non-finite gradient, update skipped", self.step)
             return False
         opt.step()
+        self.after_update(opt)
         return True
 
     # ---- loop -----------------------------------------------------------------------------------------------
@@ -203,7 +214,7 @@ class RestorationTrainer:
         self.model.train()
         batch = self.data.train_batch(self.step)
         batch["targets"] = pyramid(batch["scene"])
-        out = self.model(batch["sensor"], self.data.otf)
+        out = self.model(batch["sensor"], batch.get("otf", self.data.otf))
         terms = {}
         if self.w.adv > 0:
             for _ in range(self.spec.critic_steps):
@@ -231,16 +242,20 @@ class RestorationTrainer:
                 self.save()
             if self.step % progress_every == 0 or last or self.step == start + 1:
                 rate = (time.perf_counter() - t0) / (self.step - start)
-                log.info("step %d/%d  G %.4g  rec1 %.4g  rec2 %.4g%s  %.2f s/step  ETA %.0f s", self.step,
+                log.info("step %d/%d  G %.4g  rec1 %.4g  rec2 %.4g%s%s  %.2f s/step  ETA %.0f s", self.step,
                          spec.steps, terms["generator_total"], terms["rec1"], terms["rec2"],
-                         f"  D {terms['critic_total']:.4g}" if "critic_total" in terms else "", rate,
-                         rate * (spec.steps - self.step))
+                         f"  D {terms['critic_total']:.4g}" if "critic_total" in terms else "",
+                         self.progress_extra(terms), rate, rate * (spec.steps - self.step))
             if over:
                 log.info("time budget of %.0f s reached at step %d/%d", spec.time_budget_s, self.step, spec.steps)
                 break
         return [t for t in (self.first_terms, self.last_terms) if t]
 
     # ---- validation and logging ---------------------------------------------------------------------------
+    def progress_extra(self, terms: dict) -> str:
+        """Extra text for the console progress line (subclasses add what they train)."""
+        return ""
+
     def restoring_modules(self) -> list[nn.Module]:
         """The generators used for evaluation: the EMA copies when EMA is on."""
         return self.ema.shadow if self.ema is not None else self.model.generators()

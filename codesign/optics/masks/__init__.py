@@ -1,6 +1,10 @@
 """Phase masks behind one interface (``Mask``) and a builder from the ``mask`` config group."""
 from __future__ import annotations
 
+import json
+import logging
+import os
+from pathlib import Path
 from typing import Any, Mapping
 
 from codesign.errors import ConfigError, require_choice
@@ -10,9 +14,37 @@ from codesign.optics.masks.halfring import PUBLISHED_R, PUBLISHED_THETA, HalfRin
 
 KINDS = ("halfring", "freeform")
 PRESETS = {"published": (PUBLISHED_R, PUBLISHED_THETA)}
-_HALFRING_KEYS = {"kind", "preset", "r", "theta", "m_range", "convention", "harmonic_sign", "strategy",
+_HALFRING_KEYS = {"kind", "preset", "init", "r", "theta", "m_range", "convention", "harmonic_sign", "strategy",
                   "table_size", "r_bounds"}
 _FREEFORM_KEYS = {"kind", "basis", "init", "n_terms", "max_coeff_rad", "init_convention"}
+log = logging.getLogger("codesign.masks")
+
+
+BEST_MASK = "the path of a best_mask.json written by +experiment=mask_search"
+
+
+def load_best_mask(path: Any, key: str, allowed: str = f"must be {BEST_MASK}") -> dict:
+    """The contents of a best_mask.json written by +experiment=mask_search: kind "halfring", r (units of
+    lambda f / W_a) and theta [rad] of equal lengths; ConfigError naming ``key`` otherwise, whose message starts
+    with ``allowed`` (what ``key`` accepts) and then says what is wrong with the file."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise ConfigError(key, path, allowed)
+    try:
+        data = json.loads(Path(path).expanduser().read_text())
+    except FileNotFoundError:
+        raise ConfigError(key, path, f"{allowed}; no such file") from None
+    except (OSError, UnicodeDecodeError, ValueError) as err:  # JSONDecodeError is a ValueError
+        raise ConfigError(key, path, f"{allowed}; cannot be read as JSON ({err})") from None
+    kind = data.get("kind") if isinstance(data, dict) else None
+    if kind != "halfring":
+        raise ConfigError(key, path, f"{allowed}; the file holds kind {kind!r}, not 'halfring'")
+    r, theta = data.get("r"), data.get("theta")
+    number = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)  # noqa: E731
+    if not (isinstance(r, list) and isinstance(theta, list) and r and len(r) == len(theta)
+            and all(map(number, r + theta))):
+        raise ConfigError(key, path, f"{allowed}; its r and theta must be non-empty lists of numbers of equal "
+                          f"length (got {r!r} and {theta!r})")
+    return data
 
 
 def published_halfring(grid, aperture_diameter_m: float, **kw: Any) -> HalfRingMask:
@@ -37,7 +69,19 @@ def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix:
         _check_keys(cfg, _HALFRING_KEYS, prefix)
         preset = cfg.get("preset")
         r, theta = cfg.get("r"), cfg.get("theta")
-        if preset is not None:
+        init = cfg.get("init")
+        if init is not None:  # a searched mask; wins over preset, which has a default that would clash otherwise
+            if r is not None or theta is not None:
+                raise ConfigError(f"{prefix}.init", init, f"cannot be combined with explicit {prefix}.r / "
+                                  f"{prefix}.theta; set {prefix}.init=null to use your own values")
+            data = load_best_mask(init, f"{prefix}.init", f"must be null or {BEST_MASK}")
+            r, theta = data["r"], data["theta"]
+            as_list = lambda v: list(v) if isinstance(v, (list, tuple)) else v  # noqa: E731 - m_range: list/tuple
+            for k in ("convention", "harmonic_sign", "m_range"):  # r, theta alone do not fix the phase: say so
+                if k in data and k in cfg and as_list(data[k]) != as_list(cfg[k]):
+                    log.warning("%s.init: %s was searched with %s=%s, this mask uses %s", prefix, init, k, data[k],
+                                cfg[k])
+        elif preset is not None:
             require_choice(f"{prefix}.preset", preset, tuple(PRESETS))
             if r is not None or theta is not None:
                 raise ConfigError(f"{prefix}.preset", preset,
@@ -56,11 +100,18 @@ def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix:
                             prefix=prefix)
     _check_keys(cfg, _FREEFORM_KEYS, prefix)
     basis = require_choice(f"{prefix}.basis", cfg.get("basis", "pixel"), ("pixel", "zernike"))
-    init = require_choice(f"{prefix}.init", cfg.get("init", "published"), ("published", "zero"))
+    init = cfg.get("init", "published")
     phase = None
     if init == "published":
         conv = cfg.get("init_convention", "atan2")
         phase = published_halfring(grid, aperture_diameter_m, convention=conv).phase().detach()
+    elif init != "zero":  # the phase of a searched half ring, with the settings it was searched with
+        data = load_best_mask(init, f"{prefix}.init", f"must be one of published, zero or {BEST_MASK}")
+        phase = HalfRingMask(grid, aperture_diameter_m, data["r"], data["theta"],
+                             m_range=tuple(data.get("m_range", (1, 17))),
+                             convention=data.get("convention", cfg.get("init_convention", "atan2")),
+                             harmonic_sign=data.get("harmonic_sign", "printed"), prefix=f"{prefix}.init").freeze()
+        phase = phase.phase().detach()
     if basis == "pixel":
         return PixelPhaseMask(grid, phase)
     mask = ZernikeMask(grid, aperture_diameter_m, n_terms=cfg.get("n_terms", 36),
@@ -71,4 +122,4 @@ def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix:
 
 
 __all__ = ["Mask", "HalfRingMask", "PixelPhaseMask", "ZernikeMask", "build_mask", "published_halfring",
-           "PUBLISHED_R", "PUBLISHED_THETA"]
+           "load_best_mask", "PUBLISHED_R", "PUBLISHED_THETA"]

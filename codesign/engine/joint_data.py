@@ -1,0 +1,50 @@
+"""Training data for co-design: every training batch is simulated through the mask's current parameters *with*
+gradient, so that one backward pass from the restoration loss reaches the mask.
+
+mask params -> phase -> PSF (window) -> pixel kernel -> sensor image s and OTF (both differentiable)
+
+Targets: the scene b does not depend on the mask; the irradiance target I_b = alpha_b (b * h) does, and is
+detached here: it is G1's auxiliary target, and letting the mask move it would reward making the target easy to
+predict rather than making the scene easy to restore (the mask is judged by the final restoration b).
+While the mask is frozen (warm-up) the batch comes from the cached no-gradient path: same draws, no optics cost.
+"""
+from __future__ import annotations
+
+import torch
+
+from codesign.engine.pipeline import RestorationData
+from codesign.models.wiener import otf_from_kernel
+from codesign.sensor.simulator import psf_state
+
+
+class JointData(RestorationData):
+    """RestorationData whose mask is trainable (``mask_trainable``); see the module docstring."""
+
+    def __init__(self, cfg, device: torch.device, seed: int):
+        super().__init__(cfg, device, seed)
+        self.mask_trainable = False
+
+    def set_mask_trainable(self, flag: bool) -> None:
+        self.mask_trainable = bool(flag)
+        for p in self.mask.parameters():
+            p.requires_grad_(self.mask_trainable)
+
+    def differentiable_psf(self) -> tuple:
+        """(PSFState, OTF on the padded grid) of the current mask, with gradient to its parameters."""
+        state = psf_state(self.system, self.mask.phase())
+        kernel = self.sim.kernel(state)
+        return state, otf_from_kernel(kernel, self.padded_size).to(self.device)
+
+    def train_batch(self, step: int) -> dict:
+        """As RestorationData.train_batch; while the mask is trainable the batch also carries ``otf`` and ``psf``
+        (the window PSF) with their graphs, and ``sensor`` depends on the mask."""
+        if not self.mask_trainable:
+            return super().train_batch(step)
+        scenes = self.sampler.sample()
+        params = self._params(scenes.shape[0], self.param_gen).to(self.device, torch.float32)
+        state, otf = self.differentiable_psf()
+        out = self.sim(scenes.to(self.device), params, state, seed=self.seed * 1_000_003 + step, mask_key=None)
+        out["irradiance"] = out["irradiance"].detach()
+        out["read_noise_mean_e"] = params.read_noise_mean_e
+        out["otf"], out["psf"] = otf, state.psf
+        return out

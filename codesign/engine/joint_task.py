@@ -1,0 +1,185 @@
+"""``+experiment=joint``: mask and SGAN trained end to end, then compared with the published mask + an SGAN trained
+with the same steps and seed, on the same test scenes and laser strengths.
+
+Run directory: checkpoint.pt, metrics.json, learned_mask.json (seeds mask.init=PATH), phase / PSF / MTF figures of
+the learned and the published mask, the evaluation tables and panels, and TensorBoard events; the published
+comparison lives in published/ (its own checkpoint, evaluation and events: a second run in TensorBoard).
+A killed run started again on the same run directory (hydra.run.dir=...) resumes where it stopped.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from codesign.engine import io, plots
+from codesign.engine.checkpoint import CHECKPOINT_NAME
+from codesign.engine.joint_data import JointData
+from codesign.engine.joint_trainer import JointTrainer
+from codesign.engine.lsr_constraint import CodesignSpec
+from codesign.engine.monitor import MaskMonitor, open_writer, published_mask_config, tensorboard_enabled
+from codesign.engine.pipeline import RestorationData
+from codesign.engine.restoration_tasks import (_common_metrics, _container, build_model, eval_settings,
+                                               loss_weights, resume_if_possible, run_evaluation)
+from codesign.engine.train_spec import TrainerSpec
+from codesign.engine.trainer import RestorationTrainer, init_weights
+from codesign.errors import require_number
+from codesign.optics import build_mask, circular_mtf
+
+log = logging.getLogger("codesign.joint")
+PUBLISHED_DIR = "published"
+
+
+def _train(trainer, cfg, run_dir: Path, log_every: int, label: str) -> dict:
+    resume_if_possible(trainer, cfg, run_dir, extra_keys=("codesign",))
+    trainer.writer = open_writer(run_dir, tensorboard_enabled(cfg), purge_step=trainer.step)
+    start = {}
+    if trainer.step == 0:  # the untrained network's validation scores: the reference for "it learned"
+        start = {f"{k.replace('/', '_')}_start": v for k, v in trainer._validate(images=True).items()}
+    t0 = time.perf_counter()
+    log.info("%s: training from step %d to %d", label, trainer.step, trainer.spec.steps)
+    trainer.fit(log_every)
+    end = {f"{k.replace('/', '_')}_end": v for k, v in getattr(trainer, "last_val", {}).items()}
+    return {"seconds": time.perf_counter() - t0, **start, **end}
+
+
+def _mask_outputs(monitor: MaskMonitor, system, mask, run_dir: Path, prefix: str) -> dict:
+    """Refined figures of merit of a mask, with its phase, PSF and MTF figures (``prefix``_*.png)."""
+    values, arrays = monitor.measure(mask, refine=True)
+    spec = system.spec
+    np_ = {k: v.detach().cpu().numpy() for k, v in arrays.items()}
+    io.save_figure(run_dir / f"{prefix}_phase.png", plots.phase_figure(
+        np_["phase"], system.grid.aperture.cpu().numpy(), spec.pupil_pitch_m, f"{prefix} mask: pupil phase"))
+    with torch.no_grad():
+        psf0 = system.uncoded_psf().cpu().numpy()
+    io.save_figure(run_dir / f"{prefix}_psf_log.png", plots.psf_figure(
+        np_["psf"], psf0, spec.focal_pitch_m, f"{prefix} mask: PSF, LSR = {values['lsr']:.4g}"))
+    return {**values, "mtf_radial": np_["mtf_radial"]}
+
+
+def _save_learned_mask(mask, run_dir: Path, values: dict) -> None:
+    summary = mask.summary()
+    if "r_1" in summary:
+        n = sum(k.startswith("r_") for k in summary)
+        io.write_json(run_dir / "learned_mask.json", {
+            "kind": "halfring", "r": [summary[f"r_{i + 1}"] for i in range(n)],
+            "theta": [summary[f"theta_{i + 1}"] for i in range(n)], "lsr": values["lsr"],
+            "lsr_smooth": values["lsr_smooth"], "mtf_mean": values["mtf_mean"]})
+    io.save_npy(run_dir / "learned_phase.npy", mask.phase().detach())
+
+
+def _comparison(evaluation: dict, evaluation_base: dict) -> dict:
+    """psnr / ssim (and affine-matched) of the SGAN restorations, mean over conditions and per condition."""
+    out = {}
+    for suffix, table in (("", evaluation), ("_baseline", evaluation_base)):
+        for metric in ("psnr", "ssim", "psnr_affine", "ssim_affine"):
+            vals = {cond: t["sgan"][metric] for cond, t in table.items()}
+            out[f"{metric}{suffix}"] = float(np.mean(list(vals.values())))
+            for cond, v in vals.items():
+                out[f"{metric}{suffix}_{cond}"] = v
+    return out
+
+
+def run_joint(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
+    seed = int(cfg.get("seed", 0))
+    spec = TrainerSpec.from_config(_container(cfg.trainer))
+    cs = CodesignSpec.from_config(_container(cfg.get("codesign")) or {})
+    weights = loss_weights(cfg)
+    ev = eval_settings(cfg)  # every setting checked before any training
+    log_every = require_number("logging.log_every", cfg.get("logging", {}).get("log_every", 10), lo=1, integer=True)
+    published_cfg = published_mask_config(_container(cfg.mask))
+
+    torch.manual_seed(seed)
+    model = build_model(cfg)
+    init_weights(model)
+    data = JointData(cfg, device, seed)
+    system = data.system
+    reference = build_mask(published_cfg, system.grid, system.spec.aperture_diameter_m).freeze()
+    monitor = MaskMonitor(system, reference, cs.mtf_band, cs.lsr_p)
+    lsr_max = cs.lsr_max if cs.lsr_max is not None else monitor.reference[0]["lsr_smooth"]
+    trainer = JointTrainer(model, data, spec, weights, run_dir, device, _container(cfg), None, seed, cs, lsr_max,
+                           monitor)
+    common = _common_metrics(cfg, model, device)
+    log.info("joint: %s (%s) generators %.2fM parameters; mask %s (%d parameters, lr %.3g, frozen for %d steps); "
+             "lsr_max %.4g (%s); %d steps, batch %d, %d px padded to %d", model.spec.variant, model.spec.size,
+             common["parameters_generators"] / 1e6, _container(cfg.mask)["kind"],
+             sum(p.numel() for p in data.mask.parameters()), cs.mask_lr, cs.warmup_steps(spec.steps), lsr_max,
+             "given" if cs.lsr_max is not None else "published mask's smooth LSR", spec.steps,
+             int(cfg.data.batch_size), data.image_size, data.padded_size)
+    timing = _train(trainer, cfg, run_dir, log_every, "joint")
+    data.set_mask_trainable(False)
+    data.invalidate_psf()
+    steps = trainer.step
+
+    learned = _mask_outputs(monitor, system, data.mask, run_dir, "learned")
+    base = _mask_outputs(monitor, system, reference, run_dir, "published")
+    _save_learned_mask(data.mask, run_dir, learned)
+    freqs = monitor.radial.freqs.cpu().numpy()
+    io.save_figure(run_dir / "mtf.png", plots.mtf_figure(
+        freqs, {"learned mask": learned.pop("mtf_radial"), "published mask": base.pop("mtf_radial"),
+                "analytic circular pupil": circular_mtf(torch.from_numpy(freqs)).numpy()},
+        cs.mtf_band, f"radial MTF after {steps} joint steps"))
+
+    metrics = {**common, "steps": steps, **timing, "lsr_max": lsr_max,
+               "lsr_constraint_met": learned["lsr_smooth"] <= lsr_max * (1 + cs.guard_tolerance),
+               "skipped_updates": trainer.skipped, "mask_rollbacks": trainer.mask_rollbacks,
+               "guard_shortened": trainer.constraint.shortened, "guard_undone": trainer.constraint.undone,
+               "vgg_loss": trainer.vgg_status, "mask_kind": _container(cfg.mask)["kind"],
+               **{k: v for k, v in learned.items()}, **{f"{k}_baseline": v for k, v in base.items()},
+               **data.mask.summary(), "checkpoint": str(run_dir / CHECKPOINT_NAME)}
+    summary = data.mask.summary()
+    if "r_1" in summary:
+        metrics["r_n"] = [v for k, v in summary.items() if k.startswith("r_")]
+        metrics["theta_n"] = [v for k, v in summary.items() if k.startswith("theta_")]
+    joint_eval = run_evaluation(ev, model, trainer.restoring_modules(), data, run_dir, seed)
+    metrics["evaluation"] = joint_eval["evaluation"]
+    metrics["evaluation_scenes"] = joint_eval["evaluation_scenes"]
+
+    if cs.compare_published:
+        metrics.update(_published_run(cfg, published_cfg, spec, weights, steps, seed, device, run_dir, ev,
+                                      log_every, metrics["evaluation"]))
+    io.write_json(run_dir / "metrics.json", metrics)
+    _hparams(trainer.writer, cfg, metrics)
+    log.info("joint: lsr %.4g (published %.4g), mtf_mean %.4g (published %.4g); psnr %s", metrics["lsr"],
+             metrics["lsr_baseline"], metrics["mtf_mean"], metrics["mtf_mean_baseline"],
+             f"{metrics['psnr']:.2f} dB (published {metrics['psnr_baseline']:.2f} dB)" if "psnr" in metrics
+             else "(no published comparison)")
+    log.info("wrote %s", run_dir)
+    return metrics.get("psnr", float("nan"))
+
+
+def _published_run(cfg, published_cfg, spec, weights, steps, seed, device, run_dir, ev, log_every,
+                   joint_eval) -> dict:
+    """Train an SGAN on the published mask with the same steps, seed and data draws, and evaluate it."""
+    sub = run_dir / PUBLISHED_DIR
+    pub_cfg = OmegaConf.create(_container(cfg))
+    pub_cfg.mask = published_cfg
+    pub_spec = TrainerSpec.from_config({**_container(cfg.trainer), "steps": steps, "time_budget_s": None,
+                                        "resume": None})
+    torch.manual_seed(seed)  # the same initial weights as the joint network
+    model = build_model(pub_cfg)
+    init_weights(model)
+    data = RestorationData(pub_cfg, device, seed)
+    trainer = RestorationTrainer(model, data, pub_spec, weights, sub, device, _container(pub_cfg), None, seed)
+    timing = _train(trainer, pub_cfg, sub, log_every, "published mask")
+    result = run_evaluation(ev, model, trainer.restoring_modules(), data, sub, seed)
+    io.write_json(sub / "metrics.json", {"steps": trainer.step, **timing, **result})
+    if trainer.writer is not None:
+        trainer.writer.close()
+    return {**{f"{k}_baseline": v for k, v in timing.items()}, "evaluation_baseline": result["evaluation"],
+            **_comparison(joint_eval, result["evaluation"])}
+
+
+def _hparams(writer, cfg, metrics: dict) -> None:
+    if writer is None:
+        return
+    hp = {"variant": str(cfg.model.variant), "size": str(cfg.model.size), "mask": metrics["mask_kind"],
+          "steps": metrics["steps"], "lsr_max": metrics["lsr_max"]}
+    keys = ("lsr", "lsr_baseline", "lsr_smooth", "mtf_mean", "mtf_mean_baseline", "psnr", "psnr_baseline", "ssim",
+            "ssim_baseline", "psnr_affine", "psnr_affine_baseline")
+    writer.add_hparams(hp, {f"hparam/{k}": float(metrics[k]) for k in keys if k in metrics}, run_name="hparams")
+    writer.close()

@@ -1,0 +1,119 @@
+"""The co-design trainer: the restoration trainer plus the mask, moved by the same backward pass.
+
+The mask parameters are a third parameter group of the generator optimizer (own learning rate, betas and
+schedule; learning rate 0 during the warm-up, when the mask is also taken out of the graph so that warm-up steps
+cost what a frozen-mask step costs). The generator objective gains the LSR penalty; after every generator update
+the mask is projected and the feasibility guard keeps its smooth LSR at or below lsr_max. A non-finite loss or
+gradient skips the whole update (network and mask); non-finite mask parameters after an update restore the
+last good ones.
+"""
+from __future__ import annotations
+
+import logging
+
+import torch
+
+from codesign.engine.joint_data import JointData
+from codesign.engine.lsr_constraint import CodesignSpec, LSRConstraint, restore, snapshot
+from codesign.engine.trainer import RestorationTrainer
+
+log = logging.getLogger("codesign.joint")
+
+
+class JointTrainer(RestorationTrainer):
+    """Train SGAN and mask together. ``monitor``: a MaskMonitor for TensorBoard (None = no mask pictures)."""
+
+    def __init__(self, model, data: JointData, spec, weights, run_dir, device, config: dict, writer=None,
+                 seed: int = 0, codesign: CodesignSpec | None = None, lsr_max: float | None = None,
+                 monitor=None):
+        super().__init__(model, data, spec, weights, run_dir, device, config, writer, seed)
+        self.cs = codesign or CodesignSpec()
+        self.mask = data.mask
+        self.constraint = LSRConstraint(self.cs, data.system, lsr_max)
+        self.monitor = monitor
+        self.mask_params = list(self.mask.parameters())
+        self.opt_g.add_param_group({"params": self.mask_params, "lr": self.cs.mask_lr, "betas": self.cs.mask_betas,
+                                    "name": "mask"})
+        factor = lambda k: self.cs.mask_lr_factor(k, spec.steps, spec.lr_factor)  # noqa: E731
+        self.sched_g = torch.optim.lr_scheduler.LambdaLR(self.opt_g, [spec.lr_factor, spec.lr_factor, factor])
+        self.lsr = self.constraint.measure(self.mask)
+        self.mask_rollbacks = 0
+        self._before: list[torch.Tensor] | None = None
+        self._step_info: dict = {}
+
+    @property
+    def mask_active(self) -> bool:
+        return self.opt_g.param_groups[2]["lr"] > 0
+
+    # ---- the step -------------------------------------------------------------------------------------------
+    def train_step(self) -> dict:
+        self.data.set_mask_trainable(self.mask_active)
+        self._before = snapshot(self.mask)
+        self._step_info = {}
+        return super().train_step()
+
+    def generator_losses(self, batch: dict, out: dict) -> dict:
+        terms = super().generator_losses(batch, out)
+        if "psf" in batch:  # mask trainable this step
+            lsr = self.constraint.smooth_lsr(batch["psf"])
+            terms["lsr_penalty"] = self.constraint.penalty(lsr)
+            terms["generator_total"] = terms["generator_total"] + terms["lsr_penalty"]
+        return terms
+
+    def extra_parameters(self, opt) -> list:
+        return self.mask_params if opt is self.opt_g and self.data.mask_trainable else []
+
+    def after_update(self, opt) -> None:
+        if opt is not self.opt_g or not self.data.mask_trainable:
+            return
+        if not all(bool(torch.isfinite(p).all()) for p in self.mask_params):
+            restore(self.mask, self._before)
+            self.mask_rollbacks += 1
+            log.warning("step %d: non-finite mask parameters after the update, last good mask restored", self.step)
+            return
+        self.lsr, kept = self.constraint.enforce(self.mask, self._before, self.lsr)
+        self._step_info = {"mask_step_kept": kept}
+        self.data.invalidate_psf()
+
+    # ---- logging ------------------------------------------------------------------------------------------
+    def _log_scalars(self, terms: dict) -> None:
+        super()._log_scalars(terms)
+        if self.writer is None:
+            return
+        if "mask_step_kept" in self._step_info:
+            self.writer.add_scalar("constraint/mask_step_kept", self._step_info["mask_step_kept"], self.step)
+        self.writer.add_scalar("constraint/lsr_smooth", self.lsr, self.step)
+        self.writer.add_scalar("constraint/lsr_max", self.constraint.lsr_max, self.step)
+        self.writer.add_scalar("constraint/lsr_over_max", self.lsr / self.constraint.lsr_max, self.step)
+        self.writer.add_scalar("constraint/guard_shortened", self.constraint.shortened, self.step)
+        self.writer.add_scalar("constraint/guard_undone", self.constraint.undone, self.step)
+        for k, v in self.mask.summary().items():
+            self.writer.add_scalar(f"mask_params/{k}", v, self.step)
+
+    def _validate(self, images: bool) -> dict:
+        metrics = super()._validate(images)
+        if self.monitor is not None and self.writer is not None:
+            values = self.monitor.log(self.writer, self.step, self.mask, images=images)
+            metrics.update({f"mask/{k}": v for k, v in values.items()})
+            self.last_val = metrics
+        return metrics
+
+    def progress_extra(self, terms: dict) -> str:
+        return f"  LSR {self.lsr:.4g} ({self.lsr / self.constraint.lsr_max:.3f} of max)"
+
+    # ---- checkpoints ----------------------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        state = super().state_dict()
+        state["mask"] = self.mask.state_dict()
+        state["constraint"] = {"lsr_max": self.constraint.lsr_max, "lsr": self.lsr,
+                               "shortened": self.constraint.shortened, "undone": self.constraint.undone,
+                               "mask_rollbacks": self.mask_rollbacks}
+        return state
+
+    def load_state_dict(self, state: dict) -> None:
+        super().load_state_dict(state)
+        self.mask.load_state_dict(state["mask"])
+        c = state["constraint"]
+        self.lsr, self.mask_rollbacks = float(c["lsr"]), int(c["mask_rollbacks"])
+        self.constraint.shortened, self.constraint.undone = int(c["shortened"]), int(c["undone"])
+        self.data.invalidate_psf()

@@ -1,0 +1,160 @@
+"""Settings of co-design (``codesign.*``) and the laser-protection constraint on the learned mask.
+
+The constraint is smooth LSR <= lsr_max, where smooth LSR = ||h||_p / h0(0) >= max(h) / h0(0) (so it also bounds the
+sampled LSR), and lsr_max defaults to the published mask's own smooth LSR at the same p: co-design may rearrange
+the PSF but never let more laser through than the published design. Two mechanisms, both on by default:
+
+  penalty  w * relu(lsr / lsr_max - (1 - margin))^2, added to the generator objective, steers the mask back
+           inside before the boundary is reached (margin: relative distance kept from it);
+  guard    after each mask update, the smooth LSR of the new parameters is measured; if it exceeds
+           max(lsr_max, the previous value), the update is shortened by halving along the segment from the
+           previous parameters (guard_halvings times), or undone. Feasibility is therefore kept at every step,
+           not only on average; a start above lsr_max can only move down.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import torch
+
+from codesign.errors import ConfigError, require_choice, require_number
+from codesign.optics import metrics
+from codesign.spec_base import SpecMixin
+
+log = logging.getLogger("codesign.joint")
+
+SCHEDULES = ("constant", "trainer", "cosine")
+
+
+@dataclass(frozen=True)
+class CodesignSpec(SpecMixin):
+    """lsr_max: the smooth-LSR ceiling (null = the published mask's smooth LSR); lsr_p: p of the smooth LSR;
+    penalty_weight, margin: the penalty (0 weight = off); guard, guard_halvings, guard_tolerance: the
+    feasibility guard (relative tolerance on lsr_max).
+    mask_lr: Adam learning rate of the mask parameters (units of the parameters per step: r_n in lambda f / W_a,
+    theta_n and freeform phase in rad); mask_betas; mask_schedule: constant | trainer (the network's Sec. 6.2
+    factors) | cosine (to zero at trainer.steps); warmup_fraction: share of the steps with the mask frozen (the
+    network first learns to restore, so that the mask's gradient means something).
+    compare_published: also train a network on the published mask, same steps and seed, and evaluate both.
+    mtf_band: normalized-frequency band of the mtf_mean / mtf_min summaries.
+    """
+
+    lsr_max: float | None = None
+    lsr_p: float = 16.0
+    penalty_weight: float = 1.0e4
+    margin: float = 0.02
+    guard: bool = True
+    guard_halvings: int = 8
+    guard_tolerance: float = 1e-6
+    mask_lr: float = 0.02
+    mask_betas: tuple = (0.9, 0.999)
+    mask_schedule: str = "constant"
+    warmup_fraction: float = 0.25
+    compare_published: bool = True
+    mtf_band: tuple = (0.0, 0.5)
+    prefix: str = field(default="codesign", compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        p = self.prefix
+        if self.lsr_max is not None:
+            require_number(f"{p}.lsr_max", self.lsr_max, lo=0, lo_open=True, hi=1)
+        require_number(f"{p}.lsr_p", self.lsr_p, lo=1, hi=1024)
+        require_number(f"{p}.penalty_weight", self.penalty_weight, lo=0)
+        require_number(f"{p}.margin", self.margin, lo=0, hi=0.5)
+        require_number(f"{p}.guard_halvings", self.guard_halvings, lo=0, hi=60, integer=True)
+        require_number(f"{p}.guard_tolerance", self.guard_tolerance, lo=0, hi=0.1)
+        require_number(f"{p}.mask_lr", self.mask_lr, lo=0, lo_open=True, hi=10)
+        betas = _as_list(self.mask_betas)
+        if len(betas) != 2 or not all(isinstance(b, (int, float)) and 0 <= b < 1 for b in betas):
+            raise ConfigError(f"{p}.mask_betas", self.mask_betas, "must be [beta1, beta2], each in [0, 1)")
+        object.__setattr__(self, "mask_betas", tuple(float(b) for b in betas))
+        require_choice(f"{p}.mask_schedule", self.mask_schedule, SCHEDULES)
+        require_number(f"{p}.warmup_fraction", self.warmup_fraction, lo=0, hi=1, hi_open=True)
+        for key in ("guard", "compare_published"):
+            if not isinstance(getattr(self, key), bool):
+                raise ConfigError(f"{p}.{key}", getattr(self, key), "must be true or false")
+        band = _as_list(self.mtf_band)
+        if len(band) != 2 or not 0 <= require_number(f"{p}.mtf_band[0]", band[0]) < \
+                require_number(f"{p}.mtf_band[1]", band[1]) <= 1:
+            raise ConfigError(f"{p}.mtf_band", self.mtf_band, "must be [low, high] with 0 <= low < high <= 1 "
+                              "(frequency normalized to the incoherent cutoff)")
+        object.__setattr__(self, "mtf_band", (float(band[0]), float(band[1])))
+
+    def warmup_steps(self, steps: int) -> int:
+        return int(round(self.warmup_fraction * steps))
+
+    def mask_lr_factor(self, step: int, steps: int, network_factor) -> float:
+        """Multiplier of mask_lr at 0-based ``step``: 0 during warm-up, then the chosen schedule."""
+        w = self.warmup_steps(steps)
+        if step < w:
+            return 0.0
+        if self.mask_schedule == "trainer":
+            return network_factor(step)
+        if self.mask_schedule == "cosine":
+            import math
+
+            return 0.5 * (1 + math.cos(math.pi * (step - w) / max(steps - w, 1)))
+        return 1.0
+
+
+def _as_list(value) -> list:
+    """A config sequence (list, tuple, ListConfig) as a list; anything else as [] (then refused)."""
+    return list(value) if hasattr(value, "__len__") and not isinstance(value, (str, dict)) else []
+
+
+def snapshot(mask) -> list[torch.Tensor]:
+    return [p.detach().clone() for p in mask.parameters()]
+
+
+@torch.no_grad()
+def restore(mask, values: list[torch.Tensor]) -> None:
+    for p, v in zip(mask.parameters(), values):
+        p.copy_(v)
+
+
+class LSRConstraint:
+    """The penalty term and the feasibility guard of a mask on an OpticalSystem (see module docstring)."""
+
+    def __init__(self, spec: CodesignSpec, system, lsr_max: float):
+        self.spec, self.system, self.lsr_max = spec, system, float(lsr_max)
+        self.shortened = 0  # updates the guard shortened
+        self.undone = 0  # updates the guard undid entirely
+
+    def smooth_lsr(self, psf: torch.Tensor) -> torch.Tensor:
+        return metrics.lsr_smooth(psf, self.system.uncoded_peak, self.spec.lsr_p)
+
+    @torch.no_grad()
+    def measure(self, mask) -> float:
+        return float(self.smooth_lsr(self.system.psf(mask.phase())))
+
+    def penalty(self, lsr: torch.Tensor) -> torch.Tensor:
+        excess = torch.relu(lsr / self.lsr_max - (1.0 - self.spec.margin))
+        return self.spec.penalty_weight * excess.square()
+
+    @torch.no_grad()
+    def enforce(self, mask, previous: list[torch.Tensor], previous_lsr: float) -> tuple[float, float]:
+        """Project the just-updated mask, then keep it feasible; returns (smooth LSR, step fraction kept).
+
+        ``previous``: the parameters before the update (feasible, or the best so far for an infeasible start).
+        """
+        raw = snapshot(mask)
+        mask.project()
+        lsr = self.measure(mask)
+        if not self.spec.guard:
+            return lsr, 1.0
+        limit = max(self.lsr_max, previous_lsr) * (1.0 + self.spec.guard_tolerance)
+        if lsr <= limit:  # NaN fails this test and is undone below
+            return lsr, 1.0
+        t = 1.0
+        for _ in range(self.spec.guard_halvings):
+            t *= 0.5
+            restore(mask, [a + t * (b - a) for a, b in zip(previous, raw)])
+            mask.project()
+            lsr = self.measure(mask)
+            if lsr <= limit:
+                self.shortened += 1
+                return lsr, t
+        restore(mask, previous)
+        self.undone += 1
+        return previous_lsr, 0.0

@@ -1,0 +1,87 @@
+"""``+experiment=joint debug=smoke`` end to end: metrics, figures, TensorBoard tags, and resume of a killed run."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from tests.cli import run_codesign
+
+KEYS = ("lsr", "lsr_baseline", "mtf_mean", "mtf_mean_baseline", "psnr", "psnr_baseline", "ssim", "ssim_baseline",
+        "r_n", "theta_n", "steps", "seconds", "lsr_max", "psnr_laser_1e6", "psnr_baseline_laser_1e6",
+        "psnr_laser_0", "ssim_baseline_laser_0")
+
+
+def _tags(run_dir: Path) -> dict:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(run_dir), size_guidance={"scalars": 0, "images": 0, "histograms": 0})
+    acc.Reload()
+    return acc.Tags()
+
+
+@pytest.fixture(scope="module")
+def joint_run(tmp_path_factory) -> Path:
+    run_dir = tmp_path_factory.mktemp("joint") / "run"
+    proc = run_codesign("+experiment=joint", "debug=smoke", f"hydra.run.dir={run_dir}", timeout=300)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    return run_dir
+
+
+def test_joint_writes_the_comparison_metrics(joint_run):
+    m = json.loads((joint_run / "metrics.json").read_text())
+    for k in KEYS:
+        assert k in m, k
+    assert m["steps"] == 4 and len(m["r_n"]) == 5 and len(m["theta_n"]) == 5
+    assert m["lsr_constraint_met"] is True and m["lsr_smooth"] <= m["lsr_max"] * (1 + 1e-6)
+    assert m["lsr_max"] == pytest.approx(m["lsr_smooth_baseline"], rel=1e-6)  # default: the published mask's
+    assert set(m["evaluation"]) == set(m["evaluation_baseline"]) == {"laser_0", "laser_1e6", "H1"}
+    learned = json.loads((joint_run / "learned_mask.json").read_text())
+    assert learned["kind"] == "halfring" and learned["r"] == m["r_n"]
+    for name in ("checkpoint.pt", "mtf.png", "learned_phase.png", "learned_psf_log.png", "published_phase.png",
+                 "evaluation.csv", "published/checkpoint.pt", "published/metrics.json", "published/evaluation.csv"):
+        assert (joint_run / name).is_file(), name
+
+
+def test_joint_tensorboard_holds_losses_mask_constraint_images_and_hparams(joint_run):
+    tags = _tags(joint_run)
+    for t in ("loss/generator_total", "loss/lsr_penalty", "constraint/lsr_smooth", "constraint/lsr_max",
+              "mask/mtf_mean", "mask/lsr_smooth_gap", "mask_params/r_1", "mask_params/theta_5",
+              "lr/generator_mask", "wiener/gamma_mean", "val/psnr", "val/ssim"):
+        assert t in tags["scalars"], t
+    for t in ("mask/phase", "mask/psf_log10", "mask/mtf2d_log10", "mask/mtf_curve", "images/sensor_input",
+              "images/restored_b", "images/ground_truth_b"):
+        assert t in tags["images"], t
+    assert "mask_params/r" in tags["histograms"] and "mask_params/theta" in tags["histograms"]
+    assert "loss/generator_total" in _tags(joint_run / "published")["scalars"]
+    assert any((joint_run / "hparams").iterdir())
+
+
+def test_a_killed_joint_run_resumes_from_its_checkpoint(tmp_path):
+    run_dir = tmp_path / "run"
+    first = run_codesign("+experiment=joint", "debug=smoke", "trainer.steps=2", "codesign.compare_published=false",
+                         f"hydra.run.dir={run_dir}", timeout=300)
+    assert first.returncode == 0, first.stderr[-4000:]
+    lsr_first = json.loads((run_dir / "metrics.json").read_text())["lsr_smooth"]
+    again = run_codesign("+experiment=joint", "debug=smoke", "trainer.steps=4", "codesign.compare_published=false",
+                         f"hydra.run.dir={run_dir}", timeout=300)
+    assert again.returncode == 0, again.stderr[-4000:]
+    assert "resumed from" in again.stdout + again.stderr and "at step 2" in again.stdout + again.stderr
+    m = json.loads((run_dir / "metrics.json").read_text())
+    assert m["steps"] == 4 and m["lsr_smooth"] <= m["lsr_max"] * (1 + 1e-6)
+    assert lsr_first > 0
+    # a changed constraint is refused, naming the key
+    bad = run_codesign("+experiment=joint", "debug=smoke", "trainer.steps=6", "codesign.lsr_max=0.001",
+                       f"hydra.run.dir={run_dir}", timeout=300)
+    assert bad.returncode == 2 and "was trained with different codesign" in bad.stderr
+
+
+def test_evaluate_of_a_joint_checkpoint_uses_the_learned_mask(joint_run, tmp_path):
+    proc = run_codesign("+experiment=evaluate", f"checkpoint={joint_run / 'checkpoint.pt'}", "debug=smoke",
+                        f"hydra.run.dir={tmp_path / 'eval'}", timeout=300)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    ev = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    joint = json.loads((joint_run / "metrics.json").read_text())
+    assert ev["evaluation"] == joint["evaluation"]  # the learned mask's sensor images, not the published mask's
+    assert ev["evaluation"] != joint["evaluation_baseline"]
