@@ -3,7 +3,10 @@
 Variables x = [r_1..r_N, theta_1..theta_N] (r in units of lambda f / W_a, theta in rad), boxed by the search
 bounds. Objective f(x) = log(lsr_smooth): the LSR spans decades, and the log keeps the function values and the
 gradient steps of the optimizers on a sane scale. Constraint c(x) = log(floor) - log(mtf_mean) <= 0: the relative
-form is as well scaled for a floor of 0.04 (the published mask) as for one of 0.4.
+form is as well scaled for a floor of 0.04 (the published mask) as for one of 0.4. Optional second constraint
+e(x) = log(energy_floor) - log(E_w) <= 0, E_w = the PSF energy inside the optics window: without it a search
+learns to push the PSF's peak and energy beyond the window, where neither the LSR nor the MTF sees them
+(docs/codesign.md, "the window artefact").
 
 nlopt asks for the objective and the constraint at the same x, one call after the other; ``MaskObjective`` computes
 both in one forward pass (and, for gradient-based algorithms, two backward passes through the same graph) and
@@ -58,7 +61,8 @@ def check_algorithm(key: str, name, allowed: tuple[str, ...]) -> int:
 
 @dataclass
 class Evaluation:
-    """One evaluated point: x (float64), lsr_smooth, mtf_mean, feasible; f, c and their gradients (or None)."""
+    """One evaluated point: x (float64), lsr_smooth, mtf_mean, feasible; f, c and their gradients (or None);
+    energy: PSF energy in the window, e / grad_e its constraint (0 and None without an energy floor), energy_ok."""
     x: np.ndarray
     lsr_smooth: float
     mtf_mean: float
@@ -67,6 +71,10 @@ class Evaluation:
     c: float
     grad_f: np.ndarray | None = None
     grad_c: np.ndarray | None = None
+    energy: float = 1.0
+    e: float = 0.0
+    grad_e: np.ndarray | None = None
+    energy_ok: bool = True
 
 
 class MaskObjective:
@@ -80,9 +88,10 @@ class MaskObjective:
     """
 
     def __init__(self, system, mask, radial, band: tuple[float, float], p: float, floor: float,
-                 on_eval: Callable | None = None):
+                 on_eval: Callable | None = None, energy_floor: float | None = None):
         self.system, self.mask, self.radial, self.band, self.p = system, mask, radial, tuple(band), p
         self.floor, self.on_eval = float(floor), on_eval
+        self.energy_floor = None if energy_floor is None else float(energy_floor)
         self.n = mask.r.numel()
         self.records: list[tuple[str, int, Evaluation]] = []  # (start label, eval index in start, evaluation)
         self.best: Evaluation | None = None         # lowest lsr_smooth among feasible points, all starts
@@ -93,11 +102,11 @@ class MaskObjective:
         self._last: Evaluation | None = None
 
     # ---- evaluation -----------------------------------------------------------------------------------------
-    def _forward(self) -> tuple[torch.Tensor, torch.Tensor]:
+    def _forward(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         psf = self.system.psf(self.mask.phase())
         lsr = metrics.lsr_smooth(psf, self.system.uncoded_peak, self.p)
         mean, _ = self.radial.summary(self.radial(metrics.mtf(psf)), self.band)
-        return lsr, mean
+        return lsr, mean, psf.sum()
 
     def compute(self, x: np.ndarray, need_grad: bool) -> Evaluation:
         """f, c (and their gradients w.r.t. x when ``need_grad``) at x; no bookkeeping."""
@@ -106,18 +115,24 @@ class MaskObjective:
             self.mask.r.copy_(torch.from_numpy(x[:self.n]))
             self.mask.theta.copy_(torch.from_numpy(x[self.n:]))
         params = [self.mask.r, self.mask.theta]
-        gf = gc = None
+        gf = gc = ge = None
         with torch.set_grad_enabled(need_grad):
-            lsr, mean = self._forward()
+            lsr, mean, energy = self._forward()
             f = torch.log(lsr)
             c = math.log(self.floor) - torch.log(mean)
+            e = None if self.energy_floor is None else math.log(self.energy_floor) - torch.log(energy)
             if need_grad:
-                # Two backward passes through one forward: both gradients are needed at every point and the
-                # forward (Bessel profiles, pupil field, MFT) is the larger half of the cost.
+                # One backward pass per function through one forward: every gradient is needed at every point and
+                # the forward (Bessel profiles, pupil field, MFT) is the larger half of the cost.
                 gf = torch.cat(torch.autograd.grad(f, params, retain_graph=True)).double().cpu().numpy()
-                gc = torch.cat(torch.autograd.grad(c, params)).double().cpu().numpy()
-        lsr_v, mean_v = float(lsr.detach()), float(mean.detach())
-        return Evaluation(x, lsr_v, mean_v, mean_v >= self.floor, float(f.detach()), float(c.detach()), gf, gc)
+                gc = torch.cat(torch.autograd.grad(c, params, retain_graph=e is not None)).double().cpu().numpy()
+                if e is not None:
+                    ge = torch.cat(torch.autograd.grad(e, params)).double().cpu().numpy()
+        lsr_v, mean_v, energy_v = float(lsr.detach()), float(mean.detach()), float(energy.detach())
+        energy_ok = self.energy_floor is None or energy_v >= self.energy_floor
+        return Evaluation(x, lsr_v, mean_v, mean_v >= self.floor and energy_ok, float(f.detach()),
+                          float(c.detach()), gf, gc, energy_v, 0.0 if e is None else float(e.detach()), ge,
+                          energy_ok)
 
     def _get(self, x: np.ndarray, need_grad: bool) -> Evaluation:
         last = self._last
@@ -125,7 +140,7 @@ class MaskObjective:
             return last
         try:
             ev = self.compute(x, need_grad)
-            if not (math.isfinite(ev.f) and math.isfinite(ev.c)):
+            if not (math.isfinite(ev.f) and math.isfinite(ev.c) and math.isfinite(ev.e)):
                 raise nlopt.ForcedStop(f"non-finite objective or constraint at x = {x.tolist()}: lsr_smooth "
                                        f"{ev.lsr_smooth}, mtf_mean {ev.mtf_mean}")
             if last is None or not np.array_equal(last.x, x):  # a gradient re-request is not a new point
@@ -169,6 +184,12 @@ class MaskObjective:
             grad[:] = ev.grad_c
         return ev.c
 
+    def energy_constraint(self, x: np.ndarray, grad: np.ndarray) -> float:
+        ev = self._get(x, grad.size > 0)
+        if grad.size > 0:
+            grad[:] = ev.grad_e
+        return ev.e
+
     def begin_start(self, label: str) -> None:
         self.label, self.start_evals, self.start_best, self.start_least = label, 0, None, None
         self._last = None
@@ -182,6 +203,8 @@ def _optimize(obj: MaskObjective, algorithm: str, x0: np.ndarray, lower: np.ndar
     opt.set_upper_bounds(upper)
     opt.set_min_objective(obj.objective)
     opt.add_inequality_constraint(obj.constraint, 0.0)
+    if obj.energy_floor is not None:
+        opt.add_inequality_constraint(obj.energy_constraint, 0.0)
     opt.set_maxeval(int(max_evals))
     opt.set_xtol_rel(xtol_rel)
     opt.set_ftol_rel(ftol_rel)
@@ -237,7 +260,7 @@ def best_point(sweeps: list[dict], floor: float) -> tuple[Evaluation, bool, floa
     the evaluations of every sweep so far (a point found under a higher floor also meets a lower one, so the front
     stays monotone), else the point closest to the floor (highest mtf_mean)."""
     pts = [(ev, sw["factor"]) for sw in sweeps for _, _, ev in sw["objective"].records]
-    ok = [p for p in pts if p[0].mtf_mean >= floor]
+    ok = [p for p in pts if p[0].mtf_mean >= floor and p[0].energy_ok]
     if ok:
         ev, factor = min(ok, key=lambda p: p[0].lsr_smooth)
         return ev, True, factor

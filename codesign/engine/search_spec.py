@@ -30,14 +30,15 @@ class SearchSpec(SpecMixin):
     max_evals: evaluations per start; xtol_rel, ftol_rel: nlopt's relative stopping tolerances (0 = off).
     lsr_p: p of the smooth LSR; mtf_band: (low, high] normalized frequency of mtf_mean.
     mtf_floor: "published" (the published mask's mtf_mean) or a number; the constraint is
-    mtf_mean >= mtf_floor * mtf_floor_factor.
+    mtf_mean >= mtf_floor * mtf_floor_factor. energy_floor: "published" (the published mask's PSF energy inside the
+    optics window), a fraction in (0, 1], or None: the second constraint, energy in the window >= energy_floor.
     r_bounds: box of r_n (units of lambda f / W_a); theta_bounds: box of theta_n [rad].
     pareto_factors: floor factors of the Pareto sweep (None or empty = off); pareto_starts / pareto_max_evals:
     its starts per factor and evaluations per start. precision: float32 | float64. log_every: evaluations between
     progress lines. ``from_config`` (SpecMixin) rejects unknown keys, naming them.
     """
 
-    algorithm: str = "LD_MMA"
+    algorithm: str = "LN_COBYLA"
     local_algorithm: str | None = "LD_MMA"
     polish_max_evals: int = 50
     init: str = "published"
@@ -50,6 +51,7 @@ class SearchSpec(SpecMixin):
     mtf_band: tuple = (0.0, 0.5)
     mtf_floor: str | float = "published"
     mtf_floor_factor: float = 1.0
+    energy_floor: str | float | None = "published"
     r_bounds: tuple = (0.5, 100.0)
     theta_bounds: tuple = (0.0, 2 * math.pi)
     pareto_factors: tuple | None = (0.7, 0.85, 1.0, 1.15)
@@ -80,6 +82,12 @@ class SearchSpec(SpecMixin):
                 raise ConfigError(f"{p}.mtf_floor", v, "must be published (the published mask's mtf_mean) or a "
                                   "number in (0, 1] (an MTF band mean)")
             put("mtf_floor", float(v))
+        if self.energy_floor is not None and self.energy_floor != "published":
+            v = self.energy_floor
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= 1:  # NaN fails too
+                raise ConfigError(f"{p}.energy_floor", v, "must be published (the published mask's PSF energy in "
+                                  "the optics window), a fraction in (0, 1], or null (no floor)")
+            put("energy_floor", float(v))
         put("mtf_floor_factor", require_number(f"{p}.mtf_floor_factor", self.mtf_floor_factor, lo=0, lo_open=True))
         # HalfRingMask accepts 0 < r <= 1e4; theta is periodic, so any finite box works.
         put("r_bounds", _pair(f"{p}.r_bounds", self.r_bounds, 0, 1e4, "ring radii in lambda f / W_a, 0 < low"))
@@ -94,6 +102,10 @@ class SearchSpec(SpecMixin):
                         for i, v in enumerate(factors or ()))
         put("pareto_factors", factors or None)
         require_choice(f"{p}.precision", self.precision, ("float32", "float64"))
+
+    def energy_floor_value(self, published_energy: float) -> float | None:
+        """The floor on the PSF energy inside the optics window (None = no floor)."""
+        return published_energy if self.energy_floor == "published" else self.energy_floor
 
     def floor_value(self, published_mtf_mean: float, factor: float | None = None) -> float:
         """The MTF floor (band mean) for ``factor`` (default: mtf_floor_factor)."""

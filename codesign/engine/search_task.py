@@ -48,8 +48,9 @@ def _check_floor(key: str, value, floor: float, uncoded: float, published: float
 
 
 def _search_floor(system, mask, monitor, s: SearchSpec, floor: float, factor: float, starts, max_evals: int,
-                  bounds: tuple[np.ndarray, np.ndarray], writer, tag: str) -> dict:
-    """Every start of one floor; returns {factor, floor, objective (with the evaluation log), starts, seconds}."""
+                  bounds: tuple[np.ndarray, np.ndarray], writer, tag: str, energy_floor: float | None) -> dict:
+    """Every start of one floor (``energy_floor``: floor on the window energy, None = off); returns {factor,
+    floor, objective (with the evaluation log), starts, seconds}."""
     t0 = time.perf_counter()
 
     def on_eval(obj: MaskObjective, ev) -> None:
@@ -65,7 +66,7 @@ def _search_floor(system, mask, monitor, s: SearchSpec, floor: float, factor: fl
             log.info("floor %.4g: start %s eval %d (%d in all): best feasible lsr_smooth %s, %.2f evals/s", floor,
                      obj.label, obj.start_evals, k, best, k / (time.perf_counter() - t0))
 
-    obj = MaskObjective(system, mask, monitor.radial, s.mtf_band, s.lsr_p, floor, on_eval)
+    obj = MaskObjective(system, mask, monitor.radial, s.mtf_band, s.lsr_p, floor, on_eval, energy_floor)
     results = []
     for label, kind, x0 in starts:
         res = {"init": kind, **run_start(obj, label, x0, *bounds, s.algorithm, s.local_algorithm, max_evals,
@@ -82,10 +83,10 @@ def _write_evaluations(path: Path, sweeps: list[dict], n: int) -> None:
     buf = _stringio.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["floor_factor", "mtf_floor", "start", "eval", *[f"r_{i + 1}" for i in range(n)],
-                *[f"theta_{i + 1}" for i in range(n)], "lsr_smooth", "mtf_mean", "feasible"])
+                *[f"theta_{i + 1}" for i in range(n)], "lsr_smooth", "mtf_mean", "window_energy", "feasible"])
     for sw in sweeps:
         for label, k, ev in sw["objective"].records:
-            w.writerow([sw["factor"], sw["floor"], label, k, *ev.x.tolist(), ev.lsr_smooth, ev.mtf_mean,
+            w.writerow([sw["factor"], sw["floor"], label, k, *ev.x.tolist(), ev.lsr_smooth, ev.mtf_mean, ev.energy,
                         int(ev.feasible)])
     io.atomic_write_bytes(path, lambda f: f.write(buf.getvalue().encode()))
 
@@ -152,6 +153,7 @@ def run_mask_search(cfg: DictConfig, run_dir: Path, device: torch.device) -> flo
 
     monitor = MaskMonitor(system, published, s.mtf_band, s.lsr_p)
     base, base_arr = monitor.measure(published, refine=True)
+    energy_floor = s.energy_floor_value(float(base_arr["psf"].sum()))
     with torch.no_grad():
         psf0 = system.uncoded_psf()
         rad0 = monitor.radial(metrics.mtf(psf0))
@@ -171,7 +173,7 @@ def run_mask_search(cfg: DictConfig, run_dir: Path, device: torch.device) -> flo
     try:
         starts = start_points(s.init, init_x, s.seed, lower, upper, s.starts)
         main = _search_floor(system, mask, monitor, s, floor, s.mtf_floor_factor, starts, s.max_evals, bounds,
-                             writer, "search")
+                             writer, "search", energy_floor)
         sweeps = [main]
         _write_evaluations(run_dir / "evaluations.csv", sweeps, n)
         front_sweeps = []
@@ -182,7 +184,7 @@ def run_mask_search(cfg: DictConfig, run_dir: Path, device: torch.device) -> flo
             warm = best_point([main], floor)[0].x  # the main search's best: a good start for nearby floors
             pts = start_points(s.init, init_x, s.seed, lower, upper, s.pareto_starts, warm=warm)
             sw = _search_floor(system, mask, monitor, s, s.floor_value(base["mtf_mean"], f), f, pts,
-                               s.pareto_max_evals, bounds, writer, f"pareto_x{f:g}")
+                               s.pareto_max_evals, bounds, writer, f"pareto_x{f:g}", energy_floor)
             sweeps.append(sw)
             front_sweeps.append(sw)
             _write_evaluations(run_dir / "evaluations.csv", sweeps, n)
@@ -262,6 +264,8 @@ def _outputs(run_dir: Path, s: SearchSpec, system, mask, best: tuple[dict, dict]
         "lsr_baseline": base["lsr"], "lsr_smooth_baseline": base["lsr_smooth"], "mtf_mean_baseline": base["mtf_mean"],
         "mtf_min_baseline": base["mtf_min"], "mtf_mean_uncoded": mean0, "lsr_vs_baseline": values["lsr"] / base["lsr"],
         "mtf_floor": floor, "mtf_floor_factor": s.mtf_floor_factor, "mtf_floor_source": str(s.mtf_floor),
+        "window_energy": float(arrays["psf"].sum()), "window_energy_baseline": float(base_arr["psf"].sum()),
+        "window_energy_floor": s.energy_floor_value(float(base_arr["psf"].sum())),
         "feasible": feasible, "found_at_factor": values["found_at_factor"], "min_violation": violation,
         "min_violation_rel": violation / floor, **summary,
         "evaluations": main["evaluations"], "seconds": main["seconds"],

@@ -228,7 +228,7 @@ def test_smoke_run_writes_everything(smoke_run):
     for k in ("lsr", "lsr_smooth", "lsr_sampled", "mtf_mean", "mtf_min", "lsr_baseline", "mtf_mean_baseline",
               "mtf_floor", "r_1", "r_5", "theta_1", "theta_5", "evaluations", "seconds", "evals_per_second"):
         assert isinstance(m[k], (int, float)) and math.isfinite(m[k]), k
-    assert m["algorithm"] == "LD_MMA" and m["feasible"] is True and m["evaluations"] == 16  # 2 starts x 8
+    assert m["algorithm"] == "LN_COBYLA" and m["feasible"] is True and m["evaluations"] == 16  # 2 starts x 8
     assert m["mtf_mean"] >= m["mtf_floor"] == pytest.approx(m["mtf_mean_baseline"])
     assert m["lsr_smooth"] <= m["lsr_smooth_baseline"]  # start 0 is the published mask itself
     assert [s["start"] for s in m["starts"]] == ["0", "1"] and m["starts"][0]["init"] == "published"
@@ -297,3 +297,33 @@ def test_search_starts_from_mask_init(tmp_path):
     first = (tmp_path / "run" / "evaluations.csv").read_text().splitlines()[1].split(",")
     np.testing.assert_allclose([float(v) for v in first[4:14]], [3.0, 7.0, 1.5, 5.0, 2.0, 1.9, 1.1, 1.2, 1.2, 1.2],
                                rtol=1e-6)
+
+
+# ---- the window-energy floor: the search may not push the PSF out of the optics window ---------------------
+def test_energy_floor_is_enforced_and_its_gradient_matches_finite_differences():
+    x = np.array([3.1, 7.4, 1.3, 5.2, 2.2, 1.9, 0.7, 2.5, 4.0, 5.6])
+    system, radial = _system(torch.float64)
+    mask = HalfRingMask(system.grid, system.spec.aperture_diameter_m, x[:5], x[5:])
+    with torch.no_grad():
+        energy0 = float(system.psf(mask.phase()).sum())
+    obj = MaskObjective(system, mask, radial, (0.0, 0.5), 16.0, 0.01, None, energy_floor=0.99 * energy0)
+    ev = obj.compute(x, True)
+    assert ev.energy == pytest.approx(energy0, rel=1e-12) and ev.energy_ok
+    assert ev.e == pytest.approx(math.log(0.99), rel=1e-9)
+    h = 1e-6
+    for i in (0, 3, 7):
+        dx = np.zeros_like(x)
+        dx[i] = h
+        fd = (obj.compute(x + dx, False).e - obj.compute(x - dx, False).e) / (2 * h)
+        assert ev.grad_e[i] == pytest.approx(fd, rel=1e-4, abs=1e-8)
+    # a floor above what the rings keep in the window: no point of a short search is feasible
+    strict = MaskObjective(system, mask, radial, (0.0, 0.5), 16.0, 0.01, None, energy_floor=min(1.0, 1.5 * energy0))
+    res = run_start(strict, "0", x, LO, HI, "LN_COBYLA", None, 10, 0, 1e-4, 1e-6)
+    assert not res["feasible"] and all(not ev.energy_ok and not ev.feasible for _, _, ev in strict.records)
+
+
+def test_energy_floor_setting_is_validated():
+    with pytest.raises(ConfigError, match=r"search.energy_floor = 1.5: must be published"):
+        SearchSpec.from_config({"energy_floor": 1.5})
+    assert SearchSpec.from_config({"energy_floor": None}).energy_floor_value(0.8) is None
+    assert SearchSpec.from_config({}).energy_floor_value(0.8) == 0.8
