@@ -60,7 +60,7 @@ def timed_step(trainer, dev) -> dict:
     from codesign.models.wiener import otf_from_kernel
     from codesign.sensor.simulator import psf_state
 
-    data, t = trainer.data, {}
+    data = trainer.data
     data.set_mask_trainable(True)
     trainer._before = [p.detach().clone() for p in trainer.mask.parameters()]
     t0 = _sync(dev)

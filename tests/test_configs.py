@@ -5,7 +5,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from codesign.engine.experiments import EXPERIMENTS
+from codesign.engine.experiments import EXPERIMENTS, experiment_function
 from tests.conftest import REPO_ROOT
 
 CONF = REPO_ROOT / "conf"
@@ -16,6 +16,7 @@ GROUP_OPTIONS = sorted((d.name, p.stem) for d in CONF.iterdir() if d.is_dir() an
 
 def test_every_registered_experiment_has_a_config_and_back():
     assert set(EXPERIMENT_FILES) == set(EXPERIMENTS)
+    assert all(callable(experiment_function(name)) for name in EXPERIMENTS)  # every entry resolves
 
 
 @pytest.mark.parametrize("experiment", EXPERIMENT_FILES)

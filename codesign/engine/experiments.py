@@ -1,6 +1,7 @@
 """Experiment registry and the common run wrapper (validation, debug shrink, threads, device, error reporting)."""
 from __future__ import annotations
 
+import importlib
 import logging
 import shutil
 import sys
@@ -17,50 +18,22 @@ from codesign.errors import ConfigError
 log = logging.getLogger("codesign")
 
 
-def _psf(cfg, run_dir, device):
-    from codesign.engine.psf_task import run_psf
-
-    return run_psf(cfg, run_dir, device)
-
-
-def _simulate(cfg, run_dir, device):
-    from codesign.engine.simulate_task import run_simulate
-
-    return run_simulate(cfg, run_dir, device)
-
-
-def _baseline(cfg, run_dir, device):
-    from codesign.engine.restoration_tasks import run_baseline
-
-    return run_baseline(cfg, run_dir, device)
+# name -> "module:function" of its run function (cfg, run_dir, device); imported only when that experiment runs,
+# so that e.g. +experiment=psf never loads the networks or nlopt.
+EXPERIMENTS: dict[str, str] = {
+    "psf": "codesign.engine.psf_task:run_psf",
+    "simulate": "codesign.engine.simulate_task:run_simulate",
+    "baseline": "codesign.engine.restoration_tasks:run_baseline",
+    "evaluate": "codesign.engine.restoration_tasks:run_evaluate",
+    "restore": "codesign.engine.restore_task:run_restore",
+    "joint": "codesign.engine.joint_task:run_joint",
+    "mask_search": "codesign.engine.search_task:run_mask_search",
+}
 
 
-def _evaluate(cfg, run_dir, device):
-    from codesign.engine.restoration_tasks import run_evaluate
-
-    return run_evaluate(cfg, run_dir, device)
-
-
-def _restore(cfg, run_dir, device):
-    from codesign.engine.restore_task import run_restore
-
-    return run_restore(cfg, run_dir, device)
-
-
-def _joint(cfg, run_dir, device):
-    from codesign.engine.joint_task import run_joint
-
-    return run_joint(cfg, run_dir, device)
-
-
-def _mask_search(cfg, run_dir, device):
-    from codesign.engine.search_task import run_mask_search
-
-    return run_mask_search(cfg, run_dir, device)
-
-
-EXPERIMENTS: dict[str, Callable] = {"joint": _joint, "psf": _psf, "simulate": _simulate, "baseline": _baseline,
-                                    "evaluate": _evaluate, "restore": _restore, "mask_search": _mask_search}
+def experiment_function(name: str) -> Callable:
+    module, func = EXPERIMENTS[name].split(":")
+    return getattr(importlib.import_module(module), func)
 
 
 def _run_dir() -> Path:
@@ -105,7 +78,7 @@ def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None
         device = resolve_device(cfg.get("device", "auto"))
         torch.manual_seed(int(cfg.get("seed", 0)))
         log.info("task=%s device=%s threads=%d run_dir=%s", task, device, threads, run_dir)
-        return EXPERIMENTS[task](cfg, run_dir, device)
+        return experiment_function(task)(cfg, run_dir, device)
     except ConfigError as err:
         _discard_empty_run_dir(run_dir)
         print(f"codesign: configuration error: {err}", file=sys.stderr)

@@ -12,9 +12,7 @@ from __future__ import annotations
 
 import torch
 
-from codesign.engine.pipeline import RestorationData
-from codesign.models.wiener import otf_from_kernel
-from codesign.sensor.simulator import psf_state
+from codesign.engine.pipeline import RestorationData, mask_psf
 
 
 class JointData(RestorationData):
@@ -29,22 +27,13 @@ class JointData(RestorationData):
         for p in self.mask.parameters():
             p.requires_grad_(self.mask_trainable)
 
-    def differentiable_psf(self) -> tuple:
-        """(PSFState, OTF on the padded grid) of the current mask, with gradient to its parameters."""
-        state = psf_state(self.system, self.mask.phase())
-        kernel = self.sim.kernel(state)
-        return state, otf_from_kernel(kernel, self.padded_size).to(self.device)
-
     def train_batch(self, step: int) -> dict:
         """As RestorationData.train_batch; while the mask is trainable the batch also carries ``otf`` and ``psf``
         (the window PSF) with their graphs, and ``sensor`` depends on the mask."""
         if not self.mask_trainable:
             return super().train_batch(step)
-        scenes = self.sampler.sample()
-        params = self._params(scenes.shape[0], self.param_gen).to(self.device, torch.float32)
-        state, otf = self.differentiable_psf()
-        out = self.sim(scenes.to(self.device), params, state, seed=self.seed * 1_000_003 + step, mask_key=None)
+        state, _, otf = mask_psf(self.system, self.mask, self.sim, self.device)  # with the mask's graph
+        out = self.simulate(*self.train_draw(step), state=state)
         out["irradiance"] = out["irradiance"].detach()
-        out["read_noise_mean_e"] = params.read_noise_mean_e
         out["otf"], out["psf"] = otf, state.psf
         return out

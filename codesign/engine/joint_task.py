@@ -21,14 +21,16 @@ from codesign.engine.checkpoint import CHECKPOINT_NAME
 from codesign.engine.joint_data import JointData
 from codesign.engine.joint_trainer import JointTrainer
 from codesign.engine.lsr_constraint import CodesignSpec
-from codesign.engine.monitor import MaskMonitor, open_writer, published_mask_config, tensorboard_enabled
+from codesign.engine.monitor import (MaskMonitor, open_writer, published_mask_config, published_reference,
+                                     tensorboard_enabled)
 from codesign.engine.pipeline import RestorationData
 from codesign.engine.restoration_tasks import (_common_metrics, _container, build_model, eval_settings,
                                                loss_weights, resume_if_possible, run_evaluation)
 from codesign.engine.train_spec import TrainerSpec
 from codesign.engine.trainer import RestorationTrainer, init_weights
 from codesign.errors import require_number
-from codesign.optics import build_mask, circular_mtf
+from codesign.optics import HalfRingMask, circular_mtf
+from codesign.optics.masks import halfring_record
 
 log = logging.getLogger("codesign.joint")
 PUBLISHED_DIR = "published"
@@ -47,29 +49,29 @@ def _train(trainer, cfg, run_dir: Path, log_every: int, label: str) -> dict:
     return {"seconds": time.perf_counter() - t0, **start, **end}
 
 
-def _mask_outputs(monitor: MaskMonitor, system, mask, run_dir: Path, prefix: str) -> dict:
-    """Refined figures of merit of a mask, with its phase, PSF and MTF figures (``prefix``_*.png)."""
+def _mask_outputs(monitor: MaskMonitor, system, mask, run_dir: Path, prefix: str, psf0: np.ndarray) -> dict:
+    """Refined figures of merit of a mask, with its phase and PSF figures (``prefix``_*.png; ``psf0``: the
+    uncoded PSF they are shown against)."""
     values, arrays = monitor.measure(mask, refine=True)
     spec = system.spec
     np_ = {k: v.detach().cpu().numpy() for k, v in arrays.items()}
     io.save_figure(run_dir / f"{prefix}_phase.png", plots.phase_figure(
         np_["phase"], system.grid.aperture.cpu().numpy(), spec.pupil_pitch_m, f"{prefix} mask: pupil phase"))
-    with torch.no_grad():
-        psf0 = system.uncoded_psf().cpu().numpy()
     io.save_figure(run_dir / f"{prefix}_psf_log.png", plots.psf_figure(
         np_["psf"], psf0, spec.focal_pitch_m, f"{prefix} mask: PSF, LSR = {values['lsr']:.4g}"))
     return {**values, "mtf_radial": np_["mtf_radial"]}
 
 
-def _save_learned_mask(mask, run_dir: Path, values: dict) -> None:
-    summary = mask.summary()
-    if "r_1" in summary:
-        n = sum(k.startswith("r_") for k in summary)
-        io.write_json(run_dir / "learned_mask.json", {
-            "kind": "halfring", "r": [summary[f"r_{i + 1}"] for i in range(n)],
-            "theta": [summary[f"theta_{i + 1}"] for i in range(n)], "lsr": values["lsr"],
-            "lsr_smooth": values["lsr_smooth"], "mtf_mean": values["mtf_mean"]})
+def _save_learned_mask(mask, run_dir: Path, values: dict) -> dict:
+    """learned_phase.npy, and for a half-ring mask learned_mask.json (seeds mask.init=PATH); returns the
+    r_n / theta_n metrics (empty for a freeform mask)."""
     io.save_npy(run_dir / "learned_phase.npy", mask.phase().detach())
+    if not isinstance(mask, HalfRingMask):
+        return {}
+    record = halfring_record(mask)
+    io.write_json(run_dir / "learned_mask.json", {**record, "lsr": values["lsr"], "lsr_smooth": values["lsr_smooth"],
+                                                  "mtf_mean": values["mtf_mean"]})
+    return {"r_n": record["r"], "theta_n": record["theta"]}
 
 
 def _comparison(evaluation: dict, evaluation_base: dict) -> dict:
@@ -98,7 +100,7 @@ def run_joint(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     init_weights(model)
     data = JointData(cfg, device, seed)
     system = data.system
-    reference = build_mask(published_cfg, system.grid, system.spec.aperture_diameter_m).freeze()
+    reference = published_reference(_container(cfg.mask), system)
     monitor = MaskMonitor(system, reference, cs.mtf_band, cs.lsr_p)
     lsr_max = cs.lsr_max if cs.lsr_max is not None else monitor.reference[0]["lsr_smooth"]
     trainer = JointTrainer(model, data, spec, weights, run_dir, device, _container(cfg), None, seed, cs, lsr_max,
@@ -115,9 +117,11 @@ def run_joint(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     data.invalidate_psf()
     steps = trainer.step
 
-    learned = _mask_outputs(monitor, system, data.mask, run_dir, "learned")
-    base = _mask_outputs(monitor, system, reference, run_dir, "published")
-    _save_learned_mask(data.mask, run_dir, learned)
+    with torch.no_grad():
+        psf0 = system.uncoded_psf().cpu().numpy()
+    learned = _mask_outputs(monitor, system, data.mask, run_dir, "learned", psf0)
+    base = _mask_outputs(monitor, system, reference, run_dir, "published", psf0)
+    rings = _save_learned_mask(data.mask, run_dir, learned)
     freqs = monitor.radial.freqs.cpu().numpy()
     io.save_figure(run_dir / "mtf.png", plots.mtf_figure(
         freqs, {"learned mask": learned.pop("mtf_radial"), "published mask": base.pop("mtf_radial"),
@@ -129,12 +133,8 @@ def run_joint(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
                "skipped_updates": trainer.skipped, "mask_rollbacks": trainer.mask_rollbacks,
                "guard_shortened": trainer.constraint.shortened, "guard_undone": trainer.constraint.undone,
                "vgg_loss": trainer.vgg_status, "mask_kind": _container(cfg.mask)["kind"],
-               **{k: v for k, v in learned.items()}, **{f"{k}_baseline": v for k, v in base.items()},
-               **data.mask.summary(), "checkpoint": str(run_dir / CHECKPOINT_NAME)}
-    summary = data.mask.summary()
-    if "r_1" in summary:
-        metrics["r_n"] = [v for k, v in summary.items() if k.startswith("r_")]
-        metrics["theta_n"] = [v for k, v in summary.items() if k.startswith("theta_")]
+               **learned, **{f"{k}_baseline": v for k, v in base.items()}, **data.mask.summary(), **rings,
+               "checkpoint": str(run_dir / CHECKPOINT_NAME)}
     joint_eval = run_evaluation(ev, model, trainer.restoring_modules(), data, run_dir, seed)
     metrics["evaluation"] = joint_eval["evaluation"]
     metrics["evaluation_scenes"] = joint_eval["evaluation_scenes"]

@@ -26,20 +26,23 @@ class JointTrainer(RestorationTrainer):
     def __init__(self, model, data: JointData, spec, weights, run_dir, device, config: dict, writer=None,
                  seed: int = 0, codesign: CodesignSpec | None = None, lsr_max: float | None = None,
                  monitor=None):
-        super().__init__(model, data, spec, weights, run_dir, device, config, writer, seed)
-        self.cs = codesign or CodesignSpec()
+        self.cs = codesign or CodesignSpec()  # needed by the optimizer hooks the base constructor calls
         self.mask = data.mask
+        self.mask_params = list(self.mask.parameters())
+        super().__init__(model, data, spec, weights, run_dir, device, config, writer, seed)
         self.constraint = LSRConstraint(self.cs, data.system, lsr_max)
         self.monitor = monitor
-        self.mask_params = list(self.mask.parameters())
-        self.opt_g.add_param_group({"params": self.mask_params, "lr": self.cs.mask_lr, "betas": self.cs.mask_betas,
-                                    "name": "mask"})
-        factor = lambda k: self.cs.mask_lr_factor(k, spec.steps, spec.lr_factor)  # noqa: E731
-        self.sched_g = torch.optim.lr_scheduler.LambdaLR(self.opt_g, [spec.lr_factor, spec.lr_factor, factor])
         self.lsr = self.constraint.measure(self.mask)
         self.mask_rollbacks = 0
         self._before: list[torch.Tensor] | None = None
         self._step_info: dict = {}
+
+    def extra_generator_groups(self) -> list[dict]:
+        return [{"params": self.mask_params, "lr": self.cs.mask_lr, "betas": self.cs.mask_betas, "name": "mask"}]
+
+    def generator_lr_factors(self) -> list:
+        spec = self.spec
+        return [spec.lr_factor, spec.lr_factor, lambda k: self.cs.mask_lr_factor(k, spec.steps, spec.lr_factor)]
 
     @property
     def mask_active(self) -> bool:

@@ -13,7 +13,7 @@ the PSF but never let more laser through than the published design. Two mechanis
 """
 from __future__ import annotations
 
-import logging
+import math
 from dataclasses import dataclass, field
 
 import torch
@@ -21,8 +21,6 @@ import torch
 from codesign.errors import ConfigError, require_choice, require_number
 from codesign.optics import metrics
 from codesign.spec_base import SpecMixin
-
-log = logging.getLogger("codesign.joint")
 
 SCHEDULES = ("constant", "trainer", "cosine")
 
@@ -92,8 +90,6 @@ class CodesignSpec(SpecMixin):
         if self.mask_schedule == "trainer":
             return network_factor(step)
         if self.mask_schedule == "cosine":
-            import math
-
             return 0.5 * (1 + math.cos(math.pi * (step - w) / max(steps - w, 1)))
         return 1.0
 

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from codesign.engine import plots
-from codesign.optics import RadialMTF, metrics
+from codesign.optics import RadialMTF, build_mask, metrics
 
 
 def open_writer(run_dir: Path, enabled: bool = True, purge_step: int | None = None):
@@ -32,6 +32,11 @@ def published_mask_config(mask_cfg: dict) -> dict:
         keep = ("m_range", "convention", "harmonic_sign", "strategy", "table_size", "r_bounds")
         return {**base, **{k: mask_cfg[k] for k in keep if k in mask_cfg}}
     return {**base, "convention": mask_cfg.get("init_convention", "atan2")}
+
+
+def published_reference(mask_cfg: dict, system):
+    """The frozen published mask on ``system``'s grid, under the configured conventions: every comparison's baseline."""
+    return build_mask(published_mask_config(mask_cfg), system.grid, system.spec.aperture_diameter_m).freeze()
 
 
 def tensorboard_enabled(cfg) -> bool:

@@ -26,12 +26,18 @@ def check_padding(sim) -> None:
                           f"{s.image_size} + {k} - 1 = {need} at this pitch, so that deconvolution does not wrap")
 
 
-def frozen_psf(system, mask, sim, device):
-    """(PSF state, network-pitch kernel, OTF on the padded grid) of a frozen mask."""
-    with torch.no_grad():
-        state = psf_state(system, mask.phase())
-        kernel = sim.kernel(state)
+def mask_psf(system, mask, sim, device):
+    """(PSF state, network-pitch kernel, OTF on the padded grid) of the mask's current parameters; all three carry
+    the mask's graph when gradients are enabled and its parameters require them."""
+    state = psf_state(system, mask.phase())
+    kernel = sim.kernel(state)
     return state, kernel, otf_from_kernel(kernel, sim.sensor.padded_size).to(device)
+
+
+def frozen_psf(system, mask, sim, device):
+    """mask_psf without gradient: for a frozen mask."""
+    with torch.no_grad():
+        return mask_psf(system, mask, sim, device)
 
 
 class RestorationData:
@@ -84,10 +90,15 @@ class RestorationData:
         return self.sim.sensor.image_size
 
     # ---- batches --------------------------------------------------------------------------------------------
-    def simulate(self, scenes: torch.Tensor, params, seed: int) -> dict:
+    def simulate(self, scenes: torch.Tensor, params, seed: int, state=None) -> dict:
+        """Simulate a batch through the current mask's frozen PSF (no gradient, kernels cached), or through
+        ``state``, a PSFState carrying the mask's graph (gradient kept, kernels recomputed)."""
         params = params.to(self.device, torch.float32)
-        with torch.no_grad():
-            out = self.sim(scenes.to(self.device), params, self.state, seed=seed, mask_key=self.key)
+        if state is None:
+            with torch.no_grad():
+                out = self.sim(scenes.to(self.device), params, self.state, seed=seed, mask_key=self.key)
+        else:
+            out = self.sim(scenes.to(self.device), params, state, seed=seed, mask_key=None)
         out["read_noise_mean_e"] = params.read_noise_mean_e  # the black level a classical pipeline subtracts
         return out
 
@@ -96,10 +107,14 @@ class RestorationData:
         return sample_scene_params(batch, generator, self.cfg.data.params, sensor_width_m=side,
                                    sensor_height_m=side, focal_length_m=self.sim.optics.focal_length_m)
 
-    def train_batch(self, step: int) -> dict:
-        """The batch of training step ``step``: random crops and Sec. 6.2 parameters; noise seeded by step."""
+    def train_draw(self, step: int) -> tuple:
+        """(scenes, parameters, noise seed) of training step ``step``: random crops and Sec. 6.2 parameters."""
         scenes = self.sampler.sample()
-        return self.simulate(scenes, self._params(scenes.shape[0], self.param_gen), seed=self.seed * 1_000_003 + step)
+        return scenes, self._params(scenes.shape[0], self.param_gen), self.seed * 1_000_003 + step
+
+    def train_batch(self, step: int) -> dict:
+        """The batch of training step ``step`` (see train_draw)."""
+        return self.simulate(*self.train_draw(step))
 
     def validation_batch(self, size: int) -> dict:
         """A fixed batch from the training distribution (own generators: independent of training's draws)."""

@@ -6,14 +6,13 @@ import statistics
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
 from codesign.config import resolve_dtype
 from codesign.engine import io, plots
 from codesign.engine.monitor import (MaskMonitor, log_summary, mask_figures_of_merit, open_writer,
-                                     published_mask_config, tensorboard_enabled)
+                                     published_reference, tensorboard_enabled)
 from codesign.errors import ConfigError, require_number
 from codesign.optics import OpticalSystem, OpticsSpec, RadialMTF, build_mask, circular_mtf, metrics
 
@@ -112,8 +111,7 @@ def run_psf(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     io.write_json(run_dir / "metrics.json", metrics_out)
     writer = open_writer(run_dir, tensorboard_enabled(cfg))
     if writer is not None:
-        reference = build_mask(published_mask_config(mask_cfg), system.grid, spec.aperture_diameter_m).freeze()
-        MaskMonitor(system, reference, band, p).log(writer, 0, mask, images=True)
+        MaskMonitor(system, published_reference(mask_cfg, system), band, p).log(writer, 0, mask, images=True)
     log_summary(writer, {"mask": mask_cfg["kind"], "propagator": system.method, "pupil_n": spec.grid_n}, metrics_out)
     log.info("lsr=%.4g (sampled %.4g, smooth %.4g) bsr=%.4f mtf_mean=%.4g mtf_min=%.4g energy_in_window=%.4f "
              "forward %.3f s backward %.3f s", values["lsr"], values["lsr_sampled"], values["lsr_smooth"],

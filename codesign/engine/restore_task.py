@@ -104,7 +104,7 @@ def run_restore(cfg, run_dir: Path, device: torch.device) -> float:
     _, _, otf = frozen_psf(system, mask, sim, device)
     n, p = sensor.image_size, sensor.padded_size
     m = (p - n) // 2
-    written, t0 = [], time.perf_counter()
+    written, restored, t0 = [], [], time.perf_counter()
     with torch.no_grad():
         for f, arr in zip(files, images):
             x = torch.from_numpy(arr / (sensor.gain_dn_per_e * sensor.full_well_e)).float()[None, None]
@@ -113,15 +113,16 @@ def run_restore(cfg, run_dir: Path, device: torch.device) -> float:
             out = run_dir / f"restored_{f.stem}.png"
             save_png16(out, b)
             written.append(out.name)
+            restored.append(b)
     seconds = (time.perf_counter() - t0) / len(files)
     metrics = {"inputs": [str(f) for f in files], "outputs": written, "seconds_per_image": seconds,
                "checkpoint": str(cfg.checkpoint), "device": str(device), "image_size": n, "padded_size": p}
     io.write_json(run_dir / "metrics.json", metrics)
     writer = open_writer(run_dir, tensorboard_enabled(cfg))
     if writer is not None:
-        for f, arr in zip(files, images):
+        for f, arr, b in zip(files, images, restored):
             writer.add_image(f"input/{f.stem}", (arr / sensor.saturation_dn).astype(np.float32)[None], 0)
-            writer.add_image(f"restored/{f.stem}", read_counts(run_dir / f"restored_{f.stem}.png")[None] / 65535.0, 0)
+            writer.add_image(f"restored/{f.stem}", b[None], 0)
     log_summary(writer, {"checkpoint": str(cfg.checkpoint)}, metrics)
     log.info("restored %d image(s) into %s (%.3f s/image)", len(files), run_dir, seconds)
     return seconds

@@ -17,11 +17,11 @@ from omegaconf import DictConfig, OmegaConf
 from codesign.config import resolve_dtype
 from codesign.engine import io, plots
 from codesign.engine.mask_search import MaskObjective, best_point, run_start, start_points
-from codesign.engine.monitor import MaskMonitor, open_writer, tensorboard_enabled
+from codesign.engine.monitor import MaskMonitor, open_writer, published_reference, tensorboard_enabled
 from codesign.engine.search_spec import SearchSpec
 from codesign.errors import ConfigError
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask, circular_mtf, metrics
-from codesign.optics.masks import PUBLISHED_R
+from codesign.optics.masks import PUBLISHED_R, halfring_record
 
 log = logging.getLogger("codesign.mask_search")
 
@@ -134,8 +134,7 @@ def run_mask_search(cfg: DictConfig, run_dir: Path, device: torch.device) -> flo
     system = OpticalSystem(spec, dtype=resolve_dtype("search.precision", s.precision), device=device)
     mask = build_mask(mask_cfg, system.grid, spec.aperture_diameter_m)
     # The baseline shares the configured convention, orders and signs: only r_n, theta_n differ.
-    published = build_mask({**mask_cfg, "preset": "published", "r": None, "theta": None, "init": None},
-                           system.grid, spec.aperture_diameter_m).freeze()
+    published = published_reference(mask_cfg, system)
     n = mask.r.numel()
     lower = np.array([s.r_bounds[0]] * n + [s.theta_bounds[0]] * n)
     upper = np.array([s.r_bounds[1]] * n + [s.theta_bounds[1]] * n)
@@ -249,15 +248,9 @@ def _outputs(run_dir: Path, s: SearchSpec, system, mask, best: tuple[dict, dict]
     (values, arrays), (base, base_arr) = best, baseline
     mean0 = uncoded["mtf_mean"]
     summary = mask.summary()
-    n = mask.r.numel()
     io.write_json(run_dir / "best_mask.json", {
-        "kind": "halfring", "r": [summary[f"r_{i + 1}"] for i in range(n)],
-        "theta": [summary[f"theta_{i + 1}"] for i in range(n)], "lsr": values["lsr"],
-        "lsr_smooth": values["lsr_smooth"], "mtf_mean": values["mtf_mean"], "mtf_floor": floor, "feasible": feasible,
-        "bsr": values["bsr"],
-        # what else fixes the phase, so that mask.init=PATH on a freeform mask rebuilds the same phase
-        "convention": mask.convention, "harmonic_sign": mask.harmonic_sign,
-        "m_range": [(int(mask.orders[0]) - 1) // 2, (int(mask.orders[-1]) - 1) // 2]})
+        **halfring_record(mask), "lsr": values["lsr"], "lsr_smooth": values["lsr_smooth"],
+        "mtf_mean": values["mtf_mean"], "mtf_floor": floor, "feasible": feasible, "bsr": values["bsr"]})
     out = {
         "lsr": values["lsr"], "lsr_smooth": values["lsr_smooth"], "lsr_sampled": values["lsr_sampled"],
         "mtf_mean": values["mtf_mean"], "mtf_min": values["mtf_min"], "bsr": values["bsr"],

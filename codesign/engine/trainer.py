@@ -93,9 +93,10 @@ class RestorationTrainer:
         if self.vgg is not None:
             self.vgg = self.vgg.to(device)
         gens, crits = model.generators(), model.discriminators()
-        self.opt_g = torch.optim.Adam(param_groups(gens, spec.lr_weights, spec.lr_biases), betas=spec.betas)
+        self.opt_g = torch.optim.Adam(param_groups(gens, spec.lr_weights, spec.lr_biases)
+                                      + self.extra_generator_groups(), betas=spec.betas)
         self.opt_d = torch.optim.Adam(param_groups(crits, spec.lr_weights, spec.lr_biases), betas=spec.betas)
-        self.sched_g = torch.optim.lr_scheduler.LambdaLR(self.opt_g, spec.lr_factor)
+        self.sched_g = torch.optim.lr_scheduler.LambdaLR(self.opt_g, self.generator_lr_factors())
         self.sched_d = torch.optim.lr_scheduler.LambdaLR(self.opt_d, spec.lr_factor)
         self.ema = EMA(gens, spec.ema) if spec.ema else None
         self.gp_gen = torch.Generator(device=device).manual_seed(seed + 2)  # interpolation weights of the GP
@@ -178,6 +179,14 @@ class RestorationTrainer:
         elif self.ema is not None:
             self.ema.update(m.generators())
         return terms
+
+    def extra_generator_groups(self) -> list[dict]:
+        """Parameter groups the generator optimizer steps beside the networks' (a trainable mask's)."""
+        return []
+
+    def generator_lr_factors(self) -> list:
+        """One learning-rate factor function of the step per generator parameter group."""
+        return [self.spec.lr_factor] * len(self.opt_g.param_groups)
 
     def extra_parameters(self, opt) -> list:
         """Parameters that ``opt`` updates beyond the modules' (a trainable mask): gradient-checked, not clipped."""
@@ -266,7 +275,7 @@ class RestorationTrainer:
             self._val = self.data.validation_batch(self.spec.val_size)
         batch = self._val
         out = restore_with(self.model, self.restoring_modules(), batch["sensor"], self.data.otf)
-        n, p = self.data.image_size, self.data.padded_size
+        n = self.data.image_size
         crop = lambda x: centre(x, n).clamp(0, 1)  # noqa: E731
         b, t = crop(out["b"][1]), crop(batch["scene"])
         metrics = {"val/psnr": float(psnr(b, t).mean()), "val/ssim": float(ssim(b, t).mean()),

@@ -47,6 +47,15 @@ def load_best_mask(path: Any, key: str, allowed: str = f"must be {BEST_MASK}") -
     return data
 
 
+def halfring_record(mask: HalfRingMask) -> dict:
+    """What load_best_mask reads back: kind, r, theta, and the settings that fix the phase besides them
+    (convention, harmonic_sign, m_range), so that mask.init=PATH rebuilds the same mask, freeform included."""
+    return {"kind": "halfring", "r": [float(v) for v in mask.r.detach().cpu()],
+            "theta": [float(v) for v in mask.theta.detach().cpu()], "convention": mask.convention,
+            "harmonic_sign": mask.harmonic_sign,
+            "m_range": [(int(mask.orders[0]) - 1) // 2, (int(mask.orders[-1]) - 1) // 2]}
+
+
 def published_halfring(grid, aperture_diameter_m: float, **kw: Any) -> HalfRingMask:
     """The published five half-ring mask (Sec. 3.1), frozen: the fixed baseline of every experiment."""
     return HalfRingMask(grid, aperture_diameter_m, PUBLISHED_R, PUBLISHED_THETA, **kw).freeze()
@@ -122,4 +131,4 @@ def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix:
 
 
 __all__ = ["Mask", "HalfRingMask", "PixelPhaseMask", "ZernikeMask", "build_mask", "published_halfring",
-           "load_best_mask", "PUBLISHED_R", "PUBLISHED_THETA"]
+           "load_best_mask", "halfring_record", "PUBLISHED_R", "PUBLISHED_THETA"]
