@@ -1,6 +1,7 @@
 """Shared fixtures and the --runslow switch for the codesign test suite."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -8,7 +9,8 @@ import torch
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 
-torch.set_num_threads(2)
+# CODESIGN_TEST_THREADS=1 when the machine is shared (two torch processes on 2 cores slow each other 5-20x).
+torch.set_num_threads(int(os.environ.get("CODESIGN_TEST_THREADS", "2")))
 
 
 def pytest_addoption(parser):
