@@ -4,7 +4,7 @@ from __future__ import annotations
 import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from codesign.errors import ConfigError, require_choice, require_number
+from codesign.errors import ConfigError, require_choice, require_number, unknown_keys
 
 
 def apply_debug_overrides(cfg: DictConfig, explicit: frozenset[str] = frozenset()) -> list[str]:
@@ -58,3 +58,25 @@ def set_threads(threads) -> int:
 
 def resolve_dtype(key: str, name: str) -> torch.dtype:
     return {"float32": torch.float32, "float64": torch.float64}[require_choice(key, name, ("float32", "float64"))]
+
+
+def check_seed(cfg) -> int:
+    """The root ``seed``: an integer (it seeds torch, numpy and the data draws; search.seed defaults to it)."""
+    return require_number("seed", cfg.get("seed", 0), lo=0, hi=1e9, integer=True)
+
+
+LOGGING_KEYS = ("tensorboard", "log_every")
+
+
+def check_logging(cfg) -> None:
+    """The ``logging`` block (conf/logging/default.yaml), whichever experiment runs."""
+    node = cfg.get("logging")
+    if node is None:
+        return
+    if not hasattr(node, "keys"):
+        raise ConfigError("logging", node, "must be a mapping with tensorboard and log_every "
+                          "(conf/logging/default.yaml)")
+    unknown_keys("logging", node, LOGGING_KEYS)
+    if not isinstance(node.get("tensorboard", True), bool):
+        raise ConfigError("logging.tensorboard", node.get("tensorboard"), "must be true or false")
+    require_number("logging.log_every", node.get("log_every", 10), lo=1, integer=True)

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Sequence
 
 
 class ConfigError(ValueError):
@@ -38,3 +38,24 @@ def require_choice(key: str, value: Any, choices: tuple[str, ...]) -> str:
     if value not in choices:
         raise ConfigError(key, value, f"must be one of {', '.join(choices)}")
     return value
+
+
+def require_list(key: str, value: Any, allowed: str) -> list:
+    """``value`` as a list when it is a list or tuple (an OmegaConf ListConfig counts); else ConfigError with
+    ``allowed``. A bare number or string where a list belongs would otherwise fail deep inside with a TypeError
+    (or, for a string, be read one character at a time)."""
+    if isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
+        raise ConfigError(key, value, allowed)
+    return list(value)
+
+
+def unknown_keys(prefix: str, cfg: Any, known) -> None:
+    """ConfigError naming the first key of mapping ``cfg`` that is not in ``known`` (a typo would otherwise be
+    ignored silently and the default used)."""
+    extra = sorted(set(cfg) - set(known)) if hasattr(cfg, "keys") else []
+    if extra:
+        raise ConfigError(f"{prefix}.{extra[0]}", cfg[extra[0]], f"unknown key; allowed: {', '.join(sorted(known))}")
+
+
+class OutputWriteError(OSError):
+    """An output file could not be written; the file that was there before (if any) is unchanged."""

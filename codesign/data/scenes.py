@@ -15,7 +15,7 @@ from codesign.data.builtin import builtin_scene_names
 from codesign.data.images import UnreadableImage
 from codesign.data.paramconfig import ParamConfig, param_config
 from codesign.data.source import SceneSource
-from codesign.errors import ConfigError, require_choice, require_number
+from codesign.errors import ConfigError, require_choice, require_number, unknown_keys
 
 __all__ = ["SceneSampler", "DataConfig", "data_config", "build_scene_source", "build_scene_sampler",
            "SceneSource", "builtin_scene_names"]
@@ -107,12 +107,17 @@ class DataConfig:
     params: ParamConfig         # data.params: the scene-parameter distribution
 
 
+DATA_KEYS = ("scenes", "folder", "image_size", "padded_size", "batch_size", "test_fraction", "split_seed", "flips",
+             "cache_mb", "params")
+
+
 def data_config(cfg: Mapping | Any) -> DataConfig:
     """Validate the ``data`` config node (or a root config holding one); errors name the ``data.*`` key."""
     if cfg is not None and "data" in cfg and "scenes" not in cfg:
         cfg = cfg["data"]
     if cfg is None or not hasattr(cfg, "get"):
         raise ConfigError("data", cfg, "must be a mapping (conf/data/default.yaml)")
+    unknown_keys("data", cfg, DATA_KEYS)
     scenes = require_choice("data.scenes", cfg.get("scenes", "builtin"), ("builtin", "folder"))
     folder = cfg.get("folder")
     if scenes == "folder":

@@ -12,8 +12,10 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from codesign.config import apply_debug_overrides, command_line_keys, resolve_device, set_threads
-from codesign.errors import ConfigError
+from codesign.config import (apply_debug_overrides, check_logging, check_seed, command_line_keys, resolve_device,
+                             set_threads)
+from codesign.engine import io, rundir
+from codesign.errors import ConfigError, OutputWriteError
 
 log = logging.getLogger("codesign")
 
@@ -29,6 +31,30 @@ EXPERIMENTS: dict[str, str] = {
     "joint": "codesign.engine.joint_task:run_joint",
     "mask_search": "codesign.engine.search_task:run_mask_search",
 }
+
+
+# Root keys every experiment has (conf/config.yaml and its groups), and those its conf/experiment/NAME.yaml adds.
+COMMON_KEYS = ("task", "seed", "device", "threads", "optics", "mask", "sensor", "model", "data", "trainer", "logging",
+               "evaluate", "debug")
+TASK_KEYS: dict[str, tuple[str, ...]] = {
+    "psf": ("precision", "mtf_band", "lsr_smooth_p", "timing_repeats"),
+    "simulate": ("precision", "simulate"),
+    "baseline": (),
+    "evaluate": ("checkpoint",),
+    "restore": ("input", "checkpoint"),
+    "joint": ("codesign",),
+    "mask_search": ("search",),
+}
+
+
+def check_root_keys(cfg: DictConfig, task: str) -> None:
+    """A root key the experiment does not read (e.g. +checkpoint=... on baseline, a typo added with +) is refused
+    rather than ignored."""
+    allowed = COMMON_KEYS + TASK_KEYS[task]
+    extra = sorted(k for k in cfg if k not in allowed)
+    if extra:
+        raise ConfigError(extra[0], cfg.get(extra[0]), f"unknown key for +experiment={task}; allowed: "
+                          f"{', '.join(allowed)}")
 
 
 def experiment_function(name: str) -> Callable:
@@ -52,8 +78,13 @@ def explicit_keys() -> frozenset[str]:
 
 
 def _discard_empty_run_dir(run_dir: Path) -> None:
-    """Remove a run dir that holds only Hydra's own files (a run that stopped before writing anything)."""
+    """Remove a run dir that this run created and that holds only Hydra's own files (a run that stopped before
+    writing anything). A run dir that existed before (hydra.run.dir of an earlier run, to resume it) is kept,
+    with the .hydra/ files of that earlier run put back."""
     if not run_dir.is_dir():
+        return
+    if rundir.existed_before(run_dir):
+        rundir.restore_earlier(run_dir)
         return
     ours = [p for p in run_dir.iterdir() if p.name != ".hydra" and not p.name.endswith(".log")]
     if not ours and run_dir.resolve() != Path.cwd().resolve():
@@ -64,25 +95,33 @@ def _discard_empty_run_dir(run_dir: Path) -> None:
 
 
 def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None:
-    """Validate the common keys, apply ``debug`` shrinking, then run ``cfg.task``; config errors exit with 2."""
+    """Validate the common keys, apply ``debug`` shrinking, then run ``cfg.task``; config errors exit with 2, an
+    output file that cannot be written with 1 (the earlier file is unchanged)."""
     run_dir = Path(run_dir) if run_dir is not None else _run_dir()
     try:
         task = cfg.get("task")
         if task not in EXPERIMENTS:
             raise ConfigError("task", task, "choose an experiment with +experiment=NAME; available: "
                               + ", ".join(sorted(EXPERIMENTS)))
+        check_root_keys(cfg, task)
         applied = apply_debug_overrides(cfg, explicit_keys())
         if applied:
             log.info("debug=%s: applied %s", cfg.debug.name, ", ".join(applied))
+        seed = check_seed(cfg)
+        check_logging(cfg)
         threads = set_threads(cfg.get("threads"))
         device = resolve_device(cfg.get("device", "auto"))
-        torch.manual_seed(int(cfg.get("seed", 0)))
+        io.check_writable_dir(run_dir)  # before any work: never an hour of training, then a failed write
+        torch.manual_seed(seed)
         log.info("task=%s device=%s threads=%d run_dir=%s", task, device, threads, run_dir)
         return experiment_function(task)(cfg, run_dir, device)
     except ConfigError as err:
         _discard_empty_run_dir(run_dir)
         print(f"codesign: configuration error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
+    except OutputWriteError as err:
+        print(f"codesign: output error: {err}", file=sys.stderr)
+        raise SystemExit(1) from None
 
 
 def resolved_config_yaml(cfg: DictConfig) -> str:

@@ -10,23 +10,64 @@ from typing import Any, Callable
 
 import numpy as np
 
+from codesign.errors import ConfigError, OutputWriteError
+
 
 def _atomic(path: Path, write: Callable[[str], None], suffix: str) -> Path:
+    """Run ``write(tmp)`` on a temp file next to ``path``, flush it to disk, then rename it over ``path``.
+
+    Any failure (a full disk, a read-only folder, an exception inside ``write``) removes the temp file and leaves
+    the previous ``path`` untouched; an OSError is re-raised as OutputWriteError naming the file.
+    """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=suffix + ".tmp")
-    os.close(fd)
+    tmp = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=suffix + ".tmp")
+        os.close(fd)
         write(tmp)
+        _fsync(tmp)  # the data reaches the disk before the rename: a crash never leaves an empty file behind
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file the permissions open() would
         os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
+    except BaseException as err:
+        if tmp is not None and os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(err, OSError) and not isinstance(err, OutputWriteError):
+            raise OutputWriteError(f"cannot write {path} ({type(err).__name__}: {err.strerror or err}); "
+                                   f"an earlier {path.name}, if any, is unchanged") from err
         raise
     return path
+
+
+def _fsync(name: str) -> None:
+    fd = os.open(name, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def check_writable_dir(folder: Path, key: str = "hydra.run.dir") -> None:
+    """ConfigError naming ``key`` unless files can be created in ``folder`` (or, when it does not exist yet, in
+    its nearest existing ancestor). Tried for real (a temp file, removed at once): permission bits say nothing
+    for root or on read-only mounts. Called before any work, so that an hour of training never ends in a
+    failed write."""
+    folder = Path(folder).absolute()
+    probe = folder
+    while not probe.exists() and probe.parent != probe:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise ConfigError(key, str(folder), f"cannot be created: {probe} is a file, not a folder; choose another "
+                          f"output folder with {key}=PATH")
+    try:
+        fd, tmp = tempfile.mkstemp(dir=probe, prefix=".codesign-write-test.")
+        os.close(fd)
+        os.unlink(tmp)
+    except OSError as err:
+        raise ConfigError(key, str(folder), f"is not writable ({type(err).__name__}: {err.strerror or err} in "
+                          f"{probe}): choose a writable output folder with {key}=PATH") from None
 
 
 def _jsonable(v: Any) -> Any:

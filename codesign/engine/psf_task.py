@@ -13,7 +13,7 @@ from codesign.config import resolve_dtype
 from codesign.engine import io, plots
 from codesign.engine.monitor import (MaskMonitor, log_summary, mask_figures_of_merit, open_writer,
                                      published_reference, tensorboard_enabled)
-from codesign.errors import ConfigError, require_number
+from codesign.errors import ConfigError, require_list, require_number
 from codesign.optics import OpticalSystem, OpticsSpec, RadialMTF, build_mask, circular_mtf, metrics
 
 log = logging.getLogger("codesign.psf")
@@ -61,11 +61,12 @@ def evaluate_mask(system: OpticalSystem, mask, band: tuple[float, float], p: flo
 def run_psf(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     spec = OpticsSpec.from_config(OmegaConf.to_container(cfg.optics, resolve=True))
     dtype = resolve_dtype("precision", cfg.get("precision", "float32"))
-    band = tuple(cfg.get("mtf_band", (0.0, 0.5)))
+    band_allowed = ("must be [low, high] with 0 <= low < high <= 1 (frequency normalized to the incoherent cutoff, "
+                    "beyond which the MTF is 0)")
+    band = tuple(require_list("mtf_band", cfg.get("mtf_band", (0.0, 0.5)), band_allowed))
     if len(band) != 2 or not 0 <= require_number("mtf_band[0]", band[0]) < require_number("mtf_band[1]", band[1]) \
             or band[1] > 1:
-        raise ConfigError("mtf_band", list(band), "must be [low, high] with 0 <= low < high <= 1 (frequency "
-                          "normalized to the incoherent cutoff, beyond which the MTF is 0)")
+        raise ConfigError("mtf_band", list(band), band_allowed)
     p = require_number("lsr_smooth_p", cfg.get("lsr_smooth_p", 16), lo=1, hi=1024)
     repeats = require_number("timing_repeats", cfg.get("timing_repeats", 5), lo=1, hi=1000, integer=True)
     mask_cfg = OmegaConf.to_container(cfg.mask, resolve=True)

@@ -12,13 +12,14 @@ from omegaconf import DictConfig, OmegaConf
 from codesign import quality
 from codesign.data.params import LASER_STRENGTHS, PRESETS, ROBUSTNESS_STAGES, _laser_name
 from codesign.engine import io
-from codesign.engine.checkpoint import CHECKPOINT_NAME, load_checkpoint
+from codesign.engine.checkpoint import (CHECKPOINT_NAME, check_trained, load_checkpoint, load_error,
+                                       load_module_state, state_mismatch)
 from codesign.engine.evaluate import Evaluator, conditions, evaluate, flat_summary
 from codesign.engine.monitor import log_summary, open_writer, tensorboard_enabled
 from codesign.engine.pipeline import RestorationData
 from codesign.engine.train_spec import LossWeights, TrainerSpec
 from codesign.engine.trainer import EMA, RestorationTrainer, init_weights
-from codesign.errors import ConfigError, require_choice, require_number
+from codesign.errors import ConfigError, require_choice, require_list, require_number, unknown_keys
 from codesign.models import build_sgan, parameter_count
 
 log = logging.getLogger("codesign.restoration")
@@ -39,29 +40,39 @@ def loss_weights(cfg: DictConfig) -> LossWeights:
     return LossWeights.from_config(_container(cfg.model.get("loss")) or {})
 
 
+EVALUATE_KEYS = ("split", "max_scenes", "laser_strengths", "stages", "tuning_size", "batch_size", "laser_angle_rad",
+                 "lpips_weights", "dists_weights")
+
+
 def eval_settings(cfg: DictConfig) -> dict:
     """Validate ``evaluate.*`` (and load LPIPS / DISTS when given), before any training or simulation."""
     ev = cfg.get("evaluate") or {}
+    unknown_keys("evaluate", ev, EVALUATE_KEYS)
     split = require_choice("evaluate.split", ev.get("split", "test"), ("test", "train", "all"))
     max_scenes = require_number("evaluate.max_scenes", ev.get("max_scenes", 8), lo=1, hi=100000, integer=True)
-    lasers = list(ev.get("laser_strengths", LASER_STRENGTHS))
     allowed = ", ".join(f"{a:g}" for a in LASER_STRENGTHS)
+    lasers = require_list("evaluate.laser_strengths", ev.get("laser_strengths", LASER_STRENGTHS),
+                          f"must be a list of the paper's strengths {allowed}")
     for i, a in enumerate(lasers):
         a = require_number(f"evaluate.laser_strengths[{i}]", a, lo=0)
         if _laser_name(float(a)) not in PRESETS or PRESETS[_laser_name(float(a))]["alpha_l"] != float(a):
             raise ConfigError(f"evaluate.laser_strengths[{i}]", a, f"must be one of the paper's strengths {allowed}")
-    stages = list(ev.get("stages", list(ROBUSTNESS_STAGES)))
+    stages = require_list("evaluate.stages", ev.get("stages", list(ROBUSTNESS_STAGES)),
+                          f"must be a list of robustness stages from {', '.join(ROBUSTNESS_STAGES)} (or [])")
     for i, st in enumerate(stages):
         require_choice(f"evaluate.stages[{i}]", st, tuple(ROBUSTNESS_STAGES))
     tuning = require_number("evaluate.tuning_size", ev.get("tuning_size", 8), lo=1, hi=256, integer=True)
     batch = require_number("evaluate.batch_size", ev.get("batch_size", 8), lo=1, hi=4096, integer=True)
     angle = ev.get("laser_angle_rad")
-    if angle is not None and (len(angle) != 2 or not all(isinstance(v, (int, float)) for v in angle)):
-        raise ConfigError("evaluate.laser_angle_rad", angle, "must be [n_u, n_v] in radians, or null")
+    if angle is not None:
+        angle = require_list("evaluate.laser_angle_rad", angle, "must be [n_u, n_v] in radians, or null")
+        if len(angle) != 2:
+            raise ConfigError("evaluate.laser_angle_rad", angle, "must be [n_u, n_v] in radians, or null")
+        angle = [require_number(f"evaluate.laser_angle_rad[{i}]", v) for i, v in enumerate(angle)]
     return {"split": split, "max_scenes": max_scenes, "lasers": [float(a) for a in lasers], "stages": stages,
             "tuning": tuning, "batch_size": batch,
             "perceptual": quality.perceptual_metrics(ev.get("lpips_weights"), ev.get("dists_weights")),
-            "overrides": {} if angle is None else {"laser_angle_rad": list(angle)}}
+            "overrides": {} if angle is None else {"laser_angle_rad": angle}}
 
 
 def run_evaluation(ev: dict, model, generators, data: RestorationData, run_dir: Path, seed: int) -> dict:
@@ -92,8 +103,9 @@ RESUME_MUST_MATCH = ("model", "optics", "mask", "sensor", "data.image_size", "da
                      "data.batch_size", "data.scenes", "data.folder", "data.test_fraction", "data.split_seed")
 
 
-def check_resume_config(saved: dict, cfg: DictConfig, key: str, extra_keys: tuple = ()) -> None:
-    """A checkpoint resumed under a different model, physics or data geometry is a ConfigError naming the keys."""
+def check_resume_config(saved: dict, cfg: DictConfig, key: str, extra_keys: tuple = (), path="checkpoint") -> None:
+    """A checkpoint (``path``) resumed under a different model, physics or data geometry is a ConfigError naming
+    the file and the keys."""
     saved_cfg, current = OmegaConf.create(saved), OmegaConf.create(_container(cfg))
     differ = []
     for dotted in RESUME_MUST_MATCH + tuple(extra_keys):
@@ -103,7 +115,7 @@ def check_resume_config(saved: dict, cfg: DictConfig, key: str, extra_keys: tupl
         if a != b:
             differ.append(dotted)
     if differ:
-        raise ConfigError(key, "checkpoint", "was trained with different " + ", ".join(differ) + ": resume with the "
+        raise ConfigError(key, str(path), "was trained with different " + ", ".join(differ) + ": resume with the "
                           "same settings, or start a new run directory")
 
 
@@ -112,16 +124,27 @@ def resume_if_possible(trainer, cfg: DictConfig, run_dir: Path, extra_keys: tupl
     resume = cfg.trainer.get("resume")
     auto = Path(run_dir) / CHECKPOINT_NAME
     if resume or auto.is_file():
-        state = load_checkpoint(resume or auto, "trainer.resume")
-        check_resume_config(state["config"], cfg, "trainer.resume", extra_keys)
-        trainer.load_state_dict(state)
-        log.info("resumed from %s at step %d", resume or auto, trainer.step)
+        path = resume or auto
+        state = load_checkpoint(path, "trainer.resume")
+        check_trained(state, path, "trainer.resume", resume=True)
+        check_resume_config(state["config"], cfg, "trainer.resume", extra_keys, path)
+        problem = state_mismatch(trainer.model, state["model"])
+        if problem:
+            raise load_error("trainer.resume", path, "cannot be resumed: its weights do not fit this run's model",
+                             problem)
+        try:
+            trainer.load_state_dict(state)
+        except (RuntimeError, KeyError, ValueError, TypeError, IndexError) as err:
+            raise load_error("trainer.resume", path, "cannot be resumed: its state does not fit this run's model "
+                             "and optimizers", err) from None
+        log.info("resumed from %s at step %d", path, trainer.step)
 
 
-def apply_checkpoint_mask(mask, state: dict) -> None:
+def apply_checkpoint_mask(mask, state: dict, path="checkpoint", key: str = "checkpoint") -> None:
     """A co-design checkpoint carries its learned mask: load it over the configured one."""
     if state.get("mask") is not None:
-        mask.load_state_dict(state["mask"])
+        load_module_state(mask, state["mask"], key, path, f"its learned mask does not fit the {type(mask).__name__} "
+                          "of its configuration")
 
 
 def run_baseline(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
@@ -163,18 +186,33 @@ def run_baseline(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     return metrics.get("psnr_sgan_laser_1e6", float("nan"))
 
 
-def load_trained(path, device: torch.device):
-    """(model, generators for restoration, checkpoint config) from a checkpoint written by the trainer."""
-    state = load_checkpoint(path, "checkpoint")
+def load_trained(path, device: torch.device, key: str = "checkpoint"):
+    """(model, generators for restoration, checkpoint config, state) from a checkpoint written by the trainer;
+    every way the file can be wrong (incomplete, a configuration this version refuses, weights that do not fit
+    the model its configuration describes) is a ConfigError naming ``key`` and the file."""
+    state = load_checkpoint(path, key)
+    check_trained(state, path, key)
     ckpt_cfg = OmegaConf.create(state["config"])
-    model = build_model(ckpt_cfg)
-    model.load_state_dict(state["model"])
-    model.to(device)
+    try:
+        model = build_model(ckpt_cfg)
+    except ConfigError as err:
+        raise ConfigError(key, str(path), f"its stored configuration is not valid in this version of codesign: "
+                          f"{err}") from None
+    what = (f"its weights do not fit the model its configuration describes (model.variant={model.spec.variant}, "
+            f"model.size={model.spec.size})")
+    load_module_state(model, state["model"], key, path, what)
     generators = model.generators()
     if state.get("ema"):
-        ema = EMA(generators, 0.0)
-        ema.load_state_dict(state["ema"])
-        generators = [g.to(device) for g in ema.shadow]
+        ema, states = EMA(generators, 0.0), state["ema"]
+        if not isinstance(states, list) or len(states) != len(generators):
+            n = len(states) if isinstance(states, list) else "no list of"
+            raise load_error(key, path, what, f"its EMA holds {n} generator state(s), the model has "
+                             f"{len(generators)} generators")
+        for shadow, st in zip(ema.shadow, states):
+            load_module_state(shadow, st, key, path, what + " (EMA weights)")
+        generators = ema.shadow
+    model.to(device)
+    generators = [g.to(device) for g in generators]
     return model, generators, ckpt_cfg, state
 
 
@@ -201,7 +239,7 @@ def run_evaluate(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     merged = merged_eval_config(cfg, ckpt_cfg, explicit_keys())
     seed = int(cfg.get("seed", 0))
     data = RestorationData(merged, device, seed)
-    apply_checkpoint_mask(data.mask, state)
+    apply_checkpoint_mask(data.mask, state, path)
     data.refresh_psf()
     metrics = {**_common_metrics(merged, model, device), "checkpoint": str(path), "steps": int(state["step"])}
     metrics.update(run_evaluation(ev, model, generators, data, run_dir, seed))

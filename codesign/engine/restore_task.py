@@ -73,8 +73,9 @@ def read_counts(path: Path) -> np.ndarray:
     if arr.ndim != 2:
         raise ConfigError("input", str(path), f"has shape {arr.shape}: expected one channel (H, W)")
     if arr.dtype != np.uint16:
-        raise ConfigError("input", str(path), f"has {arr.dtype} samples: expected 16-bit sensor counts "
-                          "(8-bit files cannot hold the sensor's range)")
+        why = "8-bit files cannot hold the sensor's range" if arr.dtype.itemsize == 1 else \
+            "unsigned 16-bit integers, as +experiment=simulate writes them"
+        raise ConfigError("input", str(path), f"has {arr.dtype} samples: expected 16-bit sensor counts ({why})")
     return arr.astype(np.float64)
 
 
@@ -97,8 +98,12 @@ def run_restore(cfg, run_dir: Path, device: torch.device) -> float:
     if not cfg.get("checkpoint"):
         raise ConfigError("checkpoint", cfg.get("checkpoint"), "give the trained model: checkpoint=PATH")
     model, generators, ckpt_cfg, state = load_trained(cfg.checkpoint, device)
-    system, mask, sim = build_simulator(ckpt_cfg, device, torch.float32)
-    apply_checkpoint_mask(mask, state)
+    try:
+        system, mask, sim = build_simulator(ckpt_cfg, device, torch.float32)
+    except ConfigError as err:  # the checkpoint's own settings: say so, not just the key
+        raise ConfigError("checkpoint", str(cfg.checkpoint), f"its stored configuration is not valid in this "
+                          f"version of codesign: {err}") from None
+    apply_checkpoint_mask(mask, state, cfg.checkpoint)
     sensor = sim.sensor
     images = validate(files, sensor.image_size, sensor.saturation_dn)  # everything checked before any work
     _, _, otf = frozen_psf(system, mask, sim, device)

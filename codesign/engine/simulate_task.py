@@ -11,23 +11,33 @@ from omegaconf import DictConfig, OmegaConf
 
 from codesign.config import resolve_dtype
 from codesign.data.params import fixed_scene_params, sample_scene_params
-from codesign.data.scenes import build_scene_source
+from codesign.data.scenes import build_scene_source, data_config
 from codesign.engine import io
 from codesign.engine.monitor import log_summary, open_writer, tensorboard_enabled
 from codesign.engine.plots import plt
-from codesign.errors import ConfigError, require_number
+from codesign.errors import ConfigError, require_list, require_number, unknown_keys
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask
 from codesign.sensor.simulator import SensorSimulator, mask_state_key, psf_state
 from codesign.sensor.spec import SensorSpec
 
 log = logging.getLogger("codesign.simulate")
+SIMULATE_KEYS = ("scenes", "alpha_l", "laser_angle_rad", "params", "timing_repeats")
 
 
 def build_simulator(cfg: DictConfig, device, dtype):
     """Optics system, mask, sensor spec and simulator from the composed config (all validated first)."""
     optics = OpticsSpec.from_config(OmegaConf.to_container(cfg.optics, resolve=True))
     sensor_cfg = OmegaConf.to_container(cfg.sensor, resolve=True)
-    sensor_cfg.update(image_size=cfg.data.image_size, padded_size=cfg.data.padded_size)
+    for key in ("image_size", "padded_size"):  # set by data.*, not a sensor.* key a user could type
+        if key in sensor_cfg:
+            raise ConfigError(f"sensor.{key}", sensor_cfg[key], f"unknown key: the network resolution is "
+                              f"data.{key}")
+    dc = data_config(cfg.data)  # data.image_size / padded_size validated under their own names first
+    resolution = sensor_cfg.get("resolution", SensorSpec.resolution)
+    if isinstance(resolution, int) and not isinstance(resolution, bool) and dc.image_size > resolution:
+        raise ConfigError("data.image_size", dc.image_size, f"must be <= sensor.resolution ({resolution}): the "
+                          "sensor is binned to the network resolution, never upsampled")
+    sensor_cfg.update(image_size=dc.image_size, padded_size=dc.padded_size)
     sensor = SensorSpec.from_config(sensor_cfg)
     system = OpticalSystem(optics, dtype=dtype, device=device)
     mask = build_mask(OmegaConf.to_container(cfg.mask, resolve=True), system.grid, optics.aperture_diameter_m)
@@ -71,13 +81,28 @@ def run_simulate(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     sim_cfg = cfg.get("simulate")
     if sim_cfg is None:
         raise ConfigError("simulate", None, "missing: use +experiment=simulate")
+    unknown_keys("simulate", sim_cfg, SIMULATE_KEYS)
     dtype = resolve_dtype("precision", cfg.get("precision", "float32"))
-    alphas = [require_number(f"simulate.alpha_l[{i}]", a, lo=0, hi=1e12) for i, a in enumerate(sim_cfg.alpha_l)]
-    n_scenes = require_number("simulate.scenes", sim_cfg.scenes, lo=1, hi=64, integer=True)
-    angle = list(sim_cfg.laser_angle_rad)
+    alphas = require_list("simulate.alpha_l", sim_cfg.get("alpha_l"), "must be a list of laser strengths >= 0")
+    alphas = [require_number(f"simulate.alpha_l[{i}]", a, lo=0, hi=1e12) for i, a in enumerate(alphas)]
+    n_scenes = require_number("simulate.scenes", sim_cfg.get("scenes"), lo=1, hi=64, integer=True)
+    angle = require_list("simulate.laser_angle_rad", sim_cfg.get("laser_angle_rad"), "must be [n_u, n_v] in radians")
     if len(angle) != 2:
         raise ConfigError("simulate.laser_angle_rad", angle, "must be [n_u, n_v] in radians")
+    angle = [require_number(f"simulate.laser_angle_rad[{i}]", v) for i, v in enumerate(angle)]
     repeats = require_number("simulate.timing_repeats", sim_cfg.get("timing_repeats", 3), lo=1, integer=True)
+    fixed = sim_cfg.get("params")
+    fixed = {} if fixed is None else OmegaConf.to_container(fixed, resolve=True) if OmegaConf.is_config(fixed) \
+        else fixed
+    if not isinstance(fixed, dict):
+        raise ConfigError("simulate.params", fixed, "must be a mapping of scene parameters (alpha_b, c1, ...)")
+    for key in ("alpha_l", "laser_angle_rad"):  # swept / set by their own simulate.* keys
+        if key in fixed:
+            raise ConfigError(f"simulate.params.{key}", fixed[key], f"is set by simulate.{key}, not here")
+    try:  # the fixed scene parameters, checked now rather than after the PSF is computed
+        fixed_scene_params(1, **fixed)
+    except ConfigError as err:
+        raise ConfigError(f"simulate.params.{err.key}", err.value, err.allowed) from None
     source = build_scene_source(cfg.data)
     system, mask, sim = build_simulator(cfg, device, dtype)
     names = source.split_names("test")[:n_scenes]
@@ -91,7 +116,6 @@ def run_simulate(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         state = psf_state(system, mask.phase())
     key = mask_state_key(mask)
     seed = int(cfg.get("seed", 0))
-    fixed = OmegaConf.to_container(sim_cfg.params, resolve=True)
     grid = np.zeros((len(names), len(alphas), sim.sensor.image_size, sim.sensor.image_size))
     metrics = {}
     with torch.no_grad():

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from codesign.errors import ConfigError, require_number
+from codesign.errors import ConfigError, require_list, require_number
+from codesign.models.vgg import layer_index
 from codesign.spec_base import SpecMixin
 
 
@@ -98,7 +99,14 @@ class LossWeights(SpecMixin):
         for k in ("l1_stage1", "l1_stage2", "mdf", "vgg", "fft", "adv", "gp"):
             require_number(f"{self.prefix}.{k}", getattr(self, k), lo=0)
         require_number(f"{self.prefix}.charbonnier_eps", self.charbonnier_eps, lo=0, lo_open=True, hi=1)
-        object.__setattr__(self, "vgg_layers", tuple(self.vgg_layers))
+        layers = require_list(f"{self.prefix}.vgg_layers", self.vgg_layers, "must be a list of VGG19 feature layers "
+                              "(indices 0..36 or names such as relu3_4)")
+        for i, layer in enumerate(layers):  # refused now, not when the VGG weights are loaded after the data
+            try:
+                layer_index("vgg19", layer)
+            except ConfigError as err:
+                raise ConfigError(f"{self.prefix}.vgg_layers[{i}]", layer, err.allowed) from None
+        object.__setattr__(self, "vgg_layers", tuple(layers))
         if self.mdf > 0 and self.adv == 0:
             raise ConfigError(f"{self.prefix}.mdf", self.mdf, "needs model.loss.adv > 0: the critics whose features "
                               "it matches are trained only by the adversarial term")

@@ -20,8 +20,9 @@ SIZES: dict[str, dict] = {
 
 
 def _widths(key: str, value, n_min: int) -> tuple[int, ...]:
-    if not isinstance(value, (list, tuple)) or len(value) < n_min:
-        raise ConfigError(key, value, f"must be a list of at least {n_min} positive integers")
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) < n_min:
+        raise ConfigError(key, value, f"must be a list of at least {n_min} positive integers, or null for the "
+                          f"size preset's")
     return tuple(require_number(f"{key}[{i}]", v, lo=1, hi=4096, integer=True) for i, v in enumerate(value))
 
 
@@ -63,9 +64,10 @@ class ModelSpec(SpecMixin):
         stem = preset["stem_width"] if self.stem_width is None else self.stem_width
         object.__setattr__(self, "stem_width", require_number(f"{p}.stem_width", stem, lo=1, hi=4096,
                                                               integer=True))
-        object.__setattr__(self, "widths", _widths(f"{p}.widths", list(self.widths or preset["widths"]), 1))
-        object.__setattr__(self, "d_widths", _widths(f"{p}.d_widths", list(self.d_widths or preset["d_widths"]),
-                                                     2))
+        # only null means "the preset's": an empty list is refused rather than silently replaced
+        for key, n_min in (("widths", 1), ("d_widths", 2)):
+            value = preset[key] if getattr(self, key) is None else getattr(self, key)
+            object.__setattr__(self, key, _widths(f"{p}.{key}", value, n_min))
         require_number(f"{p}.fe_features", self.fe_features, lo=1, hi=1024, integer=True)
         require_number(f"{p}.fe_kernel", self.fe_kernel, lo=1, hi=15, integer=True)
         if self.fe_kernel % 2 == 0:

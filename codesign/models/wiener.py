@@ -34,7 +34,9 @@ def wiener_filter(y: torch.Tensor, otf: torch.Tensor, power: torch.Tensor | floa
                   noise: torch.Tensor | float) -> torch.Tensor:
     """F^-1{ Y conj(H) P / (|H|^2 P + noise) } for y (..., H, W) and otf (H, W // 2 + 1).
 
-    power, noise broadcast against (..., 1, 1); nsr = noise / power. Computed in float32 or wider.
+    power, noise broadcast against (..., 1, 1); nsr = noise / power. Computed in float32 or wider. Where
+    |H|^2 P + noise = 0 (noise 0 or underflowing, at an OTF zero or a zero-power input) the output is 0, the limit
+    noise -> 0+: noise = 0 is the pseudo-inverse filter.
     """
     return _wiener_filters(y, otf, power, [noise])[0]
 
@@ -47,7 +49,19 @@ def _wiener_filters(y: torch.Tensor, otf: torch.Tensor, power, noises) -> list[t
     otf = otf.to(device=spec.device, dtype=spec.dtype)
     num = spec * otf.conj() * power
     den = (otf.real**2 + otf.imag**2) * power
-    return [torch.fft.irfft2(num / (den + n), s=(h, w), norm="ortho").to(y.dtype) for n in noises]
+    out = []
+    for n in noises:
+        d = den + n
+        # d = 0 only where |H|^2 P = 0 and the noise is 0, or so small that it underflows in float32 (nsr = 1e-300
+        # is accepted, and is 0 in float32): the numerator Y conj(H) P is then exactly 0 as well, and the filter's
+        # limit as the noise -> 0+ is 0 there, where the plain quotient gives 0 / 0 = NaN (and NaN gradients).
+        # The real d divides the real and imaginary parts: complex / real promotes d to complex, whose division
+        # forms 1 / d, which overflows float32 for d < 3e-39 (0 * inf = NaN at the OTF zeros, e.g. nsr = 1e-45).
+        ok = d > 0
+        d = torch.where(ok, d, torch.ones_like(d))
+        q = torch.where(ok, torch.complex(num.real / d, num.imag / d), torch.zeros_like(num))
+        out.append(torch.fft.irfft2(q, s=(h, w), norm="ortho").to(y.dtype))
+    return out
 
 
 def classical_wiener(y: torch.Tensor, otf: torch.Tensor, nsr: float) -> torch.Tensor:

@@ -255,7 +255,10 @@ class SensorSimulator(torch.nn.Module):
         e = e.clamp(0.0, s.full_well_e)  # full well; zero gradient where saturated
         dn = s.gain_dn_per_e * e
         if exact_rounding:  # dither U(-0.5, 0.5), then round to integer counts (straight-through gradient)
-            dn = round_ste(dn + streams.uniform("quant", dn))
+            # in float64: float32 spaces counts near full well 1e-3 apart, so G e_sat + u rounded up to 9435.5 and
+            # then to 9436 for u > 0.4995, a count above full well (in 7e-4 of the saturated float32 pixels)
+            dn64 = dn.to(torch.float64)
+            dn = round_ste(dn64 + streams.uniform("quant", dn64)).to(dn.dtype)
         else:  # the k x k average of (dither + rounding), each uniform with variance 1/12; a saturated pixel
             # reads G e_sat exactly in every sensor pixel, so it gets none
             dn = dn + math.sqrt(w2 / 6.0) * streams.normal("quant", dn) * (~sat).to(dn.dtype)

@@ -102,7 +102,8 @@ def test_rerun_in_the_same_dir_resumes_instead_of_retraining(baseline_run, tmp_p
     assert "step 1/4" not in log
     proc = _run("+experiment=baseline", "debug=smoke", "model=sgan_f", f"hydra.run.dir={copy}")
     assert proc.returncode == 2
-    assert "trainer.resume = 'checkpoint': was trained with different model" in proc.stderr
+    assert f"trainer.resume = '{copy / 'checkpoint.pt'}': was trained with different model" in proc.stderr
+    assert (copy / "metrics.json").is_file()  # the refused run left the earlier results in place
 
 
 def test_evaluate_without_checkpoint_is_a_config_error(tmp_path):

@@ -3,11 +3,12 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 from pathlib import Path
 from typing import Any, Mapping
 
-from codesign.errors import ConfigError, require_choice
+from codesign.errors import ConfigError, require_choice, require_list, require_number
 from codesign.optics.masks.base import Mask
 from codesign.optics.masks.freeform import PixelPhaseMask, ZernikeMask
 from codesign.optics.masks.halfring import PUBLISHED_R, PUBLISHED_THETA, HalfRingMask
@@ -44,6 +45,8 @@ def load_best_mask(path: Any, key: str, allowed: str = f"must be {BEST_MASK}") -
             and all(map(number, r + theta))):
         raise ConfigError(key, path, f"{allowed}; its r and theta must be non-empty lists of numbers of equal "
                           f"length (got {r!r} and {theta!r})")
+    if not all(math.isfinite(v) for v in r + theta):  # json reads NaN / Infinity: name the file, not mask.r[i]
+        raise ConfigError(key, path, f"{allowed}; its r and theta hold NaN or Infinity (got {r!r} and {theta!r})")
     return data
 
 
@@ -69,6 +72,12 @@ def _check_keys(cfg: Mapping[str, Any], allowed: set[str], prefix: str) -> None:
             hint = f" (to switch masks use the config group, mask=freeform, not {prefix}.kind=freeform)"
         raise ConfigError(f"{prefix}.{extra[0]}", cfg[extra[0]],
                           f"unknown key for a {cfg.get('kind')} mask; allowed: {', '.join(sorted(allowed))}{hint}")
+
+
+def _numbers(key: str, value: Any, allowed: str) -> list[float]:
+    """A config list of finite numbers (r, theta, m_range, r_bounds); a scalar or a string where the list belongs
+    is a ConfigError, not a TypeError inside the mask."""
+    return [require_number(f"{key}[{i}]", v) for i, v in enumerate(require_list(key, value, allowed))]
 
 
 def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix: str = "mask") -> Mask:
@@ -100,15 +109,26 @@ def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix:
         elif r is None or theta is None:
             raise ConfigError(f"{prefix}.r", r, f"{prefix}.r and {prefix}.theta are required when {prefix}.preset "
                               f"is null (allowed presets: {', '.join(PRESETS)})")
-        return HalfRingMask(grid, aperture_diameter_m, list(r), list(theta),
-                            m_range=tuple(cfg.get("m_range", (1, 17))),
+        r = _numbers(f"{prefix}.r", r, "must be a list of ring radii (units of lambda f / W_a)")
+        theta = _numbers(f"{prefix}.theta", theta, f"must be a list of ring angles [rad], as many as {prefix}.r")
+        m_range = require_list(f"{prefix}.m_range", cfg.get("m_range", (1, 17)), "must be [m_min, m_max]")
+        r_bounds = _numbers(f"{prefix}.r_bounds", cfg.get("r_bounds", (0.5, 200.0)), "must be [lo, hi] with "
+                            "0 < lo < hi")
+        if len(r_bounds) != 2:
+            raise ConfigError(f"{prefix}.r_bounds", r_bounds, "must be [lo, hi] with 0 < lo < hi")
+        return HalfRingMask(grid, aperture_diameter_m, r, theta,
+                            m_range=tuple(m_range),
                             convention=cfg.get("convention", "atan2"),
                             harmonic_sign=cfg.get("harmonic_sign", "printed"),
                             strategy=cfg.get("strategy", "exact"),
-                            table_size=cfg.get("table_size", 4096), r_bounds=tuple(cfg.get("r_bounds", (0.5, 200.0))),
+                            table_size=cfg.get("table_size", 4096), r_bounds=tuple(r_bounds),
                             prefix=prefix)
     _check_keys(cfg, _FREEFORM_KEYS, prefix)
     basis = require_choice(f"{prefix}.basis", cfg.get("basis", "pixel"), ("pixel", "zernike"))
+    # checked for either basis (pixel ignores them): a bad value is a typo whichever basis runs
+    require_number(f"{prefix}.n_terms", cfg.get("n_terms", 36), lo=1, hi=1000, integer=True)
+    require_number(f"{prefix}.max_coeff_rad", cfg.get("max_coeff_rad", 50.0), lo=0, lo_open=True)
+    require_choice(f"{prefix}.init_convention", cfg.get("init_convention", "atan2"), ("atan", "atan2"))
     init = cfg.get("init", "published")
     phase = None
     if init == "published":

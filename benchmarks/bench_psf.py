@@ -1,0 +1,118 @@
+"""PSF: pupil grid x propagator (MFT, FFT) x precision (float32, float64) -> time, peak memory, error.
+
+Every configuration runs in its own process (benchmarks.optics_worker) for a clean peak-memory reading. Errors are
+against a float64 MFT at a sampling where the LSR has converged (docs/optics.md: within 0.21% from 1024 to 2048
+samples across the aperture): relative error of the LSR (refined continuous peak) and of mtf_mean, and the relative
+L1 error of the PSF on the 640 x 640 sensor-pitch window.
+
+    python -m benchmarks.bench_psf --scale quick
+"""
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+from benchmarks.common import Report, fit_exponent, markdown_table, run_isolated, time_error_plot, write_json
+
+GRIDS = {"quick": [192, 256, 384, 512, 768], "full": [192, 256, 320, 384, 512, 768, 1024, 1536]}
+REFERENCE = {"quick": 1024, "full": 2048}
+REPEATS = {"quick": 3, "full": 5}
+# The FFT's plane grows with the sampling (fft_n ~ 2 lambda f / (pupil pitch x sensor pitch): 5184 at 768 across);
+# beyond these its complex128 forward+backward needs several GiB, so it is measured up to here only.
+FFT_MAX = {"quick": 512, "full": 768}
+DEFAULT = ("mft", "float32", 384)  # conf/optics/default.yaml: auto resolves to the MFT at this sampling
+
+
+def _worker(threads: int, samples: float, propagator: str, dtype: str, repeats: int, extra: list[str]) -> dict:
+    return run_isolated("benchmarks.optics_worker", [
+        "--samples", str(samples), "--propagator", propagator, "--dtype", dtype, "--repeats", str(repeats),
+        "--threads", str(threads), *extra])
+
+
+def measure(scale: str, threads: int) -> dict:
+    reps = REPEATS[scale]
+    with tempfile.TemporaryDirectory() as tmp:
+        ref_path = str(Path(tmp) / "reference.pt")
+        ref = _worker(threads, REFERENCE[scale], "mft", "float64", 1, ["--save", ref_path])
+        print(f"  reference: float64 MFT, {REFERENCE[scale]} samples across: LSR {ref['lsr']:.6g}, "
+              f"mtf_mean {ref['mtf_mean']:.6g}", flush=True)
+        rows = []
+        configs = [(s, p, d) for s in GRIDS[scale] for p in ("mft", "fft") for d in ("float32", "float64")
+                   if p == "mft" or s <= FFT_MAX[scale]]
+        if scale == "full":
+            configs.append((1024, "fft4096", "float32"))  # the paper's path (Table 1)
+        for s, p, d in configs:
+            extra = ["--reference", ref_path] + (["--fft-n", "4096"] if p == "fft4096" else [])
+            r = _worker(threads, s, "fft" if p == "fft4096" else p, d, reps, extra)
+            r.update(label=p, lsr_error=abs(r["lsr"] / ref["lsr"] - 1), mtf_error=abs(r["mtf_mean"] / ref["mtf_mean"] - 1),
+                     memory_mb=r["peak_gpu_mb"] if r["peak_gpu_mb"] is not None else r["peak_rss_mb"] - r["baseline_rss_mb"],
+                     default=(p, d, s) == DEFAULT)
+            rows.append(r)
+            print(f"  {s:5d} {p:7s} {d}: fwd {r['seconds_forward']:.4f} s, fwd+bwd {r['seconds_total']:.4f} s, "
+                  f"LSR err {r['lsr_error']:.2e}, PSF L1 {r['psf_rel_l1']:.2e}, {r['memory_mb']:.0f} MiB", flush=True)
+    return {"reference": ref, "rows": rows, "repeats": reps}
+
+
+def report(data: dict, out: Path) -> Report:
+    rows = data["rows"]
+    table = markdown_table(
+        ["samples across", "grid n", "propagator", "FFT n", "precision", "forward [s]", "fwd+bwd [s]", "peak mem [MiB]",
+         "LSR rel. err", "mtf_mean rel. err", "PSF rel. L1"],
+        [[int(r["samples"]), r["grid_n"], r["label"] + (" **(default)**" if r["default"] else ""), r["fft_n"] or "-",
+          r["dtype"], r["seconds_forward"], r["seconds_total"], r["memory_mb"], r["lsr_error"], r["mtf_error"],
+          r["psf_rel_l1"]] for r in rows],
+        {"forward [s]": ".4f", "fwd+bwd [s]": ".4f", "peak mem [MiB]": ".0f", "LSR rel. err": ".2e",
+         "mtf_mean rel. err": ".2e", "PSF rel. L1": ".2e"})
+    series = lambda key: {f"{p}, {d}": [(r["seconds_total"], r[key], str(int(r["samples"]))) for r in rows  # noqa: E731
+                                        if r["label"] == p and r["dtype"] == d]
+                          for p in dict.fromkeys(r["label"] for r in rows) for d in ("float32", "float64")}
+    ref = data["reference"]
+    figs = [time_error_plot(out / "psf_lsr_error.png", series("lsr_error"), "forward + backward [s]",
+                            "|LSR / LSR_ref - 1|", "PSF -> LSR: time against error (labels: samples across)",
+                            hline=(0.01, "1%")),
+            time_error_plot(out / "psf_l1_error.png", series("psf_rel_l1"), "forward + backward [s]",
+                            "relative L1 error of the PSF", "PSF on the 640 window: time against error")]
+    d = next(r for r in rows if r["default"])
+    d64 = next(r for r in rows if r["label"] == "mft" and r["dtype"] == "float64" and r["samples"] == d["samples"])
+    cheaper = [r for r in rows if r["seconds_total"] < d["seconds_total"] and r["lsr_error"] < 0.01]
+    mft32 = [r for r in rows if r["label"] == "mft" and r["dtype"] == "float32" and r["samples"] >= 256]
+    order = -fit_exponent([r["samples"] for r in mft32], [r["psf_rel_l1"] for r in mft32])
+    notes = [
+        f"Reference: float64 MFT at {int(ref['samples'])} samples across the aperture (grid {ref['grid_n']}), "
+        f"LSR {ref['lsr']:.6g}, mtf_mean {ref['mtf_mean']:.6g}. Times are medians of {data['repeats']} runs of "
+        "mask parameters -> phase -> PSF -> smooth LSR (forward) and of its backward; peak memory is the "
+        "process's peak resident memory above its post-import baseline (CPU) or the peak allocated memory (CUDA).",
+        f"Default (`optics=default`: `propagator: auto` resolves to the MFT; float32; 384 samples across): "
+        f"{d['seconds_total']:.3f} s forward+backward, LSR error {d['lsr_error']:.2%}, mtf_mean error "
+        f"{d['mtf_error']:.2%}, PSF L1 error {d['psf_rel_l1']:.2%}; float64 at the same sampling changes the LSR "
+        f"error by {abs(d64['lsr_error'] - d['lsr_error']):.1e}, so float32 is not the limit. Why this default: the "
+        "LSR (the design objective) is converged to well under 1% there, and the MFT computes only the 640 x 640 "
+        "window at the sensor pitch, while the FFT computes a whole zero-padded plane (several times the time and "
+        "memory) and must resample it bilinearly because its native pitch is not the sensor pitch (the mtf_mean "
+        "and PSF L1 columns show that cost). "
+        + ("Faster configurations also within 1% in LSR: " + ", ".join(
+            f"{r['label']} {r['dtype']} {int(r['samples'])}" for r in cheaper) + "." if cheaper else
+           "No faster configuration is within 1% in LSR."),
+        f"The PSF as a whole converges more slowly than its peak: its L1 error falls like samples^-{order:.1f} "
+        "(MFT float32, fitted from 256 samples up), so a study of the far PSF (energy in the window, "
+        "sidelobes) should use `optics.pupil_pitch_m` for 768+ samples across or `optics=paper`.",
+    ]
+    return Report("psf", "PSF: pupil grid x propagator x precision", [table], figs, notes)
+
+
+def run(scale: str, out: Path) -> Report:
+    import torch
+
+    from benchmarks.common import machine
+
+    data = measure(scale, torch.get_num_threads())
+    write_json(out / "psf.json", {"machine": machine(), "scale": scale, **data})
+    rep = report(data, out)
+    print(rep.tables[0])
+    return rep
+
+
+if __name__ == "__main__":
+    from benchmarks.__main__ import standalone
+
+    standalone(run)

@@ -1,0 +1,222 @@
+"""Restoration: each SGAN variant and width, plus Wiener: ms/image against PSNR on held-out scenes.
+
+A randomly initialised network's PSNR means nothing, so every variant is first trained briefly by the project's
+own RestorationTrainer on the +experiment=baseline config (composed with Hydra, as benchmarks/codesign.py does),
+each from the same seed and the same training batches. Then every method restores the *same* simulated sensor
+images of the test split (built-in scenes cell and chelsea, never trained on) at alpha_l = 0 and 1e6, scored by
+the project's Evaluator (codesign/engine/evaluate.py: PSNR / SSIM of codesign/quality.py on the field of view).
+
+    python -m benchmarks.bench_restoration --scale quick
+"""
+from __future__ import annotations
+
+import math
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from benchmarks.common import Report, machine, markdown_table, time_error_plot, timeit, write_json
+
+CONF = Path(__file__).resolve().parent.parent / "conf"
+VARIANTS = ("sgan_b", "sgan_e", "sgan_f")
+ALPHAS = (0.0, 1e6)
+
+
+def plan(scale: str, dev: torch.device) -> dict:
+    """Geometry, batch, training steps per width; ``timed``: width -> input size (None: the same) timed only."""
+    if scale == "quick":  # ~1.5 min on 2 CPU cores; a dozen steps of the cpu width only learn the image's mean
+        return dict(image=64, padded=96, batch=4, train={"tiny": 40}, timed={"cpu": None}, repeats=10)
+    if dev.type == "cuda":  # the paper's depth needs a 256-px input (coarse scale >= 2^7): all three widths train
+        return dict(image=128, padded=256, batch=8, train={"tiny": 1000, "cpu": 1000, "paper": 300}, timed={},
+                    repeats=20)
+    return dict(image=64, padded=96, batch=4, train={"tiny": 200, "cpu": 150}, timed={"paper": 256}, repeats=5)
+
+
+def _config(variant: str, size: str, p: dict, steps: int):
+    from hydra import compose, initialize_config_dir
+
+    overrides = ["+experiment=baseline", f"model={variant}", f"model.size={size}",
+                 f"data.image_size={p['image']}", f"data.padded_size={p['padded']}", f"data.batch_size={p['batch']}",
+                 f"trainer.steps={steps}", "trainer.val_every=0", "trainer.checkpoint_every=0",
+                 "trainer.image_every=0",
+                 # constant learning rate: the Sec. 6.2 decay squeezed into a few dozen steps would stop training
+                 # after its first quarter (docs/models.md Sec. 8)
+                 "trainer.first_fraction=1.0"]
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose("config", overrides=overrides)
+
+
+def _train(cfg, data, start: dict, dev: torch.device):
+    """(model, generators, steps, seconds): the baseline experiment's model + trainer, no TensorBoard."""
+    from codesign.engine.restoration_tasks import _container, build_model, loss_weights
+    from codesign.engine.train_spec import TrainerSpec
+    from codesign.engine.trainer import RestorationTrainer, init_weights
+
+    torch.manual_seed(0)
+    model = build_model(cfg)
+    init_weights(model)
+    data.load_state_dict(start)  # every method sees the same training batches
+    with tempfile.TemporaryDirectory() as tmp:  # the trainer's final checkpoint is not kept
+        trainer = RestorationTrainer(model, data, TrainerSpec.from_config(_container(cfg.trainer)),
+                                     loss_weights(cfg), Path(tmp), dev, {}, None, 0)
+        t0 = time.perf_counter()
+        trainer.fit(progress_every=10**9)
+        seconds = time.perf_counter() - t0
+    return model, trainer.restoring_modules(), trainer.step, seconds
+
+
+def _timed(fn, repeats: int, dev: torch.device) -> tuple[float, float | None]:
+    """(ms per call, peak CUDA MiB or None), no gradient."""
+    sync = torch.cuda.synchronize if dev.type == "cuda" else None
+    if dev.type == "cuda":
+        torch.cuda.reset_peak_memory_stats()
+    with torch.no_grad():
+        sec = timeit(fn, repeats, warmup=2 if dev.type == "cuda" else 1, sync=sync)
+    return 1e3 * sec, (torch.cuda.max_memory_allocated() / 2**20 if dev.type == "cuda" else None)
+
+
+def _baseline_timers(data, batch: dict, calib: dict, n: int) -> dict:
+    """Batch-1 closures doing exactly what the Evaluator does for the sensor and Wiener methods."""
+    from codesign.engine.evaluate import remove_black_level, replicate_pad
+    from codesign.engine.trainer import centre
+    from codesign.models.wiener import classical_wiener
+
+    one = {"sensor": batch["sensor"][:1], "read_noise_mean_e": batch["read_noise_mean_e"][:1]}
+    fw, otf = data.sim.sensor.full_well_e, data.otf
+
+    def affine(name, x):
+        a, c = calib[name]
+        return (a * x + c).clamp(0, 1)
+
+    return {"sensor": lambda: affine("sensor", centre(remove_black_level(one, fw), n)),
+            "wiener": lambda: affine("wiener", centre(classical_wiener(
+                replicate_pad(remove_black_level(one, fw), n), otf, calib["nsr"]["wiener"]), n))}
+
+
+def measure(scale: str) -> dict:
+    from codesign.data.params import _laser_name
+    from codesign.engine.evaluate import Evaluator
+    from codesign.engine.pipeline import RestorationData
+    from codesign.engine.trainer import centre, restore_with
+    from codesign.models import build_sgan, otf_from_kernel, parameter_count
+
+    dev = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    p = plan(scale, dev)
+    data = RestorationData(_config("sgan_b", "tiny", p, 1), dev, 0)  # physics + scenes: the same for all
+    start = data.state_dict()
+    names = data.source.split_names("test")
+    scenes = data.source.fixed_batch(names, data.sim.scene_size)
+    batches = {a: data.preset_batch(scenes, _laser_name(a), seed=1000 + j) for j, a in enumerate(ALPHAS)}
+    tuning = data.validation_batch(8)  # train split: the baselines' nsr and gain/offset are tuned here
+    rows, calib, n = [], None, data.image_size
+    for size, steps in p["train"].items():
+        for variant in VARIANTS:
+            model, gens, done, seconds = _train(_config(variant, size, p, steps), data, start, dev)
+            ev = Evaluator(model, gens, data, perceptual={}, batch_size=8)
+            calib = ev.tune(tuning)
+            scores = {a: ev.score(ev.restore_all(b), centre(b["scene"], n).clamp(0, 1)) for a, b in batches.items()}
+            x1 = batches[ALPHAS[-1]]["sensor"][:1]
+            ms, mem = _timed(lambda: restore_with(model, gens, x1, data.otf), p["repeats"], dev)
+            rows.append({"method": variant, "size": size, "params": sum(parameter_count(g) for g in gens),
+                         "ms_per_image": ms, "peak_cuda_mib": mem, "steps": done, "train_seconds": seconds,
+                         "scores": {str(a): scores[a]["sgan"] for a in ALPHAS}})
+            print(f"  {variant} {size:5s} {done:5d} steps {seconds:7.1f} s  {ms:8.2f} ms/image  PSNR "
+                  + "  ".join(f"{_name(a)}: {scores[a]['sgan']['psnr']:.2f}" for a in ALPHAS), flush=True)
+            model = gens = None  # free before the next width (GPU memory)
+    # sensor (identity + gain/offset: the floor) and Wiener: independent of the network (tuned on the same set)
+    for name, fn in _baseline_timers(data, batches[ALPHAS[-1]], calib, n).items():
+        ms, mem = _timed(fn, max(p["repeats"], 20), dev)
+        rows.append({"method": name, "size": "-", "params": 0, "ms_per_image": ms, "peak_cuda_mib": mem,
+                     "steps": 0, "train_seconds": 0.0, "scores": {str(a): scores[a][name] for a in ALPHAS}})
+    for size, padded in p["timed"].items():  # inference time only: untrained, no PSNR
+        padded = padded or p["padded"]
+        x1 = F.pad(batches[ALPHAS[-1]]["sensor"][:1], [(padded - p["padded"]) // 2] * 4)
+        otf = otf_from_kernel(data.kernel, padded).to(dev)
+        for variant in VARIANTS:
+            model = build_sgan({"variant": variant, "size": size}).to(dev)
+            ms, mem = _timed(lambda: restore_with(model, model.generators(), x1, otf),
+                             1 if size == "paper" else p["repeats"], dev)
+            rows.append({"method": variant, "size": size + (f" (input {padded})" if padded != p["padded"] else ""),
+                         "params": sum(parameter_count(g) for g in model.generators()), "ms_per_image": ms,
+                         "peak_cuda_mib": mem, "steps": 0, "train_seconds": 0.0, "scores": None})
+            print(f"  {variant} {size} (timed only) {ms:8.1f} ms/image", flush=True)
+            model = None
+    return {"machine": machine(), "device": str(dev), "scale": scale, "plan": p, "test_scenes": names,
+            "alphas": list(ALPHAS), "calibration": calib, "rows": rows}
+
+
+LABEL = {"sgan_b": "SGAN-B", "sgan_e": "SGAN-E", "sgan_f": "SGAN-F", "wiener": "Wiener (tuned nsr)",
+         "sensor": "sensor (identity + gain/offset)"}
+
+
+def _name(a: float) -> str:
+    return "0" if a == 0 else f"1e{round(math.log10(a))}"
+
+
+def report(res: dict, out: Path) -> Report:
+    from codesign.engine.evaluate import NSR_GRID
+
+    p, alphas = res["plan"], res["alphas"]
+    header = ["method", "size", "params", "ms/image"] + \
+        [f"alpha_l={_name(a)}: PSNR / SSIM / PSNR aff." for a in alphas] + ["train steps", "train s"]
+    table = []
+    for r in res["rows"]:
+        cells = [f"{r['scores'][str(a)]['psnr']:.2f} / {r['scores'][str(a)]['ssim']:.3f} / "
+                 f"{r['scores'][str(a)]['psnr_affine']:.2f}" if r["scores"] else "-" for a in alphas]
+        trained = [r["steps"], r["train_seconds"]] if r["steps"] else ["-", "-"]
+        table.append([LABEL[r["method"]], r["size"], r["params"], r["ms_per_image"], *cells, *trained])
+    md = markdown_table(header, table, {"ms/image": ".3g", "train s": ".1f"})
+    print(md)
+    figures = []
+    for a in alphas:
+        series = {}
+        for r in res["rows"]:
+            if r["scores"]:
+                series.setdefault(LABEL[r["method"]], []).append(
+                    (r["ms_per_image"], r["scores"][str(a)]["psnr"], r["size"] if r["size"] != "-" else ""))
+        figures.append(time_error_plot(
+            out / f"restoration_alpha_{_name(a)}.png", series, f"ms / image (batch 1, {res['device']})",
+            "PSNR on held-out scenes [dB] (higher is better)",
+            f"restoration at alpha_l = {_name(a)}: {p['image']} px, short trainings", logy=False))
+    steps = ", ".join(f"{k} {v}" for k, v in p["train"].items())
+    notes = [
+        f"Each SGAN variant is trained in process by the project's RestorationTrainer on the +experiment=baseline "
+        f"config: {p['image']} px images padded to {p['padded']}, batch {p['batch']}, steps per width: {steps}, "
+        "constant learning rate (trainer.first_fraction=1), same seed and same training batches for every "
+        "variant, SGAN-E/F without their VGG term (no weights here). **These are short CPU-budget trainings, not "
+        "the paper's results** (the paper trains 400 epochs of 10,000 images).",
+        f"All methods restore the same simulated sensor images of the built-in test split "
+        f"({', '.join(res['test_scenes'])}, never trained on) at the figure settings with alpha_l = "
+        f"{', '.join(_name(a) for a in alphas)} (laser on axis), scored by codesign.engine.evaluate.Evaluator: "
+        "PSNR / SSIM against the scene on the field of view, and PSNR after a per-image gain/offset match (PSNR "
+        "aff.). Wiener: classical Wiener with the true PSF, its nsr picked on 8 training-split images (best "
+        f"PSNR aff. on a log grid; chosen: {res['calibration']['nsr']['wiener']:.3g}), then a global gain/offset; "
+        "sensor: the raw image with its black level removed and a global gain/offset, the floor."
+        + (" The tuned nsr is the top of the grid: at this noise and MTF the Wiener filter degenerates to a matched "
+           "filter (docs/models.md Sec. 8, item 3)." if res["calibration"]["nsr"]["wiener"] >= max(NSR_GRID) else ""),
+        f"ms/image: median of repeats at batch 1 on {res['device']}, eval mode, no gradient, the whole sandwich "
+        f"G2(G_v(G1(s))) on the {p['padded']}-px input; threads {res['machine']['threads']}. Framework default: "
+        "`python -m codesign +experiment=baseline` trains SGAN-B at the cpu width, 128 px padded to 192, batch 4, "
+        "300 steps with the Sec. 6.2 schedule; `model.size=paper` is the supplement's width."
+        + (f" Timed only (untrained, no PSNR): {', '.join(p['timed'])} width"
+           + (" (the paper width's depth needs a 256-px input)." if "paper" in p["timed"] else ".")
+           if p["timed"] else ""),
+    ]
+    return Report("restoration", "Restoration: SGAN variants and widths against Wiener, ms/image vs PSNR",
+                  [md], figures, notes)
+
+
+def run(scale: str, out: Path) -> Report:
+    out.mkdir(parents=True, exist_ok=True)
+    res = measure(scale)
+    write_json(out / "restoration.json", res)
+    return report(res, out)
+
+
+if __name__ == "__main__":
+    from benchmarks.__main__ import standalone
+
+    standalone(run)

@@ -1,0 +1,54 @@
+"""Run an experiment in-process on a composed config, with the heavy work replaced by a sentinel, and return what
+the user would read on stderr. A bad value must stop the run before the sentinel (i.e. before any work)."""
+from __future__ import annotations
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from codesign.config import command_line_keys
+from codesign.engine import experiments
+from tests.conftest import REPO_ROOT
+
+
+class WorkStarted(Exception):
+    """The run got past validation into real work (PSF timing, simulation, training, search, restoration)."""
+
+
+def _work(*args, **kwargs):
+    raise WorkStarted
+
+
+def stop_before_work(monkeypatch) -> None:
+    """Replace the first expensive step of every experiment with the sentinel."""
+    import codesign.engine.joint_task as joint
+    import codesign.engine.psf_task as psf
+    import codesign.engine.restoration_tasks as restoration
+    import codesign.engine.restore_task as restore
+    import codesign.engine.search_task as search
+    import codesign.engine.simulate_task as simulate
+
+    monkeypatch.setattr(psf, "time_forward_backward", _work)
+    monkeypatch.setattr(simulate, "psf_state", _work)
+    monkeypatch.setattr(restoration.RestorationTrainer, "fit", _work)
+    monkeypatch.setattr(restoration, "run_evaluation", _work)
+    monkeypatch.setattr(joint, "_train", _work)
+    monkeypatch.setattr(search, "_search_floor", _work)
+    monkeypatch.setattr(restore, "frozen_psf", _work)
+
+
+def compose_cfg(*overrides: str):
+    with initialize_config_dir(config_dir=str(REPO_ROOT / "conf"), version_base="1.3"):
+        return compose("config", overrides=list(overrides))
+
+
+def config_error(monkeypatch, capsys, run_dir, *overrides: str) -> str:
+    """The ``codesign: configuration error: ...`` line of a run that must exit with 2 before any work."""
+    stop_before_work(monkeypatch)
+    # under Hydra the typed keys win over debug=smoke's shrink; give run_experiment the same knowledge here
+    monkeypatch.setattr(experiments, "explicit_keys", lambda: command_line_keys(list(overrides)))
+    cfg = compose_cfg(*overrides)
+    with pytest.raises(SystemExit) as info:
+        experiments.run_experiment(cfg, run_dir=run_dir)
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    return err[-1]

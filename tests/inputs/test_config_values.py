@@ -1,0 +1,134 @@
+"""Bad config values, as typed on the command line: each stops the run before any work (exit 2) with one line
+naming the key, the value and what is allowed. One row per message; the spec-level messages of every key are
+also tested next to their specs (tests/optics/test_spec.py, tests/sensor/test_sensor_spec.py, ...)."""
+from __future__ import annotations
+
+import re
+
+import pytest
+
+from codesign.engine.experiments import COMMON_KEYS, EXPERIMENTS, TASK_KEYS
+from tests.cli import run_codesign
+from tests.inputs._run import compose_cfg, config_error
+
+MTF_BAND = "must be [low, high] with 0 <= low < high <= 1 (frequency normalized to the incoherent cutoff"
+
+ROWS = [
+    # ---- ring lists, masks (psf) --------------------------------------------------------------------------
+    ("psf", "mask.preset=null mask.r=5 mask.theta=1",
+     "mask.r = 5: must be a list of ring radii (units of lambda f / W_a)"),
+    ("psf", "mask.preset=null mask.r=[1,abc] mask.theta=[1,2]", "mask.r[1] = 'abc': must be a finite number"),
+    ("psf", "mask.preset=null mask.r=[13.6,91.8] mask.theta=[1.86]",
+     "mask.theta = [1.86]: must have the same length as mask.r (2 values) and at least one value"),
+    ("psf", "mask.m_range=5", "mask.m_range = 5: must be [m_min, m_max]"),
+    ("psf", "mask.r_bounds=5", "mask.r_bounds = 5: must be [lo, hi] with 0 < lo < hi"),
+    ("psf", "mask=freeform mask.n_terms=abc", "mask.n_terms = 'abc': must be an integer >= 1 and <= 1000"),
+    ("psf", "mask=freeform mask.init_convention=xyz", "mask.init_convention = 'xyz': must be one of atan, atan2"),
+    ("psf", "mtf_band=0.5", f"mtf_band = 0.5: {MTF_BAND}, beyond which the MTF is 0)"),
+    # ---- optics: NaN / inf / wrong type / negative size / consistency -----------------------------------------
+    ("psf", "optics.focal_n=nan", "optics.focal_n = nan: must be an integer >= 8 and <= 16384"),
+    ("psf", "optics.aperture_diameter_m=inf",
+     "optics.aperture_diameter_m = inf: must be a finite number > 0 and <= 10"),
+    ("psf", "optics.pupil_pitch_m=abc", "optics.pupil_pitch_m = 'abc': must be a finite number > 0"),
+    ("psf", "optics.focal_n=-640", "optics.focal_n = -640: must be an integer >= 8 and <= 16384"),
+    ("psf", "optics.pupil_n=100",  # the pupil grid holds the aperture
+     "optics.pupil_n = 100: the pupil grid (100 x 2e-05 m) cannot hold the aperture (W_a = 0.00383 m with its "
+     "super-Gaussian edge): must be >= 202, or null for automatic"),
+    ("psf", "optics.focal_pitch_m=2e-5",  # the focal sampling does not alias
+     "optics.focal_pitch_m = 2e-05: the focal sampling would alias the intensity PSF: 0.909 samples per "
+     "lambda*f/W_a, need >= 2, i.e. focal_pitch_m <= 9.09e-06 m"),
+    ("psf", "optics.pupil_pitch_m=1e-4",  # the focal window fits in one period of the sampled pupil's spectrum
+     "optics.pupil_pitch_m = 0.0001: the focal window (160 x 5.4e-06 m = 0.000864 m) is wider than the period "
+     "lambda*f/pupil_pitch = 0.0006963 m of the sampled pupil's spectrum, so it would alias: need pupil_pitch_m <= "
+     "8.059e-05 m or a smaller focal_n"),
+    # ---- root keys and logging -----------------------------------------------------------------------------
+    ("psf", "seed=abc", "seed = 'abc': must be an integer >= 0 and <= 1e+09"),
+    ("psf", "seed=-1", "seed = -1: must be an integer >= 0 and <= 1e+09"),
+    ("psf", "logging.tensorboard=maybe", "logging.tensorboard = 'maybe': must be true or false"),
+    ("psf", "+logging.foo=1", "logging.foo = 1: unknown key; allowed: log_every, tensorboard"),
+    ("psf", "+foo=1", "foo = 1: unknown key for +experiment=psf; allowed: task, seed, device, threads, optics, mask, "
+     "sensor, model, data, trainer, logging, evaluate, debug, precision, mtf_band, lsr_smooth_p, timing_repeats"),
+    ("baseline", "+checkpoint=x", "checkpoint = 'x': unknown key for +experiment=baseline; allowed: task, seed, "
+     "device, threads, optics, mask, sensor, model, data, trainer, logging, evaluate, debug"),
+    # ---- simulate and data ---------------------------------------------------------------------------------
+    ("simulate", "simulate.alpha_l=5", "simulate.alpha_l = 5: must be a list of laser strengths >= 0"),
+    ("simulate", "simulate.laser_angle_rad=5", "simulate.laser_angle_rad = 5: must be [n_u, n_v] in radians"),
+    ("simulate", "simulate.laser_angle_rad=[nan,0]", "simulate.laser_angle_rad[0] = nan: must be a finite number"),
+    ("simulate", "simulate.params.alpha_b=-1", "simulate.params.alpha_b = -1: must be a finite number >= 0"),
+    ("simulate", "+simulate.params.foo=1", "simulate.params.foo = 1: is not a scene parameter; allowed: alpha_l, "
+     "alpha_b, laser_angle_rad, c1, c2, dark_current_mean_e, read_noise_mean_e, read_noise_std_e, exposure_s"),
+    ("simulate", "+simulate.params.alpha_l=1", "simulate.params.alpha_l = 1: is set by simulate.alpha_l, not here"),
+    ("simulate", "+simulate.foo=1",
+     "simulate.foo = 1: unknown key; allowed: alpha_l, laser_angle_rad, params, scenes, timing_repeats"),
+    ("simulate", "+data.foo=1", "data.foo = 1: unknown key; allowed: batch_size, cache_mb, flips, folder, "
+     "image_size, padded_size, params, scenes, split_seed, test_fraction"),
+    ("simulate", "data.image_size=4096 data.padded_size=4096", "data.image_size = 4096: must be <= "
+     "sensor.resolution (2532): the sensor is binned to the network resolution, never upsampled"),
+    ("simulate", "+sensor.image_size=64",
+     "sensor.image_size = 64: unknown key: the network resolution is data.image_size"),
+    # ---- model, losses, evaluation, geometry (baseline) ----------------------------------------------------
+    ("baseline", "model.widths=5",
+     "model.widths = 5: must be a list of at least 1 positive integers, or null for the size preset's"),
+    ("baseline", "model.widths=[]",
+     "model.widths = []: must be a list of at least 1 positive integers, or null for the size preset's"),
+    ("baseline", "model.loss.vgg_layers=5", "model.loss.vgg_layers = 5: must be a list of VGG19 feature layers "
+     "(indices 0..36 or names such as relu3_4)"),
+    ("baseline", "model.loss.vgg_layers=[99]", "model.loss.vgg_layers[0] = 99: must be an index 0..36 or a name "
+     "such as relu1_1, relu1_2, relu2_1, relu2_2, relu3_1, relu3_2, relu3_3, relu3_4, relu4_1, relu4_2, relu4_3, "
+     "relu4_4, relu5_1, relu5_2, relu5_3, relu5_4"),
+    ("baseline", "evaluate.laser_strengths=5", "evaluate.laser_strengths = 5: must be a list of the paper's "
+     "strengths 0, 10, 100, 1000, 10000, 100000, 1e+06"),
+    ("baseline", "evaluate.stages=H1",
+     "evaluate.stages = 'H1': must be a list of robustness stages from E1, E2, M, H1, H2 (or [])"),
+    ("baseline", "evaluate.laser_angle_rad=5",
+     "evaluate.laser_angle_rad = 5: must be [n_u, n_v] in radians, or null"),
+    ("baseline", "evaluate.laser_angle_rad=[nan,0]", "evaluate.laser_angle_rad[0] = nan: must be a finite number"),
+    ("baseline", "+evaluate.foo=1", "evaluate.foo = 1: unknown key; allowed: batch_size, dists_weights, "
+     "laser_angle_rad, laser_strengths, lpips_weights, max_scenes, split, stages, tuning_size"),
+    ("baseline", "data.image_size=48 data.padded_size=50",  # the PSF kernel fits the padded sensor image
+     "data.padded_size = 50: must be >= data.image_size + PSF kernel - 1 = 48 + 5 - 1 = 52 at this pitch, so that "
+     "deconvolution does not wrap"),
+    ("joint", "codesign.mtf_band=0.5", f"codesign.mtf_band = 0.5: {MTF_BAND})"),
+]
+
+
+@pytest.mark.parametrize("experiment,overrides,message", ROWS, ids=[r[1] for r in ROWS])
+def test_bad_value_stops_before_any_work_naming_key_and_allowed(experiment, overrides, message, monkeypatch,
+                                                                capsys, tmp_path):
+    line = config_error(monkeypatch, capsys, tmp_path / "run", f"+experiment={experiment}", "debug=smoke",
+                        *overrides.split())
+    assert line == f"codesign: configuration error: {message}"
+    assert not (tmp_path / "run").exists()  # a refused run leaves no run dir behind
+
+
+@pytest.mark.parametrize("experiment", sorted(EXPERIMENTS))
+def test_root_key_allowlist_accepts_every_shipped_config(experiment):
+    # the unknown-root-key check must never refuse what conf/experiment/<name>.yaml itself sets
+    for extra in ([], ["debug=smoke"]):
+        cfg = compose_cfg(f"+experiment={experiment}", *extra)
+        assert set(cfg) <= set(COMMON_KEYS + TASK_KEYS[experiment]), sorted(set(cfg))
+
+
+@pytest.mark.parametrize("content,message", [
+    ('{"kind": "halfring", "r": [13.6, 91.8, 6.3], "theta": [1.86, 1.09]}',
+     "its r and theta must be non-empty lists of numbers of equal length (got [13.6, 91.8, 6.3] and [1.86, 1.09])"),
+    ('{"kind": "halfring", "r": [NaN], "theta": [1.0]}', "its r and theta hold NaN or Infinity (got [nan] and [1.0])"),
+    ('{"kind": "halfring", "r": [1.0, 2', "cannot be read as JSON (Expecting ',' delimiter: line 1 column 34 "
+                                          "(char 33))"),
+    ('[1, 2]', "the file holds kind None, not 'halfring'"),
+], ids=["unequal-rings", "nan", "truncated", "not-a-mask"])
+def test_mask_init_file_with_bad_rings(tmp_path, monkeypatch, capsys, content, message):
+    path = tmp_path / "best_mask.json"
+    path.write_text(content)
+    line = config_error(monkeypatch, capsys, tmp_path / "run", "+experiment=psf", "debug=smoke", f"mask.init={path}")
+    assert line == (f"codesign: configuration error: mask.init = '{path}': must be null or the path of a "
+                    f"best_mask.json written by +experiment=mask_search; {message}")
+
+
+def test_cli_unknown_experiment_lists_the_available_ones(tmp_path):
+    proc = run_codesign("+experiment=psff", f"hydra.run.dir={tmp_path / 'run'}")
+    assert proc.returncode == 1  # Hydra's own composition error, before codesign runs
+    assert "Could not find 'experiment/psff'" in proc.stderr
+    assert re.search(r"Available options in 'experiment':\s+baseline\s+evaluate\s+joint\s+mask_search\s+psf\s+"
+                     r"restore\s+simulate", proc.stderr), proc.stderr
+    assert "Traceback" not in proc.stderr and not (tmp_path / "run").exists()

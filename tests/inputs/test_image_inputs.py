@@ -1,0 +1,158 @@
+"""Image files a user hands over: captures for +experiment=restore (corrupt, truncated, wrong size, wrong bit
+depth, wrong sample type) and scene folders (data.folder). Each is a ConfigError naming the file and what is
+wrong, raised before any restoration starts. The basic cases (8-bit, RGB, size, range, paths) are in
+tests/engine/test_restore_inputs.py."""
+from __future__ import annotations
+
+import re
+import warnings
+
+import numpy as np
+import pytest
+import tifffile
+import torch
+from omegaconf import OmegaConf
+from PIL import Image
+
+from codesign.data.images import SceneLoadWarning
+from codesign.data.scenes import build_scene_source
+from codesign.engine.checkpoint import save_checkpoint
+from codesign.engine.restoration_tasks import build_model
+from codesign.engine.restore_task import input_files, read_counts, validate
+from codesign.errors import ConfigError
+from tests.engine._util import tiny_cfg
+from tests.inputs._run import config_error
+
+N = 16
+
+
+def _png16(path, value=1000, shape=(N, N)):
+    Image.fromarray(np.full(shape, value, np.uint16)).save(path)
+    return path
+
+
+def _noise(shape=(64, 64)) -> np.ndarray:
+    # incompressible samples: half of the file then cuts into the pixel data, not into the header
+    return np.random.default_rng(0).integers(0, 65535, shape, dtype=np.uint16)
+
+
+def _truncated(path):
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    return path
+
+
+def _make(tmp_path, kind):
+    """One bad capture file of the given kind."""
+    if kind == "truncated_png":
+        Image.fromarray(_noise()).save(tmp_path / "a.png")
+        return _truncated(tmp_path / "a.png")
+    if kind == "empty_png":
+        (tmp_path / "a.png").write_bytes(b"")
+    elif kind == "text_png":
+        (tmp_path / "a.png").write_text("not an image")
+    elif kind == "truncated_tif":
+        tifffile.imwrite(tmp_path / "a.tif", _noise())
+        return _truncated(tmp_path / "a.tif")
+    elif kind == "float_tif":
+        tifffile.imwrite(tmp_path / "a.tif", np.zeros((N, N), np.float32))
+    elif kind == "int32_tif":
+        tifffile.imwrite(tmp_path / "a.tif", np.zeros((N, N), np.int32))
+    elif kind == "rgb16_tif":
+        tifffile.imwrite(tmp_path / "a.tif", np.zeros((N, N, 3), np.uint16))
+    elif kind == "bilevel_png":
+        Image.fromarray(np.ones((N, N), bool)).save(tmp_path / "a.png")
+    return next(tmp_path.glob("a.*"))
+
+
+@pytest.mark.parametrize("kind,message", [
+    ("truncated_png", r"cannot be read \(OSError: image file is truncated"),
+    ("empty_png", r"cannot be read \(UnidentifiedImageError: cannot identify image file"),
+    ("text_png", r"cannot be read \(UnidentifiedImageError: cannot identify image file"),
+    ("truncated_tif", r"cannot be read \(ValueError: failed to read \d+ bytes, got \d+\)$"),
+    ("float_tif", r"has float32 samples: expected 16-bit sensor counts \(unsigned 16-bit integers, as "
+                  r"\+experiment=simulate writes them\)$"),
+    ("int32_tif", r"has int32 samples: expected 16-bit sensor counts \(unsigned 16-bit integers, as "
+                  r"\+experiment=simulate writes them\)$"),
+    ("rgb16_tif", r"has shape \(16, 16, 3\): expected one channel \(H, W\)$"),
+    ("bilevel_png", r"PNG mode 1: expected a single-channel 16-bit image \(mode I;16\)$"),
+])
+def test_corrupt_or_wrong_type_capture_names_the_file(tmp_path, kind, message):
+    path = _make(tmp_path, kind)
+    with pytest.raises(ConfigError, match="^input = " + re.escape(repr(str(path))) + ": " + message):
+        validate([path], N, 65535.0)
+
+
+def test_wrong_bit_depth_counts_above_the_sensor_full_scale(tmp_path):
+    # a 16-bit capture from a 12-bit sensor holds at most 4095 DN; 5000 means another sensor (or scaled data)
+    path = _png16(tmp_path / "a.png", value=5000)
+    with pytest.raises(ConfigError, match=r"^input = .*a.png': has counts up to 5000 DN, above the sensor's 4095 DN "
+                                          r"\(sensor.bit_depth\)$"):
+        validate([path], N, 4095.0)
+
+
+def test_every_file_is_checked_before_the_first_is_used(tmp_path):
+    good = [_png16(tmp_path / f"{i}.png") for i in range(3)]
+    bad = _png16(tmp_path / "z.png", shape=(N, N + 1))
+    with pytest.raises(ConfigError, match=r"z.png': is 17 x 16 px: the checkpoint's network resolution is 16 x 16"):
+        validate(good + [bad], N, 65535.0)
+
+
+def test_two_files_that_would_write_one_output(tmp_path):
+    _png16(tmp_path / "cap.png")
+    tifffile.imwrite(tmp_path / "cap.tif", np.zeros((N, N), np.uint16))
+    with pytest.raises(ConfigError, match=r"holds files that would write the same output restored_cap.png: rename "
+                                          r"one of \['cap.png', 'cap.tif'\]$"):
+        input_files(tmp_path)
+
+
+def test_sixteen_bit_counts_are_read_exactly(tmp_path):
+    arr = np.arange(N * N, dtype=np.uint16).reshape(N, N) * 200
+    Image.fromarray(arr).save(tmp_path / "a.png")
+    assert np.array_equal(read_counts(tmp_path / "a.png"), arr)
+
+
+def test_restore_refuses_a_bad_capture_before_any_restoration(tmp_path, monkeypatch, capsys):
+    cfg = tiny_cfg()
+    torch.manual_seed(0)
+    state = {"model": build_model(cfg).state_dict(), "step": 1, "config": OmegaConf.to_container(cfg, resolve=True)}
+    ck = save_checkpoint(tmp_path / "checkpoint.pt", state)
+    capture = _png16(tmp_path / "capture.png", shape=(32, 32))  # the checkpoint's network works at 48 x 48
+    line = config_error(monkeypatch, capsys, tmp_path / "run", "+experiment=restore", f"checkpoint={ck}",
+                        f"input={capture}")
+    assert line == (f"codesign: configuration error: input = '{capture}': is 32 x 32 px: the checkpoint's network "
+                    f"resolution is 48 x 48 (data.image_size)")
+
+
+# ---- scene folders (data.folder) ---------------------------------------------------------------------------
+def _folder_error(folder) -> str:
+    with pytest.raises(ConfigError) as info, warnings.catch_warnings():
+        warnings.simplefilter("ignore", SceneLoadWarning)
+        build_scene_source({"scenes": "folder", "folder": str(folder)})
+    return str(info.value)
+
+
+def test_scene_folder_that_does_not_exist_or_is_a_file(tmp_path):
+    assert _folder_error(tmp_path / "nope") == (f"data.folder = '{tmp_path / 'nope'}': must be an existing folder "
+                                                f"of PNG/JPEG/TIFF images")
+    _png16(tmp_path / "one.png")
+    assert _folder_error(tmp_path / "one.png").endswith("must be an existing folder of PNG/JPEG/TIFF images")
+
+
+def test_scene_folder_of_corrupt_images_only(tmp_path):
+    (tmp_path / "a.png").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
+    Image.fromarray(_noise()).save(tmp_path / "b.png")
+    _truncated(tmp_path / "b.png")
+    (tmp_path / "notes.txt").write_text("not an image, not counted")
+    assert _folder_error(tmp_path) == (f"data.folder = '{tmp_path}': must hold at least one readable "
+                                       f".png/.jpg/.jpeg/.tif/.tiff image (searched recursively; found 2 image "
+                                       f"file(s), 2 unreadable)")
+
+
+def test_corrupt_scene_files_are_skipped_with_a_warning_naming_them(tmp_path):
+    _png16(tmp_path / "good.png", shape=(32, 32))
+    _png16(tmp_path / "good2.png", shape=(32, 32))
+    (tmp_path / "bad.png").write_bytes(b"garbage")
+    with pytest.warns(SceneLoadWarning, match=r"data.folder: skipped 1 unreadable image file\(s\) under .*: bad.png"):
+        src = build_scene_source({"scenes": "folder", "folder": str(tmp_path)})
+    assert sorted(src.names) == ["good.png", "good2.png"]
