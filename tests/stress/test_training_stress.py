@@ -41,8 +41,9 @@ STRONG_LASER = ["data.params.alpha_l_range=[1.0e6,1.0e8]", "data.image_size=32",
 NO_IO = dict(val_every=0, checkpoint_every=0, image_every=0)
 
 # Upper bounds on |term|, set from the ranges measured over 60-300 restoration steps and 80 joint steps (in
-# brackets; the 200-step CI and 600-step long runs pass them too). Each leaves 4-20x of room, so that another trajectory (another CPU's rounding, other scene crops)
-# passes, while a diverging GAN (losses growing by orders of magnitude, then Inf/NaN) fails.
+# brackets; the 200-step CI and 600-step long runs pass them too). Each leaves 4-20x of room, so that another
+# trajectory (another CPU's rounding, other scene crops) passes, while a diverging GAN (losses growing by orders
+# of magnitude, then Inf/NaN) fails.
 BOUNDS = {
     # Charbonnier ~ mean |output - target| with targets in [0, 1]: 5 means the outputs have left the image range
     # [rec1 0.050..0.19, rec2 0.13..1.33]
