@@ -62,7 +62,7 @@ def _setup_threads(threads: int | None) -> None:
 
 def standalone(run) -> None:
     """``python -m benchmarks.bench_X [--scale S] [--threads T]``: one benchmark, results in results/<scale>/."""
-    a = parse_args([x for x in sys.argv[1:]] + ["--no-docs"])
+    a = parse_args(sys.argv[1:] + ["--no-docs"])
     _setup_threads(a.threads)
     run(a.scale, RESULTS / a.scale)
 

@@ -18,7 +18,8 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from benchmarks.common import Report, machine, markdown_table, time_error_plot, timeit, write_json
+from benchmarks.common import (Report, cuda_sync, machine, markdown_table, peak_cuda_mib, time_error_plot, timeit,
+                               write_json)
 
 CONF = Path(__file__).resolve().parent.parent / "conf"
 VARIANTS = ("sgan_b", "sgan_e", "sgan_f")
@@ -70,12 +71,10 @@ def _train(cfg, data, start: dict, dev: torch.device):
 
 def _timed(fn, repeats: int, dev: torch.device) -> tuple[float, float | None]:
     """(ms per call, peak CUDA MiB or None), no gradient."""
-    sync = torch.cuda.synchronize if dev.type == "cuda" else None
-    if dev.type == "cuda":
-        torch.cuda.reset_peak_memory_stats()
+    peak_cuda_mib(dev, reset=True)
     with torch.no_grad():
-        sec = timeit(fn, repeats, warmup=2 if dev.type == "cuda" else 1, sync=sync)
-    return 1e3 * sec, (torch.cuda.max_memory_allocated() / 2**20 if dev.type == "cuda" else None)
+        sec = timeit(fn, repeats, warmup=2 if dev.type == "cuda" else 1, sync=cuda_sync(dev))
+    return 1e3 * sec, peak_cuda_mib(dev)
 
 
 def _baseline_timers(data, batch: dict, calib: dict, n: int) -> dict:

@@ -19,7 +19,8 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import Report, fit_exponent, machine, markdown_table, timeit, write_json
+from benchmarks.common import (Report, cuda_sync, fit_exponent, machine, markdown_table, peak_cuda_mib, timeit,
+                               write_json)
 
 SWEEPS = {
     "quick": dict(samples=[192, 256, 384, 512, 768], images=[64, 96, 128, 192, 256, 384],
@@ -41,18 +42,6 @@ def _fit(points: list[dict]) -> dict:
                                                                      / len(xs))}
 
 
-def _sync(dev):
-    return torch.cuda.synchronize if dev.type == "cuda" else None
-
-
-def _peak(dev, reset: bool = False):
-    if dev.type != "cuda":
-        return None
-    if reset:
-        torch.cuda.reset_peak_memory_stats()
-    return torch.cuda.max_memory_allocated() / 2**20
-
-
 def psf_sweep(s: dict, dev) -> list[dict]:
     """Whole chain (half-ring phase included) and propagation alone (phase fixed), forward + backward."""
     from codesign.engine.psf_task import time_forward_backward
@@ -65,7 +54,7 @@ def psf_sweep(s: dict, dev) -> list[dict]:
         spec = OpticsSpec.with_samples_across(samples, propagator="mft", focal_n=640)
         system = OpticalSystem(spec, device=dev)
         mask = HalfRingMask(system.grid, spec.aperture_diameter_m)  # the default mask (published, exact Bessel)
-        _peak(dev, reset=True)
+        peak_cuda_mib(dev, reset=True)
         fwd, bwd = time_forward_backward(system, mask, 16.0, s["repeats"])
         with torch.no_grad():
             phase = mask.phase()
@@ -74,10 +63,10 @@ def psf_sweep(s: dict, dev) -> list[dict]:
             ph = phase.clone().requires_grad_(True)
             metrics.lsr_smooth(system.psf(ph), system.uncoded_peak, 16.0).backward()
 
-        sec = timeit(propagate, s["repeats"], sync=_sync(dev))
+        sec = timeit(propagate, s["repeats"], sync=cuda_sync(dev))
         common = {"x": spec.grid_n, "samples_across": samples, "mft_flops": mft_cost(spec.grid_n, spec.focal_n)}
         chain.append({**common, "seconds": fwd + bwd, "seconds_forward": fwd, "seconds_backward": bwd,
-                      "peak_cuda_mib": _peak(dev)})
+                      "peak_cuda_mib": peak_cuda_mib(dev)})
         prop.append({**common, "seconds": sec})
         print(f"  PSF n={spec.grid_n:5d}: chain forward {1e3 * fwd:8.1f} ms + backward {1e3 * bwd:8.1f} ms; "
               f"propagation alone (forward + backward) {1e3 * sec:8.1f} ms", flush=True)
@@ -88,17 +77,10 @@ def psf_sweep(s: dict, dev) -> list[dict]:
 
 
 def _simulator(image: int, dev):
-    from codesign.optics import OpticalSystem, OpticsSpec
-    from codesign.optics.masks import published_halfring
-    from codesign.sensor.simulator import SensorSimulator, mask_state_key, psf_state
-    from codesign.sensor.spec import SensorSpec
+    from benchmarks.sensor import _setup
 
-    optics = OpticsSpec(pupil_pitch_m=3.83e-3 / 384)  # conf/optics/default.yaml
-    system = OpticalSystem(optics, device=dev)
-    mask = published_halfring(system.grid, optics.aperture_diameter_m)
-    with torch.no_grad():
-        state, key = psf_state(system, mask.phase()), mask_state_key(mask)
-    return SensorSimulator(SensorSpec(image_size=image, padded_size=3 * image // 2), optics), state, key
+    sim, state, key, _, _ = _setup(device=dev, image_size=image, padded_size=3 * image // 2)
+    return sim, state, key
 
 
 def sensor_sweeps(s: dict, dev) -> list[dict]:
@@ -108,11 +90,11 @@ def sensor_sweeps(s: dict, dev) -> list[dict]:
         sim, state, key = _simulator(image, dev)
         scenes = torch.rand(batch, 1, sim.scene_size, sim.scene_size, generator=torch.Generator().manual_seed(0))
         scenes, params = scenes.to(dev), preset_params("laser_1e6", batch).to(dev, torch.float32)
-        _peak(dev, reset=True)
+        peak_cuda_mib(dev, reset=True)
         with torch.no_grad():
-            sec = timeit(lambda: sim(scenes, params, state, seed=1, mask_key=key), s["repeats"], sync=_sync(dev))
+            sec = timeit(lambda: sim(scenes, params, state, seed=1, mask_key=key), s["repeats"], sync=cuda_sync(dev))
         print(f"  sensor image {image:4d} batch {batch:3d}: {1e3 * sec:8.1f} ms", flush=True)
-        return {"x": x, "image": image, "batch": batch, "seconds": sec, "peak_cuda_mib": _peak(dev)}
+        return {"x": x, "image": image, "batch": batch, "seconds": sec, "peak_cuda_mib": peak_cuda_mib(dev)}
 
     by_size = [point(n, 1, n) for n in s["images"]]
     by_batch = [point(s["sim_batch_image"], b, b) for b in s["sim_batches"]]
@@ -140,12 +122,12 @@ def network_sweeps(s: dict, dev) -> list[dict]:
 
         model.train(backward)
         model.zero_grad(set_to_none=True)
-        _peak(dev, reset=True)
+        peak_cuda_mib(dev, reset=True)
         with torch.set_grad_enabled(backward):
-            sec = timeit(fwd_bwd if backward else (lambda: model(x_in, otf)), s["repeats"], sync=_sync(dev))
+            sec = timeit(fwd_bwd if backward else (lambda: model(x_in, otf)), s["repeats"], sync=cuda_sync(dev))
         what = "forward+backward" if backward else "forward"
         print(f"  SGAN-B cpu {what:16s} input {padded:4d} batch {batch:3d}: {1e3 * sec:8.1f} ms", flush=True)
-        return {"x": x, "padded": padded, "batch": batch, "seconds": sec, "peak_cuda_mib": _peak(dev)}
+        return {"x": x, "padded": padded, "batch": batch, "seconds": sec, "peak_cuda_mib": peak_cuda_mib(dev)}
 
     curves = []
     for backward in (False, True):

@@ -127,6 +127,20 @@ def timeit(fn, repeats: int, warmup: int = 1, sync=None) -> float:
     return statistics.median(times)
 
 
+def cuda_sync(dev):
+    """``timeit``'s sync for a device: torch.cuda.synchronize on a GPU, None on the CPU."""
+    return torch.cuda.synchronize if dev.type == "cuda" else None
+
+
+def peak_cuda_mib(dev, reset: bool = False) -> float | None:
+    """Peak allocated CUDA memory [MiB] since the last reset (``reset=True`` resets it first); None on the CPU."""
+    if dev.type != "cuda":
+        return None
+    if reset:
+        torch.cuda.reset_peak_memory_stats()
+    return torch.cuda.max_memory_allocated() / 2**20
+
+
 def write_json(path: Path, data: dict) -> Path:
     """Atomic JSON write (temp file, then rename)."""
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -14,7 +14,7 @@ import json
 
 import torch
 
-from benchmarks.common import peak_rss_mb
+from benchmarks.common import peak_cuda_mib, peak_rss_mb
 
 
 def main() -> None:
@@ -42,10 +42,9 @@ def main() -> None:
     dtype = torch.float32 if a.dtype == "float32" else torch.float64
     system = OpticalSystem(spec, dtype=dtype, device=dev)
     mask = HalfRingMask(system.grid, spec.aperture_diameter_m)
-    if dev.type == "cuda":
-        torch.cuda.reset_peak_memory_stats()
+    peak_cuda_mib(dev, reset=True)
     fwd, bwd = time_forward_backward(system, mask, 16.0, a.repeats)
-    peak_gpu = torch.cuda.max_memory_allocated() / 2**20 if dev.type == "cuda" else None
+    peak_gpu = peak_cuda_mib(dev)
     values, arrays = evaluate_mask(system, mask, (0.0, 0.5), 16.0)
     psf = arrays["psf"].detach().to("cpu", torch.float64)
     err = None

@@ -18,18 +18,20 @@ import torch
 from benchmarks.common import RESULTS, machine, write_result
 
 
-def _setup(path: str, downsample: str = "area"):
+def _setup(path: str = "direct", downsample: str = "area", device=None, **sensor_kw):
+    """The default optics (conf/optics/default.yaml) with the published mask frozen: simulator, PSF state, its
+    cache key, mask, system; ``sensor_kw`` are further SensorSpec fields."""
     from codesign.optics import OpticalSystem, OpticsSpec
     from codesign.optics.masks import published_halfring
     from codesign.sensor.simulator import SensorSimulator, mask_state_key, psf_state
     from codesign.sensor.spec import SensorSpec
 
     optics = OpticsSpec(pupil_pitch_m=3.83e-3 / 384)
-    system = OpticalSystem(optics)
+    system = OpticalSystem(optics, device=device)
     mask = published_halfring(system.grid, optics.aperture_diameter_m)
     with torch.no_grad():
         state = psf_state(system, mask.phase())
-    sim = SensorSimulator(SensorSpec(path=path, downsample=downsample), optics)
+    sim = SensorSimulator(SensorSpec(path=path, downsample=downsample, **sensor_kw), optics)
     return sim, state, mask_state_key(mask), mask, system
 
 

@@ -49,6 +49,15 @@ def require_list(key: str, value: Any, allowed: str) -> list:
     return list(value)
 
 
+def require_numbers(key: str, value: Any, allowed: str, length: int | None = None, **bounds: Any) -> list[float]:
+    """A config list of finite numbers: ``require_list``, then ``length`` (ConfigError with ``allowed``), then
+    each element through ``require_number`` with ``bounds``, its error naming ``key[i]``."""
+    items = require_list(key, value, allowed)
+    if length is not None and len(items) != length:
+        raise ConfigError(key, items, allowed)
+    return [require_number(f"{key}[{i}]", v, **bounds) for i, v in enumerate(items)]
+
+
 def unknown_keys(prefix: str, cfg: Any, known) -> None:
     """ConfigError naming the first key of mapping ``cfg`` that is not in ``known`` (a typo would otherwise be
     ignored silently and the default used)."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 from dataclasses import fields
 from typing import Any, Mapping
 
-from codesign.errors import ConfigError
+from codesign.errors import unknown_keys
 
 
 class SpecMixin:
@@ -20,9 +20,5 @@ class SpecMixin:
     def from_config(cls, cfg: Mapping[str, Any], prefix: str | None = None):
         """Build from a mapping (e.g. a Hydra config node); an unknown key is a ConfigError naming it."""
         prefix = prefix or cls.__dataclass_fields__["prefix"].default
-        known = {f.name for f in fields(cls)} - {"prefix"}
-        extra = sorted(set(cfg) - known)
-        if extra:
-            raise ConfigError(f"{prefix}.{extra[0]}", cfg[extra[0]],
-                              f"unknown key; allowed: {', '.join(sorted(known))}")
+        unknown_keys(prefix, cfg, {f.name for f in fields(cls)} - {"prefix"})
         return cls(**dict(cfg), prefix=prefix)

@@ -19,7 +19,7 @@ from codesign.engine.monitor import log_summary, open_writer, tensorboard_enable
 from codesign.engine.pipeline import RestorationData
 from codesign.engine.train_spec import LossWeights, TrainerSpec
 from codesign.engine.trainer import EMA, RestorationTrainer, init_weights
-from codesign.errors import ConfigError, require_choice, require_list, require_number, unknown_keys
+from codesign.errors import ConfigError, require_choice, require_list, require_number, require_numbers, unknown_keys
 from codesign.models import build_sgan, parameter_count
 
 log = logging.getLogger("codesign.restoration")
@@ -65,10 +65,7 @@ def eval_settings(cfg: DictConfig) -> dict:
     batch = require_number("evaluate.batch_size", ev.get("batch_size", 8), lo=1, hi=4096, integer=True)
     angle = ev.get("laser_angle_rad")
     if angle is not None:
-        angle = require_list("evaluate.laser_angle_rad", angle, "must be [n_u, n_v] in radians, or null")
-        if len(angle) != 2:
-            raise ConfigError("evaluate.laser_angle_rad", angle, "must be [n_u, n_v] in radians, or null")
-        angle = [require_number(f"evaluate.laser_angle_rad[{i}]", v) for i, v in enumerate(angle)]
+        angle = require_numbers("evaluate.laser_angle_rad", angle, "must be [n_u, n_v] in radians, or null", 2)
     return {"split": split, "max_scenes": max_scenes, "lasers": [float(a) for a in lasers], "stages": stages,
             "tuning": tuning, "batch_size": batch,
             "perceptual": quality.perceptual_metrics(ev.get("lpips_weights"), ev.get("dists_weights")),

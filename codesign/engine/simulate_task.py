@@ -15,7 +15,7 @@ from codesign.data.scenes import build_scene_source, data_config
 from codesign.engine import io
 from codesign.engine.monitor import log_summary, open_writer, tensorboard_enabled
 from codesign.engine.plots import plt
-from codesign.errors import ConfigError, require_list, require_number, unknown_keys
+from codesign.errors import ConfigError, require_number, require_numbers, unknown_keys
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask
 from codesign.sensor.simulator import SensorSimulator, mask_state_key, psf_state
 from codesign.sensor.spec import SensorSpec
@@ -83,13 +83,11 @@ def run_simulate(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         raise ConfigError("simulate", None, "missing: use +experiment=simulate")
     unknown_keys("simulate", sim_cfg, SIMULATE_KEYS)
     dtype = resolve_dtype("precision", cfg.get("precision", "float32"))
-    alphas = require_list("simulate.alpha_l", sim_cfg.get("alpha_l"), "must be a list of laser strengths >= 0")
-    alphas = [require_number(f"simulate.alpha_l[{i}]", a, lo=0, hi=1e12) for i, a in enumerate(alphas)]
+    alphas = require_numbers("simulate.alpha_l", sim_cfg.get("alpha_l"), "must be a list of laser strengths >= 0",
+                             lo=0, hi=1e12)
     n_scenes = require_number("simulate.scenes", sim_cfg.get("scenes"), lo=1, hi=64, integer=True)
-    angle = require_list("simulate.laser_angle_rad", sim_cfg.get("laser_angle_rad"), "must be [n_u, n_v] in radians")
-    if len(angle) != 2:
-        raise ConfigError("simulate.laser_angle_rad", angle, "must be [n_u, n_v] in radians")
-    angle = [require_number(f"simulate.laser_angle_rad[{i}]", v) for i, v in enumerate(angle)]
+    angle = require_numbers("simulate.laser_angle_rad", sim_cfg.get("laser_angle_rad"), "must be [n_u, n_v] in radians",
+                            2)
     repeats = require_number("simulate.timing_repeats", sim_cfg.get("timing_repeats", 3), lo=1, integer=True)
     fixed = sim_cfg.get("params")
     fixed = {} if fixed is None else OmegaConf.to_container(fixed, resolve=True) if OmegaConf.is_config(fixed) \

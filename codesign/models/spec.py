@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from codesign.errors import ConfigError, require_choice, require_number
+from codesign.errors import ConfigError, require_choice, require_list, require_number
 from codesign.spec_base import SpecMixin
 
 VARIANTS = ("sgan_b", "sgan_e", "sgan_f")
@@ -20,9 +20,9 @@ SIZES: dict[str, dict] = {
 
 
 def _widths(key: str, value, n_min: int) -> tuple[int, ...]:
-    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) < n_min:
-        raise ConfigError(key, value, f"must be a list of at least {n_min} positive integers, or null for the "
-                          f"size preset's")
+    allowed = f"must be a list of at least {n_min} positive integers, or null for the size preset's"
+    if len(require_list(key, value, allowed)) < n_min:
+        raise ConfigError(key, value, allowed)
     return tuple(require_number(f"{key}[{i}]", v, lo=1, hi=4096, integer=True) for i, v in enumerate(value))
 
 

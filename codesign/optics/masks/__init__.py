@@ -8,7 +8,7 @@ import os
 from pathlib import Path
 from typing import Any, Mapping
 
-from codesign.errors import ConfigError, require_choice, require_list, require_number
+from codesign.errors import ConfigError, require_choice, require_list, require_number, require_numbers
 from codesign.optics.masks.base import Mask
 from codesign.optics.masks.freeform import PixelPhaseMask, ZernikeMask
 from codesign.optics.masks.halfring import PUBLISHED_R, PUBLISHED_THETA, HalfRingMask
@@ -74,12 +74,6 @@ def _check_keys(cfg: Mapping[str, Any], allowed: set[str], prefix: str) -> None:
                           f"unknown key for a {cfg.get('kind')} mask; allowed: {', '.join(sorted(allowed))}{hint}")
 
 
-def _numbers(key: str, value: Any, allowed: str) -> list[float]:
-    """A config list of finite numbers (r, theta, m_range, r_bounds); a scalar or a string where the list belongs
-    is a ConfigError, not a TypeError inside the mask."""
-    return [require_number(f"{key}[{i}]", v) for i, v in enumerate(require_list(key, value, allowed))]
-
-
 def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix: str = "mask") -> Mask:
     """Build a mask from a config mapping (see conf/mask/*.yaml); every value is validated first."""
     kind = require_choice(f"{prefix}.kind", cfg.get("kind"), KINDS)
@@ -109,13 +103,11 @@ def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix:
         elif r is None or theta is None:
             raise ConfigError(f"{prefix}.r", r, f"{prefix}.r and {prefix}.theta are required when {prefix}.preset "
                               f"is null (allowed presets: {', '.join(PRESETS)})")
-        r = _numbers(f"{prefix}.r", r, "must be a list of ring radii (units of lambda f / W_a)")
-        theta = _numbers(f"{prefix}.theta", theta, f"must be a list of ring angles [rad], as many as {prefix}.r")
+        r = require_numbers(f"{prefix}.r", r, "must be a list of ring radii (units of lambda f / W_a)")
+        theta = require_numbers(f"{prefix}.theta", theta, f"must be a list of ring angles [rad], as many as {prefix}.r")
         m_range = require_list(f"{prefix}.m_range", cfg.get("m_range", (1, 17)), "must be [m_min, m_max]")
-        r_bounds = _numbers(f"{prefix}.r_bounds", cfg.get("r_bounds", (0.5, 200.0)), "must be [lo, hi] with "
-                            "0 < lo < hi")
-        if len(r_bounds) != 2:
-            raise ConfigError(f"{prefix}.r_bounds", r_bounds, "must be [lo, hi] with 0 < lo < hi")
+        r_bounds = require_list(f"{prefix}.r_bounds", cfg.get("r_bounds", (0.5, 200.0)), "must be [lo, hi] with "
+                                "0 < lo < hi")  # its length and values: HalfRingMask
         return HalfRingMask(grid, aperture_diameter_m, r, theta,
                             m_range=tuple(m_range),
                             convention=cfg.get("convention", "atan2"),

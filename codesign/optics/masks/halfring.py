@@ -77,6 +77,8 @@ class HalfRingMask(Mask):
         self.harmonic_sign = require_choice(f"{prefix}.harmonic_sign", harmonic_sign, HARMONIC_SIGNS)
         self.strategy = require_choice(f"{prefix}.strategy", strategy, STRATEGIES)
         self.table_size = require_number(f"{prefix}.table_size", table_size, lo=16, hi=2**24, integer=True)
+        if len(r_bounds) != 2:
+            raise ConfigError(f"{prefix}.r_bounds", list(r_bounds), "must be [lo, hi] with 0 < lo < hi")
         lo, hi = (require_number(f"{prefix}.r_bounds[{i}]", v, lo=0, lo_open=True) for i, v in enumerate(r_bounds))
         if lo >= hi:
             raise ConfigError(f"{prefix}.r_bounds", list(r_bounds), "must be [lo, hi] with 0 < lo < hi")
