@@ -37,16 +37,30 @@ def command_line_keys(overrides: list[str]) -> frozenset[str]:
     return frozenset(keys)
 
 
-def resolve_device(name: str) -> torch.device:
-    """'auto' -> CUDA when available, else CPU; 'cpu', 'cuda', 'cuda:N' as given (validated)."""
+def resolve_device(name: str, local_rank: int | None = None) -> torch.device:
+    """'auto' -> CUDA when available, else CPU; 'cpu', 'cuda', 'cuda:N' as given (validated).
+
+    ``local_rank``: under torchrun each rank takes GPU cuda:<local_rank> (auto and cuda); cuda:N is refused there.
+    """
     if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        name = "cuda" if torch.cuda.is_available() else "cpu"
     if name == "cpu":
         return torch.device("cpu")
-    if isinstance(name, str) and name.startswith("cuda"):
+    if isinstance(name, str) and (name == "cuda" or name.startswith("cuda:")):
         if not torch.cuda.is_available():
             raise ConfigError("device", name, "CUDA is not available on this machine; use device=cpu or auto")
-        return torch.device(name)
+        if local_rank is not None:
+            if name != "cuda":
+                raise ConfigError("device", name, "under torchrun each rank uses cuda:LOCAL_RANK: use device=auto "
+                                  "or cuda (CUDA_VISIBLE_DEVICES picks the GPUs)")
+            return torch.device(f"cuda:{local_rank}")
+        try:
+            dev = torch.device(name)
+        except RuntimeError:
+            raise ConfigError("device", name, "must be auto, cpu, cuda or cuda:N") from None
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ConfigError("device", name, f"this machine has {torch.cuda.device_count()} CUDA device(s)")
+        return dev
     raise ConfigError("device", name, "must be auto, cpu, cuda or cuda:N")
 
 

@@ -47,11 +47,11 @@ def generator_adv_loss(d_fake: Tensors) -> torch.Tensor:
 
 
 def gradient_penalty(critic: Callable, real: torch.Tensor, fake: torch.Tensor, cond: torch.Tensor | None = None,
-                     generator: torch.Generator | None = None) -> torch.Tensor:
+                     generator: torch.Generator | None = None, eps: torch.Tensor | None = None) -> torch.Tensor:
     """WGAN-GP (Gulrajani 2017): mean over samples of (||grad_x~ D(x~)||_2 - 1)^2, without lambda_GP.
 
     x~ = eps * real + (1 - eps) * fake with eps ~ U(0, 1) per sample (``generator`` for reproducible draws; it must
-    live on the device of ``real``). With ``cond`` the critic sees torch.cat([cond, x~], 1) and the gradient is
+    live on the device of ``real``; or ``eps`` given, shape (B,)). With ``cond`` the critic sees torch.cat([cond, x~], 1) and the gradient is
     taken w.r.t. x~ only. real, fake and cond are detached: the penalty trains the critic only. A critic returning
     (output, features) is accepted. The critic value of a sample is the mean of its output map (PatchGAN patch
     scores), the reduction critic_loss uses, so the Lipschitz constraint is on the function whose expectation the
@@ -63,7 +63,11 @@ def gradient_penalty(critic: Callable, real: torch.Tensor, fake: torch.Tensor, c
     if real.shape != fake.shape:
         raise ValueError(f"real and fake shapes differ: {tuple(real.shape)} vs {tuple(fake.shape)}")
     b = real.shape[0]
-    eps = torch.rand((b,) + (1,) * (real.ndim - 1), generator=generator, device=real.device, dtype=real.dtype)
+    if eps is None:
+        eps = torch.rand((b,), generator=generator, device=real.device, dtype=real.dtype)
+    elif eps.shape != (b,):
+        raise ValueError(f"eps must have shape ({b},), got {tuple(eps.shape)}")
+    eps = eps.reshape((b,) + (1,) * (real.ndim - 1))
     x = (eps * real + (1 - eps) * fake).requires_grad_(True)
     inp = x if cond is None else torch.cat([cond.detach(), x], 1)
     out = critic(inp)

@@ -69,9 +69,11 @@ class SceneParams:
     def __len__(self) -> int:
         return self.batch_size
 
-    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "SceneParams":
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None,
+           non_blocking: bool = False) -> "SceneParams":
         """Copy onto ``device`` / cast to floating ``dtype`` (either may be None = unchanged)."""
-        return SceneParams(**{k: getattr(self, k).to(device=device, dtype=dtype) for k in FIELDS})
+        return SceneParams(**{k: getattr(self, k).to(device=device, dtype=dtype, non_blocking=non_blocking)
+                              for k in FIELDS})
 
     def index(self, i: int) -> "SceneParams":
         """Sample ``i`` (negative counts from the end) as a SceneParams of batch 1."""
@@ -80,6 +82,17 @@ class SceneParams:
             raise IndexError(f"SceneParams.index({i}) out of range for batch size {b}")
         i = i % b
         return SceneParams(**{k: getattr(self, k)[i:i + 1] for k in FIELDS})
+
+    def part(self, part: slice) -> "SceneParams":
+        """The samples ``part`` of the batch (a distributed rank's share of a global batch)."""
+        out = {k: getattr(self, k)[part] for k in FIELDS}
+        if out["alpha_l"].shape[0] < 1:
+            raise IndexError(f"SceneParams.part({part}) is empty for batch size {self.batch_size}")
+        return SceneParams(**out)
+
+    def pin_memory(self) -> "SceneParams":
+        """Page-locked copies, so that a later .to(cuda, non_blocking=True) does not wait for the GPU."""
+        return SceneParams(**{k: getattr(self, k).pin_memory() for k in FIELDS})
 
     def replace(self, **values: Any) -> "SceneParams":
         """A copy with some fields set to constants (or full tensors); e.g. ``p.replace(alpha_l=1e6)``.

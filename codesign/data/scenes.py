@@ -27,7 +27,8 @@ class SceneSampler:
     Each batch: B scenes drawn uniformly with replacement, each upscaled first if its shorter side is below
     ``crop_size`` (antialiased bicubic), a uniformly placed crop_size x crop_size window, then (flips=True)
     independent horizontal and vertical flips with probability 1/2. Random draws, in order: scene indices
-    (B,), flips (B, 2), then per scene the crop top and left. ``last_names`` holds the scenes of the last batch.
+    (B,), flips (B, 2), crop corners (B, 2) as fractions of the free range. ``last_names`` holds the scenes of
+    the last batch (of its part, when ``sample`` was given one).
     """
 
     def __init__(self, source: SceneSource, split: str, crop_size: int, batch_size: int,
@@ -57,31 +58,42 @@ class SceneSampler:
     def __next__(self) -> torch.Tensor:
         return self.sample()
 
-    def _draw_image(self, name: str) -> tuple[str, torch.Tensor]:
-        """The image of ``name``; if it fails to decode (then dropped from the split), redraw another."""
+    def _draw_image(self, pool: list[str], index: int) -> tuple[str, torch.Tensor]:
+        """The image of ``pool[index]``; if it fails to decode (then dropped from the split), the next scene of
+        the split takes its place (no random draw, so the ranks of a distributed run stay in step)."""
+        name = pool[index]
         while True:
             try:
                 return name, self.source.image(name, self.crop_size)
             except UnreadableImage:
-                pool = self._pool()
-                name = pool[int(torch.randint(len(pool), (1,), generator=self.generator))]
+                current = self._pool()
+                name = current[index % len(current)]
 
-    def sample(self) -> torch.Tensor:
-        """One (B, 1, crop, crop) float32 batch in [0, 1]."""
+    def sample(self, part: slice | None = None) -> torch.Tensor:
+        """One (B, 1, crop, crop) float32 batch in [0, 1]; with ``part`` only those samples of it.
+
+        The random choices of all B samples are drawn whichever part is asked for (B scalars each), so the
+        generator advances identically on every rank of a distributed run and the parts of the ranks together
+        are the batch one process would draw (torch's DistributedSampler splits one shared sequence the same way).
+        """
         g, c, b = self.generator, self.crop_size, self.batch_size
         pool = self._pool()
         idx = torch.randint(len(pool), (b,), generator=g).tolist()
         flip = (torch.rand(b, 2, generator=g) < 0.5).tolist()
-        out = torch.empty(b, 1, c, c, dtype=torch.float32)
+        # crop corners as fractions of the free range: drawn without knowing the image sizes, so the other
+        # ranks' samples never need decoding
+        corner = torch.rand(b, 2, generator=g, dtype=torch.float64).tolist()
+        mine = range(b)[part] if part is not None else range(b)
+        out = torch.empty(len(mine), 1, c, c, dtype=torch.float32)
         self.last_names = []
-        for i in range(b):
-            name, img = self._draw_image(pool[idx[i]])
+        for j, i in enumerate(mine):
+            name, img = self._draw_image(pool, idx[i])
             h, w = img.shape
-            top = int(torch.randint(h - c + 1, (1,), generator=g))
-            left = int(torch.randint(w - c + 1, (1,), generator=g))
+            top = min(int(corner[i][0] * (h - c + 1)), h - c)
+            left = min(int(corner[i][1] * (w - c + 1)), w - c)
             crop = img[top:top + c, left:left + c]
             dims = [d for d, f in zip((0, 1), flip[i]) if f and self.flips]  # (vertical, horizontal)
-            out[i, 0] = crop.flip(dims) if dims else crop
+            out[j, 0] = crop.flip(dims) if dims else crop
             self.last_names.append(name)
         return out
 

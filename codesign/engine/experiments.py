@@ -14,7 +14,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from codesign.config import (apply_debug_overrides, check_logging, check_seed, command_line_keys, resolve_device,
                              set_threads)
-from codesign.engine import io, rundir
+from codesign.engine import distributed, io, rundir
 from codesign.errors import ConfigError, OutputWriteError
 
 log = logging.getLogger("codesign")
@@ -45,6 +45,10 @@ TASK_KEYS: dict[str, tuple[str, ...]] = {
     "joint": ("codesign",),
     "mask_search": ("search",),
 }
+
+
+# Experiments that train networks and so run data-parallel under torchrun; the others run in one process.
+DISTRIBUTED_TASKS = ("baseline", "joint")
 
 
 def check_root_keys(cfg: DictConfig, task: str) -> None:
@@ -98,11 +102,17 @@ def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None
     """Validate the common keys, apply ``debug`` shrinking, then run ``cfg.task``; config errors exit with 2, an
     output file that cannot be written with 1 (the earlier file is unchanged)."""
     run_dir = Path(run_dir) if run_dir is not None else _run_dir()
+    ctx = distributed.current()
+    if not ctx.is_main:  # rank 0 reports progress; the others only warnings (into <job>.rank<k>.log)
+        logging.getLogger("codesign").setLevel(logging.WARNING)
     try:
         task = cfg.get("task")
         if task not in EXPERIMENTS:
             raise ConfigError("task", task, "choose an experiment with +experiment=NAME; available: "
                               + ", ".join(sorted(EXPERIMENTS)))
+        if ctx.enabled and task not in DISTRIBUTED_TASKS:
+            raise ConfigError("task", task, f"does not train networks and runs in one process: start it without "
+                              f"torchrun (training experiments under torchrun: {', '.join(DISTRIBUTED_TASKS)})")
         check_root_keys(cfg, task)
         applied = apply_debug_overrides(cfg, explicit_keys())
         if applied:
@@ -110,14 +120,18 @@ def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None
         seed = check_seed(cfg)
         check_logging(cfg)
         threads = set_threads(cfg.get("threads"))
-        device = resolve_device(cfg.get("device", "auto"))
-        io.check_writable_dir(run_dir)  # before any work: never an hour of training, then a failed write
+        device = resolve_device(cfg.get("device", "auto"), ctx.local_rank if ctx.enabled else None)
+        if ctx.is_main:  # the other ranks write nothing
+            io.check_writable_dir(run_dir)  # before any work: never an hour of training, then a failed write
         torch.manual_seed(seed)
-        log.info("task=%s device=%s threads=%d run_dir=%s", task, device, threads, run_dir)
+        log.info("task=%s device=%s threads=%d run_dir=%s%s", task, device, threads, run_dir,
+                 f" ranks={ctx.world} ({distributed.backend_name()})" if ctx.enabled else "")
         return experiment_function(task)(cfg, run_dir, device)
     except ConfigError as err:
-        _discard_empty_run_dir(run_dir)
-        print(f"codesign: configuration error: {err}", file=sys.stderr)
+        distributed.settle(ctx)  # the same error stops every rank: let the others finish creating the run dir
+        if ctx.is_main:
+            _discard_empty_run_dir(run_dir)
+            print(f"codesign: configuration error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
     except OutputWriteError as err:
         print(f"codesign: output error: {err}", file=sys.stderr)

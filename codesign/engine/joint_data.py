@@ -12,15 +12,17 @@ from __future__ import annotations
 
 import torch
 
+from codesign.engine.distributed import SINGLE, DistContext
 from codesign.engine.pipeline import RestorationData, mask_psf
 
 
 class JointData(RestorationData):
     """RestorationData whose mask is trainable (``mask_trainable``); see the module docstring."""
 
-    def __init__(self, cfg, device: torch.device, seed: int):
-        super().__init__(cfg, device, seed)
+    def __init__(self, cfg, device: torch.device, seed: int, dist: DistContext = SINGLE):
+        super().__init__(cfg, device, seed, dist)
         self.mask_trainable = False
+        self.mask_forward = self.mask  # called for the phase; the trainer puts a DDP wrapper here under torchrun
 
     def set_mask_trainable(self, flag: bool) -> None:
         self.mask_trainable = bool(flag)
@@ -32,7 +34,7 @@ class JointData(RestorationData):
         (the window PSF) with their graphs, and ``sensor`` depends on the mask."""
         if not self.mask_trainable:
             return super().train_batch(step)
-        state, _, otf = mask_psf(self.system, self.mask, self.sim, self.device)  # with the mask's graph
+        state, _, otf = mask_psf(self.system, self.mask, self.sim, self.device, self.mask_forward())  # with graph
         out = self.simulate(*self.train_draw(step), state=state)
         out["irradiance"] = out["irradiance"].detach()
         out["otf"], out["psf"] = otf, state.psf

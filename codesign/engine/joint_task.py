@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from codesign.engine import io, plots
+from codesign.engine import distributed, io, plots
 from codesign.engine.checkpoint import CHECKPOINT_NAME
 from codesign.engine.joint_data import JointData
 from codesign.engine.joint_trainer import JointTrainer
@@ -24,8 +24,8 @@ from codesign.engine.lsr_constraint import CodesignSpec
 from codesign.engine.monitor import (MaskMonitor, open_writer, published_mask_config, published_reference,
                                      tensorboard_enabled)
 from codesign.engine.pipeline import RestorationData
-from codesign.engine.restoration_tasks import (_common_metrics, _container, build_model, eval_settings,
-                                               loss_weights, resume_if_possible, run_evaluation)
+from codesign.engine.restoration_tasks import (_common_metrics, _container, build_model, distributed_metrics,
+                                               eval_settings, loss_weights, resume_if_possible, run_evaluation)
 from codesign.engine.train_spec import TrainerSpec
 from codesign.engine.trainer import RestorationTrainer, init_weights
 from codesign.errors import require_number
@@ -38,9 +38,10 @@ PUBLISHED_DIR = "published"
 
 def _train(trainer, cfg, run_dir: Path, log_every: int, label: str) -> dict:
     resume_if_possible(trainer, cfg, run_dir, extra_keys=("codesign",))
-    trainer.writer = open_writer(run_dir, tensorboard_enabled(cfg), purge_step=trainer.step)
+    main = trainer.dist.is_main  # rank 0 alone writes events and validates
+    trainer.writer = open_writer(run_dir, tensorboard_enabled(cfg) and main, purge_step=trainer.step)
     start = {}
-    if trainer.step == 0:  # the untrained network's validation scores: the reference for "it learned"
+    if trainer.step == 0 and main:  # the untrained network's validation scores: the reference for "it learned"
         start = {f"{k.replace('/', '_')}_start": v for k, v in trainer._validate(images=True).items()}
     t0 = time.perf_counter()
     log.info("%s: training from step %d to %d", label, trainer.step, trainer.spec.steps)
@@ -98,13 +99,14 @@ def run_joint(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     torch.manual_seed(seed)
     model = build_model(cfg)
     init_weights(model)
-    data = JointData(cfg, device, seed)
+    ctx = distributed.current()
+    data = JointData(cfg, device, seed, ctx)
     system = data.system
     reference = published_reference(_container(cfg.mask), system)
     monitor = MaskMonitor(system, reference, cs.mtf_band, cs.lsr_p)
     lsr_max = cs.lsr_max if cs.lsr_max is not None else monitor.reference[0]["lsr_smooth"]
     trainer = JointTrainer(model, data, spec, weights, run_dir, device, _container(cfg), None, seed, cs, lsr_max,
-                           monitor)
+                           monitor, ctx)
     common = _common_metrics(cfg, model, device)
     log.info("joint: %s (%s) generators %.2fM parameters; mask %s (%d parameters, lr %.3g, frozen for %d steps); "
              "lsr_max %.4g (%s); %d steps, batch %d, %d px padded to %d", model.spec.variant, model.spec.size,
@@ -116,6 +118,11 @@ def run_joint(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     data.set_mask_trainable(False)
     data.invalidate_psf()
     steps = trainer.step
+    # every rank trains the published comparison too; evaluations and files then come from rank 0 alone
+    published = _published_train(cfg, published_cfg, spec, weights, steps, seed, device, run_dir, log_every, ctx) \
+        if cs.compare_published else None
+    if not ctx.is_main:
+        return None
 
     with torch.no_grad():
         psf0 = system.uncoded_psf().cpu().numpy()
@@ -128,7 +135,8 @@ def run_joint(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
                 "analytic circular pupil": circular_mtf(torch.from_numpy(freqs)).numpy()},
         cs.mtf_band, f"radial MTF after {steps} joint steps"))
 
-    metrics = {**common, "steps": steps, **timing, "lsr_max": lsr_max,
+    metrics = {**common, **distributed_metrics(trainer), "mask_max_rank_difference": trainer.mask_diff,
+               "steps": steps, **timing, "lsr_max": lsr_max,
                "lsr_constraint_met": learned["lsr_smooth"] <= lsr_max * (1 + cs.guard_tolerance),
                "skipped_updates": trainer.skipped, "mask_rollbacks": trainer.mask_rollbacks,
                "guard_shortened": trainer.constraint.shortened, "guard_undone": trainer.constraint.undone,
@@ -139,9 +147,8 @@ def run_joint(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     metrics["evaluation"] = joint_eval["evaluation"]
     metrics["evaluation_scenes"] = joint_eval["evaluation_scenes"]
 
-    if cs.compare_published:
-        metrics.update(_published_run(cfg, published_cfg, spec, weights, steps, seed, device, run_dir, ev,
-                                      log_every, metrics["evaluation"]))
+    if published is not None:
+        metrics.update(_published_evaluation(*published, run_dir, ev, seed, metrics["evaluation"]))
     io.write_json(run_dir / "metrics.json", metrics)
     _hparams(trainer.writer, cfg, metrics)
     log.info("joint: lsr %.4g (published %.4g), mtf_mean %.4g (published %.4g); psnr %s", metrics["lsr"],
@@ -152,9 +159,9 @@ def run_joint(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     return metrics.get("psnr", float("nan"))
 
 
-def _published_run(cfg, published_cfg, spec, weights, steps, seed, device, run_dir, ev, log_every,
-                   joint_eval) -> dict:
-    """Train an SGAN on the published mask with the same steps, seed and data draws, and evaluate it."""
+def _published_train(cfg, published_cfg, spec, weights, steps, seed, device, run_dir, log_every, ctx) -> tuple:
+    """Train an SGAN on the published mask with the same steps, seed and data draws: (model, trainer, data,
+    timing) for _published_evaluation."""
     sub = run_dir / PUBLISHED_DIR
     pub_cfg = OmegaConf.create(_container(cfg))
     pub_cfg.mask = published_cfg
@@ -163,9 +170,15 @@ def _published_run(cfg, published_cfg, spec, weights, steps, seed, device, run_d
     torch.manual_seed(seed)  # the same initial weights as the joint network
     model = build_model(pub_cfg)
     init_weights(model)
-    data = RestorationData(pub_cfg, device, seed)
-    trainer = RestorationTrainer(model, data, pub_spec, weights, sub, device, _container(pub_cfg), None, seed)
+    data = RestorationData(pub_cfg, device, seed, ctx)
+    trainer = RestorationTrainer(model, data, pub_spec, weights, sub, device, _container(pub_cfg), None, seed, ctx)
     timing = _train(trainer, pub_cfg, sub, log_every, "published mask")
+    return model, trainer, data, timing
+
+
+def _published_evaluation(model, trainer, data, timing: dict, run_dir, ev, seed, joint_eval) -> dict:
+    """Evaluate the published-mask SGAN (rank 0) and compare it with the joint one."""
+    sub = run_dir / PUBLISHED_DIR
     result = run_evaluation(ev, model, trainer.restoring_modules(), data, sub, seed)
     io.write_json(sub / "metrics.json", {"steps": trainer.step, **timing, **result})
     if trainer.writer is not None:

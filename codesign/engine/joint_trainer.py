@@ -6,6 +6,11 @@ cost what a frozen-mask step costs). The generator objective gains the LSR penal
 the mask is projected and the feasibility guard keeps its smooth LSR at or below lsr_max. A non-finite loss or
 gradient skips the whole update (network and mask); non-finite mask parameters after an update restore the
 last good ones.
+
+Under torchrun the mask is one more DistributedDataParallel module: every rank holds a replica, its gradient is
+averaged with the networks', and the identical updates and guard decisions keep the replicas identical; every
+logging step checks that (largest difference to rank 0, logged as distributed/mask_max_difference, reported in
+metrics.json as mask_max_rank_difference, and repaired from rank 0 should it ever be non-zero).
 """
 from __future__ import annotations
 
@@ -13,6 +18,7 @@ import logging
 
 import torch
 
+from codesign.engine import distributed
 from codesign.engine.joint_data import JointData
 from codesign.engine.lsr_constraint import CodesignSpec, LSRConstraint, restore, snapshot
 from codesign.engine.trainer import RestorationTrainer
@@ -25,11 +31,17 @@ class JointTrainer(RestorationTrainer):
 
     def __init__(self, model, data: JointData, spec, weights, run_dir, device, config: dict, writer=None,
                  seed: int = 0, codesign: CodesignSpec | None = None, lsr_max: float | None = None,
-                 monitor=None):
+                 monitor=None, dist: distributed.DistContext = distributed.SINGLE):
         self.cs = codesign or CodesignSpec()  # needed by the optimizer hooks the base constructor calls
         self.mask = data.mask
         self.mask_params = list(self.mask.parameters())
-        super().__init__(model, data, spec, weights, run_dir, device, config, writer, seed)
+        super().__init__(model, data, spec, weights, run_dir, device, config, writer, seed, dist)
+        if self.mask_params:
+            trainable = data.mask_trainable
+            data.set_mask_trainable(True)  # DDP registers the parameters that require a gradient when wrapping
+            data.mask_forward = distributed.wrap(self.mask, dist, device)
+            data.set_mask_trainable(trainable)
+        self.mask_diff = 0.0
         self.constraint = LSRConstraint(self.cs, data.system, lsr_max)
         self.monitor = monitor
         self.lsr = self.constraint.measure(self.mask)
@@ -66,8 +78,10 @@ class JointTrainer(RestorationTrainer):
     def extra_parameters(self, opt) -> list:
         return self.mask_params if opt is self.opt_g and self.data.mask_trainable else []
 
-    def after_update(self, opt) -> None:
+    def after_update(self, opt, applied: torch.Tensor) -> None:
         if opt is not self.opt_g or not self.data.mask_trainable:
+            return
+        if not bool(applied):  # the guard below decides on the host anyway: the one sync of a mask step
             return
         if not all(bool(torch.isfinite(p).all()) for p in self.mask_params):
             restore(self.mask, self._before)
@@ -78,7 +92,22 @@ class JointTrainer(RestorationTrainer):
         self._step_info = {"mask_step_kept": kept}
         self.data.invalidate_psf()
 
-    # ---- logging ------------------------------------------------------------------------------------------
+    # ---- replicas and logging ------------------------------------------------------------------------------
+    def replicated_parameters(self) -> list:
+        return super().replicated_parameters() + self.mask_params
+
+    def _log_step(self, terms: dict, t0: float, start: int) -> None:
+        if self.dist.enabled:
+            diff = distributed.replica_divergence(self.mask_params, self.dist)
+            self.mask_diff = max(self.mask_diff, diff)
+            if diff > 0:
+                log.warning("step %d: mask parameters differed between ranks by up to %.3g: reset to rank 0's",
+                            self.step, diff)
+                self.data.invalidate_psf()
+            if self.writer is not None:
+                self.writer.add_scalar("distributed/mask_max_difference", diff, self.step)
+        super()._log_step(terms, t0, start)
+
     def _log_scalars(self, terms: dict) -> None:
         super()._log_scalars(terms)
         if self.writer is None:

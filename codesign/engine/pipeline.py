@@ -10,6 +10,7 @@ from omegaconf import DictConfig
 
 from codesign.data.params import preset_params, sample_scene_params
 from codesign.data.scenes import SceneSampler, build_scene_sampler, build_scene_source
+from codesign.engine.distributed import SINGLE, DistContext
 from codesign.engine.simulate_task import build_simulator
 from codesign.errors import ConfigError
 from codesign.models.wiener import otf_from_kernel
@@ -26,10 +27,11 @@ def check_padding(sim) -> None:
                           f"{s.image_size} + {k} - 1 = {need} at this pitch, so that deconvolution does not wrap")
 
 
-def mask_psf(system, mask, sim, device):
+def mask_psf(system, mask, sim, device, phase: torch.Tensor | None = None):
     """(PSF state, network-pitch kernel, OTF on the padded grid) of the mask's current parameters; all three carry
-    the mask's graph when gradients are enabled and its parameters require them."""
-    state = psf_state(system, mask.phase())
+    the mask's graph when gradients are enabled and its parameters require them. ``phase``: the mask's phase when
+    the caller computed it (through a DistributedDataParallel wrapper of the mask)."""
+    state = psf_state(system, mask.phase() if phase is None else phase)
     kernel = sim.kernel(state)
     return state, kernel, otf_from_kernel(kernel, sim.sensor.padded_size).to(device)
 
@@ -40,15 +42,24 @@ def frozen_psf(system, mask, sim, device):
         return mask_psf(system, mask, sim, device)
 
 
+def _to_device(x: torch.Tensor, device: torch.device) -> torch.Tensor:
+    if device.type == "cuda" and x.device.type == "cpu":
+        return x.pin_memory().to(device, non_blocking=True)
+    return x.to(device)
+
+
 class RestorationData:
     """Simulated training / validation / evaluation batches for a frozen mask.
 
     Batch dict: sensor (B,1,P,P) normalized input, irradiance (B,1,P,P) target I_b, scene (B,1,P,P) target b,
     saturated and laser maps (B,1,n,n). P = data.padded_size, n = data.image_size.
+
+    ``dist``: under torchrun a training batch is this rank's share of the global batch of data.batch_size (see
+    codesign/engine/distributed.py); validation and evaluation batches are whole (rank 0 runs those).
     """
 
-    def __init__(self, cfg: DictConfig, device: torch.device, seed: int):
-        self.cfg, self.device, self.seed = cfg, device, seed
+    def __init__(self, cfg: DictConfig, device: torch.device, seed: int, dist: DistContext = SINGLE):
+        self.cfg, self.device, self.seed, self.dist = cfg, device, seed, dist
         self.system, self.mask, self.sim = build_simulator(cfg, device, torch.float32)
         check_padding(self.sim)
         self.source = build_scene_source(cfg.data)
@@ -56,6 +67,9 @@ class RestorationData:
         self.param_gen = torch.Generator().manual_seed(seed + 1)
         self.sampler = build_scene_sampler(cfg.data, "train", self.scene_gen, crop_size=self.sim.scene_size,
                                            source=self.source)
+        if self.sampler.batch_size % dist.world:
+            raise ConfigError("data.batch_size", self.sampler.batch_size, f"must be divisible by the number of "
+                              f"processes ({dist.world}): it is the global batch, split evenly across the ranks")
         self._psf = None
         self.refresh_psf()
 
@@ -93,12 +107,15 @@ class RestorationData:
     def simulate(self, scenes: torch.Tensor, params, seed: int, state=None) -> dict:
         """Simulate a batch through the current mask's frozen PSF (no gradient, kernels cached), or through
         ``state``, a PSFState carrying the mask's graph (gradient kept, kernels recomputed)."""
-        params = params.to(self.device, torch.float32)
+        # the parameters stay on the host, where the simulator makes its decisions; the scenes go to the device
+        # from page-locked memory without waiting for it
+        params = params.to(dtype=torch.float32)
+        scenes = _to_device(scenes, self.device)
         if state is None:
             with torch.no_grad():
-                out = self.sim(scenes.to(self.device), params, self.state, seed=seed, mask_key=self.key)
+                out = self.sim(scenes, params, self.state, seed=seed, mask_key=self.key)
         else:
-            out = self.sim(scenes.to(self.device), params, state, seed=seed, mask_key=None)
+            out = self.sim(scenes, params, state, seed=seed, mask_key=None)
         out["read_noise_mean_e"] = params.read_noise_mean_e  # the black level a classical pipeline subtracts
         return out
 
@@ -108,9 +125,15 @@ class RestorationData:
                                    sensor_height_m=side, focal_length_m=self.sim.optics.focal_length_m)
 
     def train_draw(self, step: int) -> tuple:
-        """(scenes, parameters, noise seed) of training step ``step``: random crops and Sec. 6.2 parameters."""
-        scenes = self.sampler.sample()
-        return scenes, self._params(scenes.shape[0], self.param_gen), self.seed * 1_000_003 + step
+        """(scenes, parameters, noise seeds) of training step ``step``: random crops, Sec. 6.2 parameters and one
+        noise seed per sample. Under torchrun the whole global batch is drawn on every rank (scalars) and this
+        rank's share simulated, so the batches do not depend on the number of processes."""
+        b = self.sampler.batch_size
+        part = self.dist.shard(b)
+        scenes = self.sampler.sample(part)
+        params = self._params(b, self.param_gen).part(part)
+        base = (self.seed * 1_000_003 + step) * 65_536
+        return scenes, params, [base + i for i in range(b)[part]]
 
     def train_batch(self, step: int) -> dict:
         """The batch of training step ``step`` (see train_draw)."""

@@ -11,7 +11,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from codesign import quality
 from codesign.data.params import LASER_STRENGTHS, PRESETS, ROBUSTNESS_STAGES, _laser_name
-from codesign.engine import io
+from codesign.engine import distributed, io
 from codesign.engine.checkpoint import (CHECKPOINT_NAME, check_trained, load_checkpoint, load_error,
                                        load_module_state, state_mismatch)
 from codesign.engine.evaluate import Evaluator, conditions, evaluate, flat_summary
@@ -87,6 +87,13 @@ def run_evaluation(ev: dict, model, generators, data: RestorationData, run_dir: 
             "perceptual_metrics": perceptual, **flat_summary(results)}
 
 
+def distributed_metrics(trainer) -> dict:
+    """How a run was spread over processes, and the largest parameter difference between ranks found."""
+    ctx = trainer.dist
+    return {"world_size": ctx.world, "global_batch": int(trainer.data.sampler.batch_size),
+            "parameters_max_rank_difference": trainer.replica_diff}
+
+
 def _common_metrics(cfg, model, device) -> dict:
     return {"variant": model.spec.variant, "size": model.spec.size, "device": str(device),
             "threads": torch.get_num_threads(), "torch": torch.__version__,
@@ -134,7 +141,8 @@ def resume_if_possible(trainer, cfg: DictConfig, run_dir: Path, extra_keys: tupl
         except (RuntimeError, KeyError, ValueError, TypeError, IndexError) as err:
             raise load_error("trainer.resume", path, "cannot be resumed: its state does not fit this run's model "
                              "and optimizers", err) from None
-        log.info("resumed from %s at step %d", path, trainer.step)
+        log.info("resumed from %s at step %d (written by %d process(es), resumed by %d)", path, trainer.step,
+                 int(state.get("world_size", 1)), trainer.dist.world)
 
 
 def apply_checkpoint_mask(mask, state: dict, path="checkpoint", key: str = "checkpoint") -> None:
@@ -153,11 +161,12 @@ def run_baseline(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
                                integer=True)
     model = build_model(cfg)
     init_weights(model)
-    data = RestorationData(cfg, device, seed)
-    trainer = RestorationTrainer(model, data, spec, weights, run_dir, device, _container(cfg), None, seed)
+    ctx = distributed.current()
+    data = RestorationData(cfg, device, seed, ctx)
+    trainer = RestorationTrainer(model, data, spec, weights, run_dir, device, _container(cfg), None, seed, ctx)
     resume_if_possible(trainer, cfg, run_dir)
-    # purge_step drops the events a killed run logged after its last checkpoint
-    trainer.writer = open_writer(run_dir, tensorboard_enabled(cfg), purge_step=trainer.step)
+    # purge_step drops the events a killed run logged after its last checkpoint; rank 0 alone writes
+    trainer.writer = open_writer(run_dir, tensorboard_enabled(cfg) and ctx.is_main, purge_step=trainer.step)
     common = _common_metrics(cfg, model, device)
     log.info("%s (%s): generators %.2fM parameters, critics %.2fM; %d steps, batch %d, %d px padded to %d; "
              "VGG loss %s", model.spec.variant, model.spec.size, common["parameters_generators"] / 1e6,
@@ -166,8 +175,10 @@ def run_baseline(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     t0 = time.perf_counter()
     history = trainer.fit(log_every)
     seconds = time.perf_counter() - t0
+    if not ctx.is_main:  # rank 0 evaluates and writes
+        return None
     first, last = (history[0], history[-1]) if history else ({}, {})
-    metrics = {**common, "steps": trainer.step, "seconds": seconds,
+    metrics = {**common, **distributed_metrics(trainer), "steps": trainer.step, "seconds": seconds,
                "skipped_updates": trainer.skipped, "vgg_loss": trainer.vgg_status,
                "loss_first": first, "loss_last": last, **getattr(trainer, "last_val", {}),
                "checkpoint": str(run_dir / CHECKPOINT_NAME)}

@@ -63,7 +63,35 @@ except ImportError:  # pragma: no cover - Hydra < 1.1
 
 class OutputDirCheck(Callback):
     def on_run_start(self, config, **kwargs) -> None:
-        _check(config, "hydra.run.dir")
+        from codesign.engine import distributed
 
-    def on_multirun_start(self, config, **kwargs) -> None:
+        ctx = distributed.current()
+        if ctx.is_main:  # under torchrun rank 0 alone writes, so it alone checks and records what was there
+            _check(config, "hydra.run.dir")
+        # ... before any other rank's Hydra creates the shared folder (which would look like an earlier run's)
+        distributed.barrier(ctx)
+
+    def on_multirun_start(self, config, **kwargs) -> None:  # runs before Hydra builds the launcher
+        _check_launcher(config)
         _check(config, "hydra.sweep.dir")
+
+
+# launcher class -> the pip package that provides it (the optional extra: pip install '.[launchers]')
+LAUNCHER_PACKAGES = {"hydra_plugins.hydra_joblib_launcher": "hydra-joblib-launcher",
+                     "hydra_plugins.hydra_submitit_launcher": "hydra-submitit-launcher"}
+
+
+def _check_launcher(config) -> None:
+    """A launcher config whose plugin is not installed: one line naming the package, not Hydra's traceback."""
+    import importlib.util
+
+    target = str(OmegaConf.select(config, "hydra.launcher._target_") or "")
+    module = target.rsplit(".", 1)[0]
+    for prefix, package in LAUNCHER_PACKAGES.items():
+        if module.startswith(prefix) and importlib.util.find_spec(prefix) is None:
+            choice = OmegaConf.select(config, "hydra.runtime.choices")
+            name = choice.get("hydra/launcher") if choice is not None else None
+            print(f"codesign: configuration error: hydra/launcher = {name or target}: needs the optional plugin "
+                  f"{package}: pip install {package} (or pip install '.[launchers]' in the repository)",
+                  file=sys.stderr)
+            raise SystemExit(2)

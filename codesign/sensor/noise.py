@@ -17,27 +17,48 @@ import torch
 TERMS = ("photon", "dark", "read", "quant")
 
 
-class NoiseStreams:
-    """One torch.Generator per noise term, seeded from a base seed: streams are independent of which run."""
+def _stream_seed(seed: int, term: int) -> int:
+    return (int(seed) * 1_000_003 + 7919 * (term + 1)) % (2**63 - 1)
 
-    def __init__(self, seed: int, device: torch.device):
+
+class NoiseStreams:
+    """One torch.Generator per noise term, seeded from a base seed: streams are independent of which run.
+
+    ``seed``: one int for the whole batch, or a sequence of ints, one per sample: then every sample draws from
+    its own streams, so a sample's noise does not depend on which batch (or which rank's share of a distributed
+    batch) it is simulated in.
+    """
+
+    def __init__(self, seed, device: torch.device):
+        self.per_sample = not isinstance(seed, int) and hasattr(seed, "__len__")
+        seeds = [int(s) for s in seed] if self.per_sample else [int(seed)]
         self.gens = {}
         for i, term in enumerate(TERMS):
-            g = torch.Generator(device=device)
-            g.manual_seed((int(seed) * 1_000_003 + 7919 * (i + 1)) % (2**63 - 1))
-            self.gens[term] = g
+            self.gens[term] = [torch.Generator(device=device).manual_seed(_stream_seed(s, i)) for s in seeds]
+
+    def _draw(self, term: str, like: torch.Tensor, draw) -> torch.Tensor:
+        gens = self.gens[term]
+        if not self.per_sample:
+            return draw(like.shape, gens[0])
+        if like.shape[0] != len(gens):
+            raise ValueError(f"{len(gens)} per-sample noise seeds for a batch of {like.shape[0]}")
+        return torch.cat([draw((1,) + tuple(like.shape[1:]), g) for g in gens])
 
     # Draws are made in float64 and cast, so a float32 run and its float64 reference see the same noise.
     def normal(self, term: str, like: torch.Tensor) -> torch.Tensor:
-        return torch.randn(like.shape, generator=self.gens[term], dtype=torch.float64,
-                           device=like.device).to(like.dtype)
+        return self._draw(term, like, lambda shape, g: torch.randn(
+            shape, generator=g, dtype=torch.float64, device=like.device)).to(like.dtype)
 
     def uniform(self, term: str, like: torch.Tensor) -> torch.Tensor:
-        return (torch.rand(like.shape, generator=self.gens[term], dtype=torch.float64, device=like.device)
-                - 0.5).to(like.dtype)
+        return (self._draw(term, like, lambda shape, g: torch.rand(
+            shape, generator=g, dtype=torch.float64, device=like.device)) - 0.5).to(like.dtype)
 
     def poisson(self, term: str, rate: torch.Tensor) -> torch.Tensor:
-        return torch.poisson(rate, generator=self.gens[term])
+        if not self.per_sample:
+            return torch.poisson(rate, generator=self.gens[term][0])
+        if rate.shape[0] != len(self.gens[term]):
+            raise ValueError(f"{len(self.gens[term])} per-sample noise seeds for a batch of {rate.shape[0]}")
+        return torch.cat([torch.poisson(rate[i:i + 1], generator=g) for i, g in enumerate(self.gens[term])])
 
 
 def photons(mu: torch.Tensor, c1: torch.Tensor, c2: torch.Tensor, scale: float, streams: NoiseStreams,

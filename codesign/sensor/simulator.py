@@ -170,8 +170,8 @@ class SensorSimulator(torch.nn.Module):
         kd = kd if kd is not None else self._kernels(state, level, None)
         dev = state.psf.device
         steps = torch.arange(ks, dtype=torch.float64)
-        ys = torch.stack([(r0 + steps - pos[0]) * pitch for _, r0, _, pos, _ in todo]).to(dev)
-        xs = torch.stack([(c0 + steps - pos[1]) * pitch for _, _, c0, pos, _ in todo]).to(dev)
+        ys = torch.stack([(r0 + steps - pos[0]) * pitch for _, r0, _, pos, _ in todo]).to(dev, non_blocking=True)
+        xs = torch.stack([(c0 + steps - pos[1]) * pitch for _, _, c0, pos, _ in todo]).to(dev, non_blocking=True)
         # One product per footprint (a batched product would round differently with the batch's composition and
         # break the bit-identity of the skip paths); each is normalized to the window's energy, then cropped.
         # (Ringing of the truncated window can dip below 0, which is not light: clamped before normalizing.)
@@ -185,8 +185,9 @@ class SensorSimulator(torch.nn.Module):
                 continue
             r_lo, r_hi, c_lo, c_hi = max(r0, 0), min(r0 + ks, n), max(c0, 0), min(c0 + ks, n)
             patch = foot[j][r_lo - r0: r_hi - r0, c_lo - c0: c_hi - c0]
-            block = (alpha_l[i].to(device=dev, dtype=torch.float64) * patch / norm).to(dtype)
-            out = out.index_put((torch.tensor(i), torch.tensor(0), torch.arange(r_lo, r_hi, device=dev)[:, None],
+            block = (alpha_l[i].to(device=dev, dtype=torch.float64, non_blocking=True) * patch / norm).to(dtype)
+            at = torch.full((), i, dtype=torch.long, device=dev)  # made on the device: no host copy to wait for
+            out = out.index_put((at, torch.zeros_like(at), torch.arange(r_lo, r_hi, device=dev)[:, None],
                                  torch.arange(c_lo, c_hi, device=dev)[None, :]), block, accumulate=True)
         return out
 
@@ -210,7 +211,9 @@ class SensorSimulator(torch.nn.Module):
             raise ValueError(f"scene must have shape (B, 1, {self.scene_size}, {self.scene_size}), got "
                              f"{tuple(scene.shape)}")
         dtype, dev = scene.dtype, scene.device
-        col = lambda v: v.to(dtype=dtype, device=dev).reshape(-1, 1, 1, 1)  # noqa: E731
+        # params may stay on the host (the training data keeps them there): every decision below reads them
+        # there, and values reach the device without waiting for it (no host-device sync in a training step)
+        col = lambda v: v.to(dtype=dtype, device=dev, non_blocking=True).reshape(-1, 1, 1, 1)  # noqa: E731
         c = self.coarse
         kc = self._kernels(state, c, mask_key)
         scene_mean = scene.mean(dim=(-2, -1), keepdim=True)
@@ -244,13 +247,17 @@ class SensorSimulator(torch.nn.Module):
         s = self.sensor
         w2 = scale**2
         mu_p = r * (s.full_well_e / s.quantum_efficiency)
-        skip = self.skip_unneeded
-        omega = photons(mu_p, col(sp.c1), col(sp.c2), scale, streams, skip)
+        # which terms to skip is decided on ``sp`` where it lives (the host for training batches), the terms
+        # themselves run unconditionally (skip=False) on the device
+        needed = lambda *v: not self.skip_unneeded or any(bool((t != 0).any()) for t in v)  # noqa: E731
+        omega = photons(mu_p, col(sp.c1), col(sp.c2), scale, streams, False) if needed(sp.c1, sp.c2) else mu_p
         e = s.quantum_efficiency * omega
-        dark = dark_current(col(sp.dark_current_mean_e), e, 1.0 / w2, streams, skip)
-        if dark is not None:
-            e = e + dark
-        e = e + read_noise(col(sp.read_noise_mean_e), col(sp.read_noise_std_e), e, scale, streams, skip)
+        if needed(sp.dark_current_mean_e):
+            e = e + dark_current(col(sp.dark_current_mean_e), e, 1.0 / w2, streams, False)
+        if needed(sp.read_noise_std_e):
+            e = e + read_noise(col(sp.read_noise_mean_e), col(sp.read_noise_std_e), e, scale, streams, False)
+        else:
+            e = e + col(sp.read_noise_mean_e)
         sat = e >= s.full_well_e
         e = e.clamp(0.0, s.full_well_e)  # full well; zero gradient where saturated
         dn = s.gain_dn_per_e * e

@@ -5,42 +5,11 @@ import logging
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
-from codesign.engine.joint_data import JointData
-from codesign.engine.monitor import published_mask_config
 from codesign.engine.joint_trainer import JointTrainer
 from codesign.engine.lsr_constraint import CodesignSpec, LSRConstraint, snapshot
-from codesign.engine.restoration_tasks import build_model, loss_weights
-from codesign.engine.train_spec import TrainerSpec
-from codesign.engine.trainer import init_weights
 from codesign.errors import ConfigError
-from codesign.optics import build_mask
-from tests.conftest import REPO_ROOT
-from tests.engine._util import TINY
-
-CPU = torch.device("cpu")
-
-
-def joint_cfg(*overrides: str):
-    with initialize_config_dir(config_dir=str(REPO_ROOT / "conf"), version_base="1.3"):
-        return compose("config", overrides=["+experiment=joint", *TINY, *overrides])
-
-
-def joint_trainer(tmp_path, *overrides: str, seed: int = 0, lsr_max: float | None = None, **codesign) -> JointTrainer:
-    cfg = joint_cfg(*overrides)
-    torch.manual_seed(seed)
-    model = build_model(cfg)
-    init_weights(model)
-    data = JointData(cfg, CPU, seed)
-    spec = TrainerSpec.from_config(dict(cfg.trainer)).replace(steps=4, val_every=0, checkpoint_every=0,
-                                                              image_every=0)
-    cs = CodesignSpec.from_config({**dict(cfg.codesign), "warmup_fraction": 0.0, **codesign})
-    if lsr_max is None:
-        ref = build_mask(published_mask_config(dict(cfg.mask)), data.system.grid,
-                         data.system.spec.aperture_diameter_m)
-        lsr_max = LSRConstraint(cs, data.system, 1.0).measure(ref)
-    return JointTrainer(model, data, spec, loss_weights(cfg), tmp_path, CPU, {"test": 1}, None, seed, cs, lsr_max)
+from tests.engine._util import joint_trainer
 
 
 @pytest.mark.parametrize("mask", ["halfring", "freeform"])
@@ -136,8 +105,9 @@ def test_nan_loss_skips_the_step_and_leaves_mask_and_network_untouched(tmp_path,
     monkeypatch.setattr(JointTrainer, "generator_losses", poisoned)
     with caplog.at_level(logging.WARNING, logger="codesign.train"):
         terms = tr.train_step()
+        tr.report_skips()
     assert terms["generator_skipped"] == 1.0 and tr.skipped == 1
-    assert "non-finite loss nan, update skipped" in caplog.text
+    assert "(1 non-finite loss, 0 non-finite gradient)" in caplog.text
     assert all(torch.equal(a, b) for a, b in zip(mask_before, snapshot(tr.mask)))
     assert all(torch.equal(a, b) for a, b in zip(net_before, tr.model.g1.parameters()))
 
@@ -150,8 +120,9 @@ def test_nan_mask_gradient_skips_and_nan_mask_after_update_restores_the_last_goo
     hook = tr.mask.r.register_hook(lambda g: g * float("inf"))
     with caplog.at_level(logging.WARNING, logger="codesign.train"):
         terms = tr.train_step()
+        tr.report_skips()
     hook.remove()
-    assert terms["generator_skipped"] == 1.0 and "non-finite gradient, update skipped" in caplog.text
+    assert terms["generator_skipped"] == 1.0 and "(0 non-finite loss, 1 non-finite gradient)" in caplog.text
     assert all(torch.equal(a, b) for a, b in zip(good, snapshot(tr.mask)))
     # an update that leaves NaN in the mask (e.g. a corrupted optimizer state): rolled back
     orig_step = tr.opt_g.step

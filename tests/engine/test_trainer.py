@@ -78,12 +78,21 @@ def test_ema_is_exponential_average():
     assert torch.allclose(ema.shadow[0].weight, 0.9 * old + 0.1 * (old + 1.0))
 
 
-def test_non_finite_loss_skips_update(tmp_path):
+def test_non_finite_loss_skips_update_on_the_device_and_reports_it_at_logging(tmp_path, caplog):
     tr = tiny_trainer(tmp_path)
     p0 = _params(tr.model.generators())
     loss = sum(p.sum() for p in tr.model.g1.parameters()) * float("nan")
-    assert tr._apply(tr.opt_g, loss, tr.model.generators()) is False
+    applied = tr._apply(tr.opt_g, loss, tr.model.generators())
+    assert isinstance(applied, torch.Tensor) and applied.dim() == 0 and not bool(applied)
     assert tr.skipped == 1 and _same(p0, _params(tr.model.generators()))
+    assert all(int(st["step"]) == 0 for st in tr.opt_g.state.values())  # the skipped step is not counted either
+    with caplog.at_level("WARNING", logger="codesign.train"):
+        tr.report_skips()
+        tr.report_skips()  # reported once
+    assert caplog.text.count("1 update(s) skipped since the last report (1 non-finite loss, 0 non-finite "
+                             "gradient)") == 1
+    finite = sum(p.sum() for p in tr.model.g1.parameters())
+    assert bool(tr._apply(tr.opt_g, finite, tr.model.generators())) and not _same(p0, _params(tr.model.generators()))
 
 
 def test_twenty_steps_lower_the_reconstruction_loss(tmp_path):
