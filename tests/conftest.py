@@ -7,10 +7,13 @@ from pathlib import Path
 import pytest
 import torch
 
+from codesign import resolvers
+
 REPO_ROOT = Path(__file__).resolve().parent.parent
 
 # CODESIGN_TEST_THREADS=1 when the machine is shared (two torch processes on 2 cores slow each other 5-20x).
 torch.set_num_threads(int(os.environ.get("CODESIGN_TEST_THREADS", "2")))
+resolvers.register()  # conf/config.yaml's ${codesign_stamp:} etc., for tests that compose with the Hydra API
 
 
 def pytest_addoption(parser):

@@ -14,7 +14,6 @@ import yaml
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-import codesign  # noqa: F401  (registers the resolvers that conf/config.yaml uses)
 from tests.cli import run_codesign
 from tests.conftest import REPO_ROOT
 

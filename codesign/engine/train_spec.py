@@ -20,6 +20,11 @@ class TrainerSpec(SpecMixin):
     resume: checkpoint path (null = resume from the run dir's checkpoint.pt when one exists).
     time_budget_s: stop training (then checkpoint and evaluate) once this much wall time has passed; the
     schedule still refers to ``steps`` (null = no budget).
+    amp: null (float32) or bf16: the networks' forward passes under bfloat16 autocast; the optics, the sensor
+    simulation, the Wiener deconvolution and the losses stay in float32 (docs/scaling.md).
+    channels_last: networks and their inputs in NHWC memory (faster convolutions on tensor-core GPUs).
+    compile: torch.compile the generators G1 and G2 (not G_v's FFTs; not the critics, whose gradient penalty
+    needs a double backward that compiled graphs do not support).
     """
 
     steps: int = 200
@@ -39,6 +44,9 @@ class TrainerSpec(SpecMixin):
     val_size: int = 4
     resume: str | None = None
     time_budget_s: float | None = None
+    amp: str | None = None
+    channels_last: bool = False
+    compile: bool = False
     prefix: str = field(default="trainer", compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -64,6 +72,12 @@ class TrainerSpec(SpecMixin):
         require_number(f"{p}.val_size", self.val_size, lo=1, hi=256, integer=True)
         if self.time_budget_s is not None:
             require_number(f"{p}.time_budget_s", self.time_budget_s, lo=0, lo_open=True)
+        if self.amp not in (None, "bf16"):
+            raise ConfigError(f"{p}.amp", self.amp, "must be null (float32) or bf16 (float16 would need loss "
+                              "scaling; bfloat16 has float32's range)")
+        for k in ("channels_last", "compile"):
+            if not isinstance(getattr(self, k), bool):
+                raise ConfigError(f"{p}.{k}", getattr(self, k), "must be true or false")
 
     def lr_factor(self, step: int) -> float:
         """Multiplier of the initial learning rates at (0-based) ``step``."""

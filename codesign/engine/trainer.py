@@ -88,6 +88,17 @@ def set_requires_grad(modules, flag: bool) -> None:
             p.requires_grad_(flag)
 
 
+def as_float32(x):
+    """Tensors (in lists, tuples, dicts) cast to float32: network outputs leave autocast in full precision."""
+    if isinstance(x, torch.Tensor):
+        return x.float() if x.is_floating_point() and x.dtype != torch.float64 else x
+    if isinstance(x, (list, tuple)):
+        return type(x)(as_float32(v) for v in x)
+    if isinstance(x, dict):
+        return {k: as_float32(v) for k, v in x.items()}
+    return x
+
+
 def adam(groups: list[dict], betas, device: torch.device) -> torch.optim.Adam:
     """Adam with the fused kernel: one launch per step, and it honours the ``found_inf`` flag of a skipped update."""
     return torch.optim.Adam(groups, betas=betas, fused=device.type in ("cuda", "cpu"))
@@ -111,8 +122,13 @@ class RestorationTrainer:
         if self.vgg is not None:
             self.vgg = self.vgg.to(device)
         gens, crits = model.generators(), model.discriminators()
-        # the modules the training step runs: DDP wrappers sharing the model's parameters under torchrun
+        if spec.channels_last:
+            model.to(memory_format=torch.channels_last)
+        # the modules the training step runs: DDP wrappers sharing the model's parameters under torchrun, G1 and
+        # G2 optionally compiled
         self.train_generators = [distributed.wrap(g, dist, device) for g in gens]
+        if spec.compile:
+            self.train_generators = [torch.compile(g) if k != 1 else g for k, g in enumerate(self.train_generators)]
         self.train_d1 = distributed.wrap(model.d1, dist, device)
         self.train_d2 = [distributed.wrap(d, dist, device) for d in model.d2]
         self.opt_g = adam(param_groups(gens, spec.lr_weights, spec.lr_biases) + self.extra_generator_groups(),
@@ -142,11 +158,23 @@ class RestorationTrainer:
         b = real.shape[0]
         eps = torch.rand((b * self.dist.world,), generator=self.gp_gen, device=real.device, dtype=real.dtype)
         eps = eps[self.dist.shard(b * self.dist.world)]
-        return losses.gradient_penalty(critic, real, fake, cond=cond, eps=eps)
+        return losses.gradient_penalty(lambda x: self.run(critic, x), real, fake, cond=cond, eps=eps)
+
+    def autocast(self):
+        """bfloat16 autocast of the networks' forward passes when trainer.amp = bf16 (else a no-op context)."""
+        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.spec.amp == "bf16")
+
+    def run(self, module, *args):
+        """``module(*args)`` under the trainer's autocast, the outputs back in float32 for the losses."""
+        if self.spec.channels_last:
+            args = tuple(a.contiguous(memory_format=torch.channels_last) if isinstance(a, torch.Tensor)
+                         and a.dim() == 4 else a for a in args)
+        with self.autocast():
+            return as_float32(module(*args))
 
     def _critic1(self, sensor: torch.Tensor, i_b: torch.Tensor):
         """D1(s, x, y, I_b) through the training wrapper (model.critic1 runs the plain module)."""
-        return self.train_d1(torch.cat([sensor, coordinates(sensor), i_b], 1))
+        return self.run(self.train_d1, torch.cat([sensor, coordinates(sensor), i_b], 1))
 
     def critic_step(self, batch: dict, out: dict | None = None) -> dict:
         """One critic update. ``out``: the generators' outputs for this batch (detached here); None = compute."""
@@ -161,7 +189,8 @@ class RestorationTrainer:
         fake_i, fake_b = out["i_b"].detach(), [b.detach() for b in out["b"]]
         d2n = self.train_d2
         d1 = losses.critic_loss(self._critic1(s, i_b)[0], self._critic1(s, fake_i)[0])
-        d2 = sum(losses.critic_loss(d2n[k](targets[k])[0], d2n[k](fake_b[k])[0]) for k in range(2))
+        d2 = sum(losses.critic_loss(self.run(d2n[k], targets[k])[0], self.run(d2n[k], fake_b[k])[0])
+                 for k in range(2))
         total = w.adv * (d1 + d2)
         terms = {"d1_wasserstein": -d1, "d2_wasserstein": -d2}
         if w.gp > 0:  # the penalty's double backward is the critic step's largest cost: only when weighted
@@ -181,14 +210,14 @@ class RestorationTrainer:
                  "rec2": sum(losses.charbonnier(out["b"][k], targets[k], eps) for k in range(2))}
         total = w.l1_stage1 * terms["rec1"] + w.l1_stage2 * terms["rec2"]
         if w.adv > 0 or w.mdf > 0:
-            fake2 = [m.d2[k](out["b"][k]) for k in range(2)]
+            fake2 = [self.run(m.d2[k], out["b"][k]) for k in range(2)]
             if w.adv > 0:
-                terms["adv"] = losses.generator_adv_loss(m.critic1(s, out["i_b"])[0]) + \
+                terms["adv"] = losses.generator_adv_loss(self.run(m.critic1, s, out["i_b"])[0]) + \
                     losses.generator_adv_loss([f[0] for f in fake2])
                 total = total + w.adv * terms["adv"]
             if w.mdf > 0:
                 with torch.no_grad():
-                    real_feats = [m.d2[k](targets[k])[1] for k in range(2)]
+                    real_feats = [self.run(m.d2[k], targets[k])[1] for k in range(2)]
                 terms["mdf"] = losses.feature_matching_loss(real_feats, [f[1] for f in fake2])
                 total = total + w.mdf * terms["mdf"]
         if w.vgg > 0 and self.vgg is not None:
@@ -221,8 +250,8 @@ class RestorationTrainer:
 
     def generate(self, batch: dict) -> dict:
         """The generators' outputs for ``batch`` through the training wrappers, with their graph."""
-        return sandwich(self.train_generators, batch["sensor"], batch.get("otf", self.data.otf),
-                        self.model.spec.g1_residual)
+        return self.run(lambda s, otf: sandwich(self.train_generators, s, otf, self.model.spec.g1_residual),
+                        batch["sensor"], batch.get("otf", self.data.otf))
 
     def extra_generator_groups(self) -> list[dict]:
         """Parameter groups the generator optimizer steps beside the networks' (a trainable mask's)."""

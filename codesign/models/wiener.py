@@ -110,8 +110,12 @@ class LearnableWiener(nn.Module):
         return F.softplus(self.rho) + self.gamma_min
 
     def forward(self, f: torch.Tensor, otf: torch.Tensor) -> torch.Tensor:
-        power = f.to(torch.promote_types(f.dtype, torch.float32)).square().mean(dim=(-2, -1), keepdim=True)  # E|F_i|^2
-        return wiener_filter(f, otf, power, self.gamma.view(1, -1, 1, 1))
+        # in float32 at least, whatever autocast does around it: the FFTs and the division by |H|^2 + nsr (OTF
+        # zeros, nsr down to 1e-8) are not safe in bfloat16's 8-bit mantissa
+        with torch.autocast(f.device.type, enabled=False):
+            f = f.to(torch.promote_types(f.dtype, torch.float32))
+            power = f.square().mean(dim=(-2, -1), keepdim=True)  # E|F_i|^2
+            return wiener_filter(f, otf, power, self.gamma.view(1, -1, 1, 1))
 
 
 class DeconvModule(nn.Module):

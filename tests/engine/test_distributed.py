@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from codesign import resolvers
-from codesign.engine.distributed import SINGLE, DistContext
+from codesign.engine.distributed import DistContext
 from codesign.engine.pipeline import RestorationData
 from codesign.errors import ConfigError
 from tests.cli import run_codesign, run_torchrun

@@ -128,6 +128,19 @@ def test_long_wgan_gp_run_under_strong_lasers_stays_finite_bounded_and_learns(tm
     assert _weights_finite([tr.model])
 
 
+@pytest.mark.parametrize("steps", [pytest.param(40, id="ci"), pytest.param(300, marks=pytest.mark.slow, id="long")])
+def test_bf16_autocast_run_under_strong_lasers_stays_finite_and_bounded(tmp_path, steps):
+    """trainer.amp=bf16: the networks in bfloat16, the optics, the simulation, the Wiener layer and the losses in
+    float32 (docs/scaling.md): the same bounds as the float32 run, every batch saturated by the laser."""
+    tr = tiny_trainer(tmp_path, *STRONG_LASER, steps=steps, amp="bf16", **NO_IO)
+    saturated = _record_saturation(tr)
+    logs = _train(tr, steps)
+    assert tr.step == steps and tr.skipped == 0 and all(s > 0 for s in saturated)
+    assert all(v.dtype == torch.float32 for t in logs for v in t.values())
+    _check_finite_and_bounded(logs)
+    assert _weights_finite([tr.model])
+
+
 def _state(opt) -> dict:
     return copy.deepcopy(opt.state_dict()["state"])
 
