@@ -81,14 +81,21 @@ LAUNCHER_PACKAGES = {"hydra_plugins.hydra_joblib_launcher": "hydra-joblib-launch
                      "hydra_plugins.hydra_submitit_launcher": "hydra-submitit-launcher"}
 
 
-def _check_launcher(config) -> None:
-    """A launcher config whose plugin is not installed: one line naming the package, not Hydra's traceback."""
+def _installed(module: str) -> bool:
     import importlib.util
 
+    try:
+        return importlib.util.find_spec(module) is not None
+    except ModuleNotFoundError:  # the parent package (the hydra_plugins namespace) is missing too
+        return False
+
+
+def _check_launcher(config) -> None:
+    """A launcher config whose plugin is not installed: one line naming the package, not Hydra's traceback."""
     target = str(OmegaConf.select(config, "hydra.launcher._target_") or "")
     module = target.rsplit(".", 1)[0]
     for prefix, package in LAUNCHER_PACKAGES.items():
-        if module.startswith(prefix) and importlib.util.find_spec(prefix) is None:
+        if module.startswith(prefix) and not _installed(prefix):
             choice = OmegaConf.select(config, "hydra.runtime.choices")
             name = choice.get("hydra/launcher") if choice is not None else None
             print(f"codesign: configuration error: hydra/launcher = {name or target}: needs the optional plugin "
