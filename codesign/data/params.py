@@ -69,11 +69,9 @@ class SceneParams:
     def __len__(self) -> int:
         return self.batch_size
 
-    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None,
-           non_blocking: bool = False) -> "SceneParams":
+    def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "SceneParams":
         """Copy onto ``device`` / cast to floating ``dtype`` (either may be None = unchanged)."""
-        return SceneParams(**{k: getattr(self, k).to(device=device, dtype=dtype, non_blocking=non_blocking)
-                              for k in FIELDS})
+        return SceneParams(**{k: getattr(self, k).to(device=device, dtype=dtype) for k in FIELDS})
 
     def index(self, i: int) -> "SceneParams":
         """Sample ``i`` (negative counts from the end) as a SceneParams of batch 1."""
@@ -89,10 +87,6 @@ class SceneParams:
         if out["alpha_l"].shape[0] < 1:
             raise IndexError(f"SceneParams.part({part}) is empty for batch size {self.batch_size}")
         return SceneParams(**out)
-
-    def pin_memory(self) -> "SceneParams":
-        """Page-locked copies, so that a later .to(cuda, non_blocking=True) does not wait for the GPU."""
-        return SceneParams(**{k: getattr(self, k).pin_memory() for k in FIELDS})
 
     def replace(self, **values: Any) -> "SceneParams":
         """A copy with some fields set to constants (or full tensors); e.g. ``p.replace(alpha_l=1e6)``.

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import torch
 import torch.distributed as dist
 
-from codesign.resolvers import STAMP_ENV, STAMP_FORMAT
+from codesign.resolvers import STAMP_ENV, STAMP_FORMAT, env_rank
 
 log = logging.getLogger("codesign.distributed")
 
@@ -59,7 +59,7 @@ def env_context() -> DistContext:
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world <= 1:
         return SINGLE
-    return DistContext(int(os.environ.get("RANK", "0")), world, int(os.environ.get("LOCAL_RANK", "0")))
+    return DistContext(env_rank(), world, int(os.environ.get("LOCAL_RANK", "0")))
 
 
 def current() -> DistContext:

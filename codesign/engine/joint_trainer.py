@@ -98,14 +98,10 @@ class JointTrainer(RestorationTrainer):
 
     def _log_step(self, terms: dict, t0: float, start: int) -> None:
         if self.dist.enabled:
-            diff = distributed.replica_divergence(self.mask_params, self.dist)
+            diff = self.replica_check(self.mask_params, "mask parameters", "distributed/mask_max_difference")
             self.mask_diff = max(self.mask_diff, diff)
             if diff > 0:
-                log.warning("step %d: mask parameters differed between ranks by up to %.3g: reset to rank 0's",
-                            self.step, diff)
                 self.data.invalidate_psf()
-            if self.writer is not None:
-                self.writer.add_scalar("distributed/mask_max_difference", diff, self.step)
         super()._log_step(terms, t0, start)
 
     def _log_scalars(self, terms: dict) -> None:

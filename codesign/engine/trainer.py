@@ -377,13 +377,18 @@ class RestorationTrainer:
         DDP keeps them; a difference is logged, repaired from rank 0 and reported in metrics.json)."""
         if not self.dist.enabled:
             return 0.0
-        diff = distributed.replica_divergence(self.replicated_parameters(), self.dist)
+        diff = self.replica_check(self.replicated_parameters(), "parameters", "distributed/max_parameter_difference")
         self.replica_diff = max(self.replica_diff, diff)
+        return diff
+
+    def replica_check(self, params: list, what: str, tag: str) -> float:
+        """Largest difference of ``params`` to rank 0's (repaired from rank 0 when non-zero), warned about and
+        logged to TensorBoard as ``tag``. A collective: every rank calls it at the same step."""
+        diff = distributed.replica_divergence(params, self.dist)
         if diff > 0:
-            log.warning("step %d: parameters differed between ranks by up to %.3g: reset to rank 0's",
-                        self.step, diff)
+            log.warning("step %d: %s differed between ranks by up to %.3g: reset to rank 0's", self.step, what, diff)
         if self.writer is not None:
-            self.writer.add_scalar("distributed/max_parameter_difference", diff, self.step)
+            self.writer.add_scalar(tag, diff, self.step)
         return diff
 
     # ---- validation and logging ---------------------------------------------------------------------------
