@@ -73,7 +73,7 @@ def _phases(system):
 def optics_rows(scale: str) -> list[dict]:
     from codesign.optics import OpticalSystem, OpticsSpec, RadialMTF, airy_psf, circular_mtf, metrics
     from codesign.optics.bessel import bessel_j
-    from codesign.optics.grid import centered_coords
+    from codesign.optics.grid import axis_coords
     from codesign.optics.masks import PUBLISHED_R, PUBLISHED_THETA, HalfRingMask
 
     A, rows = "optics", []
@@ -112,7 +112,7 @@ def optics_rows(scale: str) -> list[dict]:
     airy0 = float(airy_psf(torch.zeros(1, dtype=F64), spec))
     rows.append(_row(A, "uncoded peak h0(0)", tp + "test_uncoded_peak_matches_airy_peak", "Airy peak pi W_a^2 dx^2 / "
                      "(4 (lambda f)^2)", 1e-2, abs(sys64.uncoded_peak / airy0 - 1), "1e-02 rel"))
-    c = centered_coords(spec.focal_n, spec.focal_pitch_m, dtype=F64)
+    c = axis_coords(spec.focal_n, spec.focal_pitch_m, dtype=F64)
     airy = airy_psf(torch.sqrt(c[:, None] ** 2 + c[None, :] ** 2), spec)
     rows.append(_row(A, "uncoded PSF, 64 x 64 window", tp + "test_uncoded_psf_matches_airy_pattern",
                      "Airy pattern (hard edge)", 1e-2, float((sys64.uncoded_psf() - airy).abs().max() / airy.max()),
@@ -384,7 +384,7 @@ def _np_wiener(y, h, nsr):
 def restoration_rows(scale: str) -> list[dict]:
     from torch.func import functional_call
 
-    from codesign.losses import gradient_penalty
+    from codesign.models.losses import gradient_penalty
     from codesign.models import classical_wiener, otf_from_kernel
     from codesign.models.blocks import EfficientAttention
     from codesign.models.wiener import LearnableWiener
@@ -474,15 +474,15 @@ STRONG = ["data.params.alpha_l_range=[1.0e6,1.0e8]", "data.image_size=32", "data
 
 
 def _trainer(steps: int, *overrides: str, seed: int = 0):
-    """The tests' tiny restoration trainer (tests/engine/_util.py), no validation or checkpoint writes."""
+    """The tests' tiny restoration trainer (tests/train/_util.py), no validation or checkpoint writes."""
     import tempfile
 
     from hydra import compose, initialize_config_dir
 
-    from codesign.engine.pipeline import RestorationData
-    from codesign.engine.restoration_tasks import build_model, loss_weights
-    from codesign.engine.train_spec import TrainerSpec
-    from codesign.engine.trainer import RestorationTrainer, init_weights
+    from codesign.train.data import SimulatedData
+    from codesign.train.setup import build_model
+    from codesign.train.spec import TrainerSpec
+    from codesign.train.trainer import RestorationTrainer, init_weights
 
     conf = Path(__file__).resolve().parent.parent / "conf"
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
@@ -492,24 +492,24 @@ def _trainer(steps: int, *overrides: str, seed: int = 0):
     init_weights(model)
     spec = TrainerSpec.from_config(dict(cfg.trainer)).replace(steps=steps, val_every=0, checkpoint_every=0,
                                                               image_every=0)
-    return RestorationTrainer(model, RestorationData(cfg, CPU, seed), spec, loss_weights(cfg),
-                              Path(tempfile.mkdtemp()), CPU, {"bench": 1}, None, seed)
+    return RestorationTrainer(model, SimulatedData(cfg, CPU, seed), spec, Path(tempfile.mkdtemp()), CPU,
+                              {"bench": 1}, None, seed)
 
 
 def _joint_guard_ratio(steps: int) -> float:
     """max over steps of smooth LSR / lsr_max for the co-design trainer with a mask step 25x the default and
-    no penalty (tests/engine/test_joint.py's setup): only the feasibility guard keeps the constraint."""
+    no penalty (tests/train/test_joint_trainer.py's setup): only the feasibility guard keeps the constraint."""
     import tempfile
 
     from hydra import compose, initialize_config_dir
 
-    from codesign.engine.joint_data import JointData
-    from codesign.engine.joint_trainer import JointTrainer
-    from codesign.engine.lsr_constraint import CodesignSpec, LSRConstraint
-    from codesign.engine.monitor import published_mask_config
-    from codesign.engine.restoration_tasks import build_model, loss_weights
-    from codesign.engine.train_spec import TrainerSpec
-    from codesign.engine.trainer import init_weights
+    from codesign.design.lsr_constraint import CodesignSpec, LSRConstraint
+    from codesign.design.monitor import published_mask_config
+    from codesign.train.data import SimulatedData
+    from codesign.train.joint_trainer import JointTrainer
+    from codesign.train.setup import build_model
+    from codesign.train.spec import TrainerSpec
+    from codesign.train.trainer import init_weights
     from codesign.optics import build_mask
 
     conf = Path(__file__).resolve().parent.parent / "conf"
@@ -518,15 +518,15 @@ def _joint_guard_ratio(steps: int) -> float:
     torch.manual_seed(0)
     model = build_model(cfg)
     init_weights(model)
-    data = JointData(cfg, CPU, 0)
+    data = SimulatedData(cfg, CPU, 0)
     spec = TrainerSpec.from_config(dict(cfg.trainer)).replace(steps=steps, val_every=0, checkpoint_every=0,
                                                               image_every=0)
     cs = CodesignSpec.from_config({**dict(cfg.codesign), "warmup_fraction": 0.0, "mask_lr": 0.5,
                                    "penalty_weight": 0.0})
-    ref = build_mask(published_mask_config(dict(cfg.mask)), data.system.grid, data.system.spec.aperture_diameter_m)
-    lsr_max = LSRConstraint(cs, data.system, 1.0).measure(ref)
-    tr = JointTrainer(model, data, spec, loss_weights(cfg), Path(tempfile.mkdtemp()), CPU, {"bench": 1}, None, 0,
-                      cs, lsr_max)
+    system = data.camera.system
+    ref = build_mask(published_mask_config(dict(cfg.mask)), system.grid, system.spec.aperture_diameter_m)
+    lsr_max = LSRConstraint(cs, system, 1.0).measure(ref)
+    tr = JointTrainer(model, data, spec, Path(tempfile.mkdtemp()), CPU, {"bench": 1}, None, 0, cs, lsr_max)
     worst = 0.0
     for _ in range(steps):
         tr.train_step()
@@ -536,10 +536,10 @@ def _joint_guard_ratio(steps: int) -> float:
 
 def _nan_step_change(tr) -> float:
     """Largest change of any critic weight or critic Adam moment over one step whose gradient penalty is NaN."""
-    import codesign.losses as L
+    import codesign.models.losses as L
 
     def critic_state():
-        return ([p.detach().clone() for m in tr.model.discriminators() for p in m.parameters()]
+        return ([p.detach().clone() for m in tr.model.critics() for p in m.parameters()]
                 + [v.clone() for s in tr.opt_d.state.values() for v in s.values()])
 
     before, gp = critic_state(), L.gradient_penalty
@@ -566,9 +566,9 @@ def training_rows(scale: str) -> list[dict]:
 
 
 def _training_rows(scale: str) -> list[dict]:
-    from codesign.engine.checkpoint import load_checkpoint
+    from codesign.train.checkpoint import load_checkpoint
 
-    A, rows, tt = "training", [], "tests/engine/test_trainer.py::"
+    A, rows, tt = "training", [], "tests/train/test_trainer.py::"
     a = _trainer(4)
     a.train_step()
     a.train_step()
@@ -583,7 +583,7 @@ def _training_rows(scale: str) -> list[dict]:
                      "the uninterrupted run", 0.0, diff, "0 (bit-identical)"))
 
     n = 4 if scale == "quick" else 40
-    rows.append(_row(A, f"smooth LSR / lsr_max, {n} joint steps, mask_lr 0.5, no penalty", "tests/engine/"
+    rows.append(_row(A, f"smooth LSR / lsr_max, {n} joint steps, mask_lr 0.5, no penalty", "tests/train/"
                      "test_joint.py::test_learned_mask_never_ends_above_lsr_max_under_a_large_mask_step",
                      "lsr_max (the published mask's)", 1 + 1e-6, _joint_guard_ratio(n), "1 + 1e-6"))
 

@@ -4,7 +4,7 @@ A randomly initialised network's PSNR means nothing, so every variant is first t
 own RestorationTrainer on the +experiment=baseline config (composed with Hydra, as benchmarks/codesign.py does),
 each from the same seed and the same training batches. Then every method restores the *same* simulated sensor
 images of the test split (built-in scenes cell and chelsea, never trained on) at alpha_l = 0 and 1e6, scored by
-the project's Evaluator (codesign/engine/evaluate.py: PSNR / SSIM of codesign/quality.py on the field of view).
+the project's Evaluator (codesign/train/evaluation.py: PSNR / SSIM of codesign/models/quality.py on the field of view).
 
     python -m benchmarks.bench_restoration --scale quick
 """
@@ -52,17 +52,18 @@ def _config(variant: str, size: str, p: dict, steps: int):
 
 def _train(cfg, data, start: dict, dev: torch.device):
     """(model, generators, steps, seconds): the baseline experiment's model + trainer, no TensorBoard."""
-    from codesign.engine.restoration_tasks import _container, build_model, loss_weights
-    from codesign.engine.train_spec import TrainerSpec
-    from codesign.engine.trainer import RestorationTrainer, init_weights
+    from codesign.config.runtime import to_container
+    from codesign.train.setup import build_model
+    from codesign.train.spec import TrainerSpec
+    from codesign.train.trainer import RestorationTrainer, init_weights
 
     torch.manual_seed(0)
     model = build_model(cfg)
     init_weights(model)
     data.load_state_dict(start)  # every method sees the same training batches
     with tempfile.TemporaryDirectory() as tmp:  # the trainer's final checkpoint is not kept
-        trainer = RestorationTrainer(model, data, TrainerSpec.from_config(_container(cfg.trainer)),
-                                     loss_weights(cfg), Path(tmp), dev, {}, None, 0)
+        trainer = RestorationTrainer(model, data, TrainerSpec.from_config(to_container(cfg.trainer)), Path(tmp),
+                                     dev, {}, None, 0)
         t0 = time.perf_counter()
         trainer.fit(progress_every=10**9)
         seconds = time.perf_counter() - t0
@@ -79,12 +80,12 @@ def _timed(fn, repeats: int, dev: torch.device) -> tuple[float, float | None]:
 
 def _baseline_timers(data, batch: dict, calib: dict, n: int) -> dict:
     """Batch-1 closures doing exactly what the Evaluator does for the sensor and Wiener methods."""
-    from codesign.engine.evaluate import remove_black_level, replicate_pad
-    from codesign.engine.trainer import centre
+    from codesign.train.evaluation import remove_black_level, replicate_pad
+    from codesign.camera import field_of_view as centre
     from codesign.models.wiener import classical_wiener
 
     one = {"sensor": batch["sensor"][:1], "read_noise_mean_e": batch["read_noise_mean_e"][:1]}
-    fw, otf = data.sim.sensor.full_well_e, data.otf
+    fw, otf = data.camera.sensor.full_well_e, data.otf
 
     def affine(name, x):
         a, c = calib[name]
@@ -96,19 +97,19 @@ def _baseline_timers(data, batch: dict, calib: dict, n: int) -> dict:
 
 
 def measure(scale: str) -> dict:
-    from codesign.data.params import _laser_name
-    from codesign.engine.evaluate import Evaluator
-    from codesign.engine.pipeline import RestorationData
-    from codesign.engine.trainer import centre, restore_with
+    from codesign.data.params import laser_preset_name
+    from codesign.train.evaluation import Evaluator
+    from codesign.camera import field_of_view as centre
+    from codesign.train.data import SimulatedData
     from codesign.models import build_sgan, otf_from_kernel, parameter_count
 
     dev = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     p = plan(scale, dev)
-    data = RestorationData(_config("sgan_b", "tiny", p, 1), dev, 0)  # physics + scenes: the same for all
+    data = SimulatedData(_config("sgan_b", "tiny", p, 1), dev, 0)  # physics + scenes: the same for all
     start = data.state_dict()
     names = data.source.split_names("test")
-    scenes = data.source.fixed_batch(names, data.sim.scene_size)
-    batches = {a: data.preset_batch(scenes, _laser_name(a), seed=1000 + j) for j, a in enumerate(ALPHAS)}
+    scenes = data.source.fixed_batch(names, data.camera.scene_size)
+    batches = {a: data.preset_batch(scenes, laser_preset_name(a), seed=1000 + j) for j, a in enumerate(ALPHAS)}
     tuning = data.validation_batch(8)  # train split: the baselines' nsr and gain/offset are tuned here
     rows, calib, n = [], None, data.image_size
     for size, steps in p["train"].items():
@@ -118,7 +119,7 @@ def measure(scale: str) -> dict:
             calib = ev.tune(tuning)
             scores = {a: ev.score(ev.restore_all(b), centre(b["scene"], n).clamp(0, 1)) for a, b in batches.items()}
             x1 = batches[ALPHAS[-1]]["sensor"][:1]
-            ms, mem = _timed(lambda: restore_with(model, gens, x1, data.otf), p["repeats"], dev)
+            ms, mem = _timed(lambda: model.restore(x1, data.otf, gens), p["repeats"], dev)
             rows.append({"method": variant, "size": size, "params": sum(parameter_count(g) for g in gens),
                          "ms_per_image": ms, "peak_cuda_mib": mem, "steps": done, "train_seconds": seconds,
                          "scores": {str(a): scores[a]["sgan"] for a in ALPHAS}})
@@ -133,10 +134,10 @@ def measure(scale: str) -> dict:
     for size, padded in p["timed"].items():  # inference time only: untrained, no PSNR
         padded = padded or p["padded"]
         x1 = F.pad(batches[ALPHAS[-1]]["sensor"][:1], [(padded - p["padded"]) // 2] * 4)
-        otf = otf_from_kernel(data.kernel, padded).to(dev)
+        otf = otf_from_kernel(data.camera.frozen_optics().kernel, padded).to(dev)
         for variant in VARIANTS:
             model = build_sgan({"variant": variant, "size": size}).to(dev)
-            ms, mem = _timed(lambda: restore_with(model, model.generators(), x1, otf),
+            ms, mem = _timed(lambda: model.restore(x1, otf),
                              1 if size == "paper" else p["repeats"], dev)
             rows.append({"method": variant, "size": size + (f" (input {padded})" if padded != p["padded"] else ""),
                          "params": sum(parameter_count(g) for g in model.generators()), "ms_per_image": ms,
@@ -156,7 +157,7 @@ def _name(a: float) -> str:
 
 
 def report(res: dict, out: Path) -> Report:
-    from codesign.engine.evaluate import NSR_GRID
+    from codesign.train.evaluation import NSR_GRID
 
     p, alphas = res["plan"], res["alphas"]
     header = ["method", "size", "params", "ms/image"] + \
@@ -189,7 +190,7 @@ def report(res: dict, out: Path) -> Report:
         "the paper's results** (the paper trains 400 epochs of 10,000 images).",
         f"All methods restore the same simulated sensor images of the built-in test split "
         f"({', '.join(res['test_scenes'])}, never trained on) at the figure settings with alpha_l = "
-        f"{', '.join(_name(a) for a in alphas)} (laser on axis), scored by codesign.engine.evaluate.Evaluator: "
+        f"{', '.join(_name(a) for a in alphas)} (laser on axis), scored by codesign.train.evaluation.Evaluator: "
         "PSNR / SSIM against the scene on the field of view, and PSNR after a per-image gain/offset match (PSNR "
         "aff.). Wiener: classical Wiener with the true PSF, its nsr picked on 8 training-split images (best "
         f"PSNR aff. on a log grid; chosen: {res['calibration']['nsr']['wiener']:.3g}), then a global gain/offset; "

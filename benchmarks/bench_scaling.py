@@ -1,7 +1,7 @@
 """Scaling: how each cost grows with pupil size, image size and batch (fitted exponents).
 
 (a) PSF forward + backward (mask parameters -> phase -> PSF -> smooth LSR and its gradient, timed by
-    codesign.engine.psf_task.time_forward_backward) against the pupil grid n, MFT onto the 640 x 640 window (the
+    codesign.design.merit.time_forward_backward) against the pupil grid n, MFT onto the 640 x 640 window (the
     default propagator), compared with the flop model codesign.optics.propagation.mft_cost;
 (b) sensor simulation (frozen published mask, kernels cached, alpha_l = 1e6 on axis, the figure's noise) against
     the network image size (padded 1.5x, as 256 -> 384) and against the batch;
@@ -44,7 +44,7 @@ def _fit(points: list[dict]) -> dict:
 
 def psf_sweep(s: dict, dev) -> list[dict]:
     """Whole chain (half-ring phase included) and propagation alone (phase fixed), forward + backward."""
-    from codesign.engine.psf_task import time_forward_backward
+    from codesign.design.merit import time_forward_backward
     from codesign.optics import OpticalSystem, OpticsSpec, metrics
     from codesign.optics.masks import HalfRingMask
     from codesign.optics.propagation import mft_cost
@@ -104,7 +104,7 @@ def sensor_sweeps(s: dict, dev) -> list[dict]:
 
 
 def network_sweeps(s: dict, dev) -> list[dict]:
-    from codesign.engine.trainer import init_weights
+    from codesign.train.trainer import init_weights
     from codesign.models import build_sgan, otf_from_kernel
 
     torch.manual_seed(0)
@@ -149,8 +149,8 @@ def _expected(c: dict) -> str:
 
 
 def plot(curves: list[dict], path: Path) -> Path:
-    from codesign.engine.io import save_figure
-    from codesign.engine.plots import plt
+    from codesign.io.files import save_figure
+    from codesign.io.plots import plt
 
     panels = [("pupil grid n", [c for c in curves if c["label"].startswith("PSF")]),
               ("image / input size [px]", [c for c in curves if "vs image size" in c["label"]
@@ -200,7 +200,7 @@ def run(scale: str, out: Path) -> Report:
         "'fitted over' lists those points. PSF: x is the pupil grid n (samples across the aperture plus the "
         "super-Gaussian edge), MFT onto the default 640 x 640 window (the default propagator at the default 384 "
         "samples across). 'chain': forward + backward of mask parameters -> half-ring phase (exact Bessel "
-        "harmonics, the default mask) -> PSF -> smooth LSR (codesign.engine.psf_task.time_forward_backward); "
+        "harmonics, the default mask) -> PSF -> smooth LSR (codesign.design.merit.time_forward_backward); "
         "'propagation': the same from a fixed phase, which is what the flop model mft_cost = 8 (m n^2 + m^2 n), "
         "m = 640, counts (its local exponent lies between 1 and 2 at these n; the 640 x 640 window terms are "
         "constant in n). The difference of the two is the phase, O(n^2) per harmonic and ring.",

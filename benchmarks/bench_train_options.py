@@ -40,22 +40,23 @@ def _joint_cfg(dev: torch.device):
 
 
 def joint_step(dev: torch.device, options: dict, steps: int) -> dict:
-    from codesign.engine.joint_data import JointData
-    from codesign.engine.joint_trainer import JointTrainer
-    from codesign.engine.lsr_constraint import CodesignSpec
-    from codesign.engine.restoration_tasks import _container, build_model, loss_weights
-    from codesign.engine.train_spec import TrainerSpec
-    from codesign.engine.trainer import init_weights
+    from codesign.config.runtime import to_container
+    from codesign.design.lsr_constraint import CodesignSpec
+    from codesign.train.data import SimulatedData
+    from codesign.train.joint_trainer import JointTrainer
+    from codesign.train.setup import build_model
+    from codesign.train.spec import TrainerSpec
+    from codesign.train.trainer import init_weights
 
     cfg = _joint_cfg(dev)
     torch.manual_seed(0)
     model = build_model(cfg)
     init_weights(model)
-    data = JointData(cfg, dev, 0)
-    spec = TrainerSpec.from_config(_container(cfg.trainer)).replace(steps=10**6, val_every=0, checkpoint_every=0,
+    data = SimulatedData(cfg, dev, 0)
+    spec = TrainerSpec.from_config(to_container(cfg.trainer)).replace(steps=10**6, val_every=0, checkpoint_every=0,
                                                                     image_every=0, **options)
-    cs = CodesignSpec.from_config({**_container(cfg.codesign), "warmup_fraction": 0.0})
-    tr = JointTrainer(model, data, spec, loss_weights(cfg), Path(tempfile.mkdtemp()), dev, {}, None, 0, cs, 1.0)
+    cs = CodesignSpec.from_config({**to_container(cfg.codesign), "warmup_fraction": 0.0})
+    tr = JointTrainer(model, data, spec, Path(tempfile.mkdtemp()), dev, {}, None, 0, cs, 1.0)
     sync = cuda_sync(dev)
     peak_cuda_mib(dev, reset=True)
     t0 = time.perf_counter()
@@ -71,7 +72,7 @@ def joint_step(dev: torch.device, options: dict, steps: int) -> dict:
 def inference_fps(dev: torch.device, amp: bool, compiled: bool, repeats: int) -> dict:
     from hydra import compose, initialize_config_dir
 
-    from codesign.engine.restoration_tasks import build_model
+    from codesign.train.setup import build_model
 
     size = "paper" if dev.type == "cuda" else "cpu"
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):

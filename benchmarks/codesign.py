@@ -26,12 +26,12 @@ from benchmarks.common import machine, write_result
 def _setup(preset: str):
     from hydra import compose, initialize_config_dir
 
-    from codesign.engine.joint_data import JointData
-    from codesign.engine.joint_trainer import JointTrainer
-    from codesign.engine.lsr_constraint import CodesignSpec
-    from codesign.engine.restoration_tasks import _container, build_model, loss_weights
-    from codesign.engine.train_spec import TrainerSpec
-    from codesign.engine.trainer import init_weights
+    from codesign.train.data import JointData
+    from codesign.train.joint_trainer import JointTrainer
+    from codesign.design.lsr_constraint import CodesignSpec
+    from codesign.tasks.baseline import _container, build_model, loss_weights
+    from codesign.train.spec import TrainerSpec
+    from codesign.train.trainer import init_weights
 
     conf = Path(__file__).resolve().parent.parent / "conf"
     overrides = ["+experiment=joint"] + (["trainer=paper"] if preset == "paper" else [])
@@ -79,7 +79,7 @@ def timed_step(trainer, dev) -> dict:
     trainer.critic_step(batch, out)
     t5 = _sync(dev)
     crits = trainer.model.discriminators()
-    from codesign.engine.trainer import set_requires_grad
+    from codesign.train.trainer import set_requires_grad
 
     set_requires_grad(crits, False)
     terms = trainer.generator_losses(batch, out)
@@ -93,7 +93,7 @@ def timed_step(trainer, dev) -> dict:
 
 
 def step(preset: str, repeats: int) -> dict:
-    from codesign.engine.trainer import RestorationTrainer
+    from codesign.train.trainer import RestorationTrainer
 
     cfg, trainer, dev = _setup(preset)
     timed_step(trainer, dev)  # warm-up

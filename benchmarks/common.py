@@ -87,8 +87,8 @@ def markdown_table(header: list[str], rows: list[list], fmt: dict | None = None)
 def time_error_plot(path: Path, series: dict[str, list[tuple[float, float, str]]], xlabel: str, ylabel: str,
                     title: str, logy: bool = True, hline: tuple[float, str] | None = None) -> Path:
     """Run time (x) against error (y): one marker line per series of (seconds, error, point label) tuples."""
-    from codesign.engine.io import save_figure
-    from codesign.engine.plots import plt
+    from codesign.io.files import save_figure
+    from codesign.io.plots import plt
 
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     for i, (label, pts) in enumerate(series.items()):

@@ -21,7 +21,7 @@ SAMPLINGS = [192, 256, 320, 384, 512, 768, 1024, 1536, 2048]
 
 
 def convergence(samplings: list[int]) -> dict:
-    from codesign.engine.psf_task import evaluate_mask
+    from codesign.design.merit import evaluate_mask
     from codesign.optics import OpticalSystem, OpticsSpec
     from codesign.optics.masks import HalfRingMask
 
@@ -59,8 +59,8 @@ def print_convergence(data: dict) -> None:
 
 
 def plot_convergence(data: dict) -> None:
-    from codesign.engine.io import save_figure
-    from codesign.engine.plots import plt
+    from codesign.io.files import save_figure
+    from codesign.io.plots import plt
 
     rows = data["rows"]
     fig, ax = plt.subplots(figsize=(6.5, 4))
@@ -86,8 +86,8 @@ def speed(samples: int, repeats: int) -> dict:
 
 
 def plot_speed(data: dict, ref_lsr: float) -> None:
-    from codesign.engine.io import save_figure
-    from codesign.engine.plots import plt
+    from codesign.io.files import save_figure
+    from codesign.io.plots import plt
 
     fig, ax = plt.subplots(figsize=(6, 4))
     sw = data["mft_sweep"]

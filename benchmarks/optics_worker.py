@@ -31,7 +31,7 @@ def main() -> None:
     ap.add_argument("--reference", default=None)
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
-    from codesign.engine.psf_task import evaluate_mask, time_forward_backward
+    from codesign.design.merit import evaluate_mask, time_forward_backward
     from codesign.optics import OpticalSystem, OpticsSpec
     from codesign.optics.masks import HalfRingMask
 

@@ -103,7 +103,7 @@ def _print_markdown(rows: list[dict]) -> None:
 
 
 def _plot(rows: list[dict], speed: dict, tag: str = "") -> None:
-    from codesign.engine.plots import plt
+    from codesign.io.plots import plt
 
     ms = {(r["variant"], r["size"]): r["ms_per_image"] for r in speed["rows"]}
     fig, ax = plt.subplots(figsize=(6, 4))

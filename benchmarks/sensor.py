@@ -145,8 +145,8 @@ def skips(batch: int, repeats: int) -> dict:
 
 
 def plot(data: dict) -> None:
-    from codesign.engine.io import save_figure
-    from codesign.engine.plots import plt
+    from codesign.io.files import save_figure
+    from codesign.io.plots import plt
 
     fig, ax = plt.subplots(figsize=(6.2, 4))
     for ref, marker in (("full_area", "o"), ("full_bicubic_aa", "s")):

@@ -1,7 +1,7 @@
-"""``python -m codesign +experiment=NAME``: the thin Hydra entry point. Work happens in codesign.engine.
+"""``python -m codesign +experiment=NAME``: the thin Hydra entry point. Work happens in codesign.tasks.
 
 Under ``torchrun`` the process group is joined before Hydra composes the config, so that every rank agrees on
-rank 0's run directory (codesign/engine/distributed.py).
+rank 0's run directory (codesign/train/distributed.py).
 """
 from __future__ import annotations
 
@@ -16,13 +16,13 @@ CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="config")
 def _hydra_main(cfg: DictConfig) -> float | None:
-    from codesign.engine.experiments import run_experiment
+    from codesign.tasks import run_experiment
 
     return run_experiment(cfg)
 
 
 def main() -> None:
-    from codesign.engine import distributed
+    from codesign.train import distributed
 
     distributed.launch_setup(sys.argv[1:])
     try:

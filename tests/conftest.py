@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from codesign import resolvers
+from codesign.config import resolvers
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 

@@ -5,7 +5,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from codesign.engine.experiments import EXPERIMENTS, experiment_function
+from codesign.tasks import EXPERIMENTS, experiment_function
 from tests.conftest import REPO_ROOT
 
 CONF = REPO_ROOT / "conf"

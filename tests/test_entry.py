@@ -151,7 +151,7 @@ def test_config_groups_hold_the_expected_options():
 def test_every_group_option_composes(group, option):
     from omegaconf import OmegaConf
 
-    from codesign.config import apply_debug_overrides
+    from codesign.config.runtime import apply_debug_overrides
     from codesign.optics import OpticsSpec
 
     prefix = "+" if group == "experiment" else ""
@@ -171,7 +171,7 @@ def test_every_group_option_composes(group, option):
 @pytest.mark.parametrize("optics", ["default", "paper"])
 @pytest.mark.parametrize("mask", ["halfring", "freeform"])
 def test_psf_experiment_runs_for_each_mask_and_optics(tmp_path, mask, optics):
-    from codesign.engine.experiments import run_experiment
+    from codesign.tasks import run_experiment
 
     cfg = _compose(["+experiment=psf", "debug=smoke", f"mask={mask}", f"optics={optics}", "threads=2"])
     assert cfg.mask.kind == mask
@@ -190,7 +190,7 @@ def test_psf_experiment_runs_for_each_mask_and_optics(tmp_path, mask, optics):
 
 
 def test_freeform_init_reproduces_halfring_metrics(tmp_path):
-    from codesign.engine.experiments import run_experiment
+    from codesign.tasks import run_experiment
 
     out = {}
     for mask in ("halfring", "freeform"):
@@ -203,7 +203,7 @@ def test_freeform_init_reproduces_halfring_metrics(tmp_path):
 
 
 def test_run_experiment_config_error_exits_2(tmp_path, capsys):
-    from codesign.engine.experiments import run_experiment
+    from codesign.tasks import run_experiment
 
     cfg = _compose(["+experiment=psf", "debug=smoke", "mask.convention=atan3"])
     run_dir = tmp_path / "run"

@@ -216,7 +216,8 @@ ROBUSTNESS_STAGES: dict[str, dict[str, float]] = {
 }
 
 
-def _laser_name(v: float) -> str:
+def laser_preset_name(v: float) -> str:
+    """The evaluation preset name of laser strength alpha_l = v: laser_0, laser_1e1 .. laser_1e6."""
     return "laser_0" if v == 0 else f"laser_1e{round(math.log10(v))}"
 
 
@@ -225,7 +226,7 @@ def _laser_name(v: float) -> str:
 PRESETS: dict[str, dict[str, float]] = {
     "figure": dict(FIGURE_VALUES),
     **{name: {**ROBUSTNESS_FIXED, **stage} for name, stage in ROBUSTNESS_STAGES.items()},
-    **{_laser_name(v): {**FIGURE_VALUES, "alpha_l": v} for v in LASER_STRENGTHS},
+    **{laser_preset_name(v): {**FIGURE_VALUES, "alpha_l": v} for v in LASER_STRENGTHS},
 }
 
 

@@ -8,11 +8,16 @@
 """
 from __future__ import annotations
 
+from typing import Mapping
+
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from codesign.models import losses
 from codesign.models.discriminators import PatchDiscriminator
+from codesign.models.losses import LossWeights
+from codesign.models.restorer import Restorer, TrainContext
 from codesign.models.spec import ModelSpec
 from codesign.models.unet import ResUNet, UNetBody, make_head, zero_conv
 from codesign.models.wiener import DeconvModule
@@ -52,7 +57,8 @@ def sandwich(generators, sensor: torch.Tensor, otf: torch.Tensor, g1_residual: b
     g1, gv, g2 = generators
     i_b = pre_restore(g1, sensor, g1_residual)
     features = gv(i_b, otf)
-    return {"i_b": i_b, "features": features, "b": g2(features)}
+    b = g2(features)
+    return {"i_b": i_b, "features": features, "b": b, "restored": b[1]}
 
 
 class Refiner(nn.Module):
@@ -82,10 +88,20 @@ class Refiner(nn.Module):
         return [coarse, self._scale(self.heads[1], fine_in, features)]
 
 
-class SGAN(nn.Module):
-    def __init__(self, spec: ModelSpec):
+class SGAN(Restorer):
+    """The sandwich GAN b^ = G2(G_v(G1(s, x, y), h)) with its critics D1, D2^0, D2^1 and its objective.
+
+    Args:
+        spec: the architecture (variant B/E/F, widths); weights: the variant's loss weights (model.loss).
+    """
+
+    kind = "sgan"
+    method = "sgan"
+
+    def __init__(self, spec: ModelSpec, weights: LossWeights | None = None):
         super().__init__()
         self.spec = spec
+        self.weights = weights if weights is not None else LossWeights()
         g, d = spec.generator_block, spec.critic_block
         self.g1 = ResUNet(3, 1, spec.stem_width, spec.widths, g, spec.attention, spec.key_channels)
         self.gv = DeconvModule(spec.fe_features, spec.fe_kernel, spec.gamma_init)
@@ -93,23 +109,48 @@ class SGAN(nn.Module):
         self.d1 = PatchDiscriminator(4, spec.d_widths, d, spec.attention, spec.key_channels)
         self.d2 = nn.ModuleList([PatchDiscriminator(1, spec.d_widths, d, spec.attention, spec.key_channels)
                                  for _ in range(2)])
+        self.vgg, self._vgg_status = None, "off: not prepared for training"
 
+    @classmethod
+    def from_config(cls, cfg: Mapping) -> "SGAN":
+        """From a ``model`` block: the architecture keys (ModelSpec) and ``loss`` (LossWeights)."""
+        values = {k: v for k, v in dict(cfg).items() if k not in ("loss", "kind")}
+        return cls(ModelSpec.from_config(values), LossWeights.from_config(dict(cfg.get("loss") or {})))
+
+    # ---- parts --------------------------------------------------------------------------------------------------
     def generators(self) -> list[nn.Module]:
         return [self.g1, self.gv, self.g2]
 
-    def discriminators(self) -> list[nn.Module]:
-        return [self.d1, self.d2]
+    def critics(self) -> list[nn.Module]:
+        """D1 and the two scales of D2, each its own module (DDP wraps them one by one)."""
+        return [self.d1, self.d2[0], self.d2[1]]
+
+    @property
+    def adversarial(self) -> bool:
+        return self.weights.adv > 0
+
+    def prepare_training(self, device: torch.device) -> None:
+        """The VGG19 perceptual loss, loaded from model.loss.vgg_weights when this variant weights it."""
+        if self.weights.vgg > 0:
+            self.vgg, self._vgg_status = losses.build_vgg_loss(self.weights.vgg_weights, self.weights.vgg_layers)
+        else:  # not part of this variant's objective: never load the weights
+            self.vgg, self._vgg_status = None, "off: model.loss.vgg = 0 (not in this variant's objective)"
+        if self.vgg is not None:
+            self.vgg = self.vgg.to(device)
+
+    @property
+    def loss_status(self) -> str:
+        return self._vgg_status
+
+    # ---- restoring ----------------------------------------------------------------------------------------------
+    def forward_with(self, generators, sensor: torch.Tensor, otf: torch.Tensor) -> dict:
+        """sensor (B, 1, P, P); otf (P, P // 2 + 1) of the system PSF kernel at the network pitch. Returns i_b
+        (B,1,P,P), features (B,N,P,P) after deconvolution, b = [b^0 (B,1,P/2,P/2), b^1 (B,1,P,P)], restored = b^1."""
+        return sandwich(generators, sensor, otf, self.spec.g1_residual)
 
     def pre_restore(self, sensor: torch.Tensor) -> torch.Tensor:
         """G1: (B, 1, P, P) normalized sensor image -> I_b^ (B, 1, P, P)."""
         return pre_restore(self.g1, sensor, self.spec.g1_residual)
-
-    def forward(self, sensor: torch.Tensor, otf: torch.Tensor) -> dict:
-        """sensor (B, 1, P, P); otf (P, P // 2 + 1) of the system PSF kernel at the network pitch.
-
-        Returns i_b (B,1,P,P), features (B,N,P,P) after deconvolution, b = [b^0 (B,1,P/2,P/2), b^1 (B,1,P,P)].
-        """
-        return sandwich(self.generators(), sensor, otf, self.spec.g1_residual)
 
     def critic1(self, sensor: torch.Tensor, i_b: torch.Tensor):
         """D1(s, x, y, I_b) -> (patch scores, level features)."""
@@ -119,6 +160,73 @@ class SGAN(nn.Module):
         """The conditioning channels of D1: (s, x, y)."""
         return torch.cat([sensor, coordinates(sensor)], 1)
 
+    # ---- the objective (supplement, "Hyper-parameters in Training") --------------------------------------------
+    def critic_losses(self, batch: dict, out: dict, ctx: TrainContext) -> dict:
+        """WGAN critic terms for D1 (conditional on s) and both D2 scales, with the gradient penalty when weighted.
+        Inputs detached: with a trainable mask the sensor image carries the optics' graph, which the critics'
+        update must neither consume nor write gradients into."""
+        w = self.weights
+        s, i_b = batch["sensor"].detach(), batch["irradiance"].detach()
+        targets = _targets(batch)
+        fake_i, fake_b = out["i_b"].detach(), [b.detach() for b in out["b"]]
+        d1n, d2n = ctx.critics[0], ctx.critics[1:]
+        critic1 = lambda x: ctx.run(d1n, torch.cat([s, coordinates(s), x], 1))[0]  # noqa: E731
+        d1 = losses.critic_loss(critic1(i_b), critic1(fake_i))
+        d2 = sum(losses.critic_loss(ctx.run(d2n[k], targets[k])[0], ctx.run(d2n[k], fake_b[k])[0]) for k in range(2))
+        total = w.adv * (d1 + d2)
+        terms = {"d1_wasserstein": -d1, "d2_wasserstein": -d2}
+        if w.gp > 0:  # the penalty's double backward is the critic step's largest cost: only when weighted
+            gp1 = ctx.gradient_penalty(d1n, i_b, fake_i, self.condition1(s))
+            gp2 = sum(ctx.gradient_penalty(d2n[k], targets[k], fake_b[k]) for k in range(2))
+            total = total + w.gp * (gp1 + gp2)
+            terms.update(d1_gp=gp1, d2_gp=gp2)
+        terms["critic_total"] = total
+        return terms
 
-def parameter_count(module: nn.Module) -> int:
-    return sum(p.numel() for p in module.parameters())
+    def generator_losses(self, batch: dict, out: dict, ctx: TrainContext) -> dict:
+        """Charbonnier L1 on I_b and both scales of b, adversarial, MDF, VGG and FFT terms with the variant's
+        weights. The critics run as plain modules (frozen by the trainer: they take no update here)."""
+        w, eps = self.weights, self.weights.charbonnier_eps
+        s, i_b = batch["sensor"], batch["irradiance"]
+        targets = _targets(batch)
+        terms = {"rec1": losses.charbonnier(out["i_b"], i_b, eps),
+                 "rec2": sum(losses.charbonnier(out["b"][k], targets[k], eps) for k in range(2))}
+        total = w.l1_stage1 * terms["rec1"] + w.l1_stage2 * terms["rec2"]
+        if w.adv > 0 or w.mdf > 0:
+            fake2 = [ctx.run(self.d2[k], out["b"][k]) for k in range(2)]
+            if w.adv > 0:
+                terms["adv"] = losses.generator_adv_loss(ctx.run(self.critic1, s, out["i_b"])[0]) + \
+                    losses.generator_adv_loss([f[0] for f in fake2])
+                total = total + w.adv * terms["adv"]
+            if w.mdf > 0:
+                with torch.no_grad():
+                    real_feats = [ctx.run(self.d2[k], targets[k])[1] for k in range(2)]
+                terms["mdf"] = losses.feature_matching_loss(real_feats, [f[1] for f in fake2])
+                total = total + w.mdf * terms["mdf"]
+        if w.vgg > 0 and self.vgg is not None:
+            terms["vgg"] = sum(self.vgg(out["b"][k], targets[k]) for k in range(2))
+            total = total + w.vgg * terms["vgg"]
+        if w.fft > 0:
+            terms["fft"] = sum(losses.fft_loss(out["b"][k], targets[k]) for k in range(2))
+            total = total + w.fft * terms["fft"]
+        terms["generator_total"] = total
+        return terms
+
+    # ---- reporting ----------------------------------------------------------------------------------------------
+    def summary(self) -> dict:
+        return {"variant": self.spec.variant, "size": self.spec.size}
+
+    def scalars(self) -> dict[str, float]:
+        gamma = self.gv.deconv.gamma.detach()
+        return {"wiener/gamma_mean": float(gamma.mean()), "wiener/gamma_min": float(gamma.min()),
+                "wiener/gamma_max": float(gamma.max())}
+
+    def check_input_size(self, padded_size: int, key: str = "data.padded_size") -> None:
+        self.spec.check_input_size(padded_size, key)
+
+
+def _targets(batch: dict) -> list[torch.Tensor]:
+    """[coarse, fine] scene targets of G2, computed once per batch and kept in it."""
+    if batch.get("targets") is None:
+        batch["targets"] = pyramid(batch["scene"])
+    return batch["targets"]

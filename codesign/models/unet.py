@@ -19,7 +19,8 @@ from codesign.models.blocks import (EfficientAttention, InstanceNorm, ResBlock, 
                                     match_size)
 
 
-def _residual(kind: str, channels: int, kernel: int = 3) -> nn.Module:
+def residual_block(kind: str, channels: int, kernel: int = 3) -> nn.Module:
+    """A residual block of the given kind: res (ResBlock) or rft (ResFFTBlock, SGAN-F)."""
     if kind == "res":
         return ResBlock(channels, kernel)
     if kind == "rft":
@@ -38,7 +39,7 @@ class Stage(nn.Module):
                                           nn.ReLU(inplace=True))
         else:
             self.resample = conv_norm_act(cin, cout, 4, stride=2)
-        self.residual = nn.Sequential(*[_residual(block, cout) for _ in range(residual_blocks)])
+        self.residual = nn.Sequential(*[residual_block(block, cout) for _ in range(residual_blocks)])
         self.attention = EfficientAttention(cout, key_channels) if attention else nn.Identity()
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

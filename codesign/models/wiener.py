@@ -16,18 +16,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from codesign.models.blocks import conv_norm_act
-from codesign.models.unet import _residual
-from codesign.sensor.kernels import kernel_otf
-
-
-def otf_from_kernel(kernel: torch.Tensor, size: int) -> torch.Tensor:
-    """rfft2 (size x size // 2 + 1) of a centred (k, k) PSF kernel zero-padded to size x size, its centre moved
-    to pixel (0, 0) so that filtering does not shift the image. H(0) = sum(kernel)."""
-    k = kernel.shape[-1]
-    if k > size:
-        raise ValueError(f"kernel ({k} px) larger than the deconvolution grid ({size} px)")
-    otf = kernel_otf(kernel.to(torch.float64), size)  # the simulator's own convention (same centring)
-    return otf.to(torch.complex128 if kernel.dtype == torch.float64 else torch.complex64)
+from codesign.models.unet import residual_block
 
 
 def wiener_filter(y: torch.Tensor, otf: torch.Tensor, power: torch.Tensor | float,
@@ -84,7 +73,7 @@ class FeatureExtractor(nn.Module):
                  block: str = "res"):
         super().__init__()
         self.net = nn.Sequential(conv_norm_act(in_channels, features, kernel),
-                                 *[_residual(block, features, kernel) for _ in range(residual_blocks)])
+                                 *[residual_block(block, features, kernel) for _ in range(residual_blocks)])
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.net(x)
@@ -120,6 +109,8 @@ class LearnableWiener(nn.Module):
 
 class DeconvModule(nn.Module):
     """G_v = {FE, deconv}: features of the pre-restored irradiance, each deconvolved with the system OTF."""
+
+    no_compile = True  # trainer.compile leaves it alone: its complex FFTs gain nothing from torch.compile
 
     def __init__(self, features: int = 16, kernel: int = 5, gamma_init: float = 1e-2, block: str = "res"):
         super().__init__()

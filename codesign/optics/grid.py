@@ -13,8 +13,9 @@ import torch
 from codesign.optics.spec import OpticsSpec
 
 
-def centered_coords(n: int, pitch: float, dtype=torch.float64, device=None) -> torch.Tensor:
-    """Sample coordinates (i - n // 2) * pitch [m], shape (n,)."""
+def axis_coords(n: int, pitch: float, dtype=torch.float64, device=None) -> torch.Tensor:
+    """Sample coordinates (i - n // 2) * pitch [m], shape (n,): sample n // 2 lies on the optical axis (the fftshift
+    centre), for even and odd n. Compare sensor.kernels.symmetric_coords, whose pixel centres straddle the axis."""
     return (torch.arange(n, dtype=torch.float64, device=device) - n // 2).mul(pitch).to(dtype)
 
 

@@ -17,7 +17,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from codesign.optics.grid import centered_coords
+from codesign.optics.grid import axis_coords
 from codesign.optics.spec import OpticsSpec
 
 _FAST_RADICES = (2, 3, 5, 7)
@@ -95,8 +95,8 @@ class Propagator(torch.nn.Module):
         cdtype = torch.complex128 if dtype == torch.float64 else torch.complex64
         n, m = spec.grid_n, spec.focal_n
         if self.method == "mft":
-            pupil = centered_coords(n, spec.pupil_pitch_m, device=device)
-            focal = centered_coords(m, spec.focal_pitch_m, device=device)
+            pupil = axis_coords(n, spec.pupil_pitch_m, device=device)
+            focal = axis_coords(m, spec.focal_pitch_m, device=device)
             w = mft_matrix(focal, pupil, spec.lambda_f, cdtype)
             self.register_buffer("w", w, persistent=False)
             self.native_pitch = spec.focal_pitch_m
@@ -110,7 +110,7 @@ class Propagator(torch.nn.Module):
                     raise ValueError(f"fft_n = {self.fft_n}: its field {native_extent:.4g} m is smaller than the "
                                      f"focal window {spec.focal_extent_m:.4g} m")
                 # grid_sample coordinates of the window's sample centres in the native (fftshifted) grid.
-                pos = centered_coords(m, spec.focal_pitch_m, device=device) / self.native_pitch  # native samples
+                pos = axis_coords(m, spec.focal_pitch_m, device=device) / self.native_pitch  # native samples
                 norm = (pos + self.fft_n // 2) * 2 / (self.fft_n - 1) - 1  # align_corners=True
                 gy, gx = torch.meshgrid(norm, norm, indexing="ij")
                 self.register_buffer("sample_grid", torch.stack([gx, gy], -1)[None].to(dtype), persistent=False)

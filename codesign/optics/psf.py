@@ -10,7 +10,7 @@ import math
 
 import torch
 
-from codesign.optics.grid import PupilGrid, centered_coords
+from codesign.optics.grid import PupilGrid, axis_coords
 from codesign.optics.propagation import Propagator, mft, mft_matrix
 from codesign.optics.spec import OpticsSpec
 
@@ -98,7 +98,7 @@ class OpticalSystem(torch.nn.Module):
         vals = torch.where(is_max, p, torch.zeros_like(p)).reshape(-1)
         top = torch.topk(vals, min(candidates, vals.numel())).indices
         field = self.field(phase.detach())
-        pupil = centered_coords(self.grid.n, s.pupil_pitch_m, device=p.device)
+        pupil = axis_coords(self.grid.n, s.pupil_pitch_m, device=p.device)
         off = torch.arange(-oversample, oversample + 1, dtype=torch.float64, device=p.device) / oversample
         cdtype = field.dtype
         best = float(p.max())

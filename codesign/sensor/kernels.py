@@ -81,8 +81,9 @@ def resample_psf(psf: torch.Tensor, dx: float, ys: torch.Tensor, xs: torch.Tenso
     return resample_spectrum(psf_spectrum(psf, size).to(cdtype), dx, ys, xs, pixel_m, integrate)
 
 
-def centred_coords(n: int, pitch: float, device=None) -> torch.Tensor:
-    """Pixel-centre coordinates (i - (n - 1) / 2) * pitch [m] of an n-pixel grid centred on the axis."""
+def symmetric_coords(n: int, pitch: float, device=None) -> torch.Tensor:
+    """Pixel-centre coordinates (i - (n - 1) / 2) * pitch [m], symmetric about the axis (for even n no pixel lies
+    on it). Compare optics.grid.axis_coords, which always puts sample n // 2 on the axis."""
     return (torch.arange(n, dtype=torch.float64, device=device) - (n - 1) / 2) * pitch
 
 
@@ -102,7 +103,7 @@ def kernel(psf: torch.Tensor, dx: float, size: int, pitch: float, integrate: boo
 
     ``spectrum``: a psf_spectrum of ``psf`` to resample from (default: one padded just enough for this kernel).
     """
-    c = centred_coords(size, pitch, psf.device)
+    c = symmetric_coords(size, pitch, psf.device)
     k = resample_psf(psf, dx, c, c, pitch, integrate) if spectrum is None else \
         resample_spectrum(spectrum, dx, c, c, pitch, integrate)
     return conserve_energy(k, psf)
@@ -116,6 +117,16 @@ def kernel_otf(k: torch.Tensor, n_fft: int) -> torch.Tensor:
     padded[..., :size, :size] = k
     padded = torch.roll(padded, shifts=(-c, -c), dims=(-2, -1))
     return torch.fft.rfft2(padded)
+
+
+def otf_from_kernel(kernel: torch.Tensor, size: int) -> torch.Tensor:
+    """rfft2 (size x size // 2 + 1) of a centred (k, k) PSF kernel zero-padded to size x size, its centre moved
+    to pixel (0, 0) so that filtering does not shift the image. H(0) = sum(kernel)."""
+    k = kernel.shape[-1]
+    if k > size:
+        raise ValueError(f"kernel ({k} px) larger than the deconvolution grid ({size} px)")
+    otf = kernel_otf(kernel.to(torch.float64), size)  # the simulator's own convention (same centring)
+    return otf.to(torch.complex128 if kernel.dtype == torch.float64 else torch.complex64)
 
 
 def convolve_valid(scene: torch.Tensor, otf: torch.Tensor, n_fft: int, ksize: int) -> torch.Tensor:

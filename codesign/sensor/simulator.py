@@ -141,9 +141,12 @@ class SensorSimulator(torch.nn.Module):
             self._cache[ck] = out
         return out
 
-    def kernel(self, state: PSFState, level: str = "coarse") -> torch.Tensor:
-        """The pixel-integrated PSF kernel (ksize x ksize energy fractions) the simulator convolves with."""
-        return self._kernels(state, self.coarse if level == "coarse" else self.fine, None)["kernel"]
+    def kernel(self, state: PSFState, level: str = "coarse", key=None) -> torch.Tensor:
+        """The pixel-integrated PSF kernel (ksize x ksize energy fractions) the simulator convolves with.
+
+        ``key``: the state's cache key (a frozen mask's ``mask_state_key``): the kernels computed here are then
+        kept for the simulations of that state."""
+        return self._kernels(state, self.coarse if level == "coarse" else self.fine, key)["kernel"]
 
     # ---- laser --------------------------------------------------------------------------------------------
     def laser_map(self, state: PSFState, alpha_l: torch.Tensor, angle: torch.Tensor, level: Level, dtype,
@@ -289,7 +292,7 @@ class SensorSimulator(torch.nn.Module):
         convolved."""
         dtype = scene.dtype
         f, c = self.fine, self.coarse
-        fine_c = kernels.centred_coords(f.n_scene, f.pitch, scene.device) / c.pitch + (c.n_scene - 1) / 2
+        fine_c = kernels.symmetric_coords(f.n_scene, f.pitch, scene.device) / c.pitch + (c.n_scene - 1) / 2
         g = (fine_c * 2 / (c.n_scene - 1) - 1).to(dtype)  # align_corners=True normalization
         gy, gx = torch.meshgrid(g, g, indexing="ij")
         grid = torch.stack([gx, gy], -1)[None].expand(scene.shape[0], -1, -1, -1)

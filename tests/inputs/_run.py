@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 from hydra import compose, initialize_config_dir
 
-from codesign.config import command_line_keys
-from codesign.engine import experiments
+from codesign.config.runtime import command_line_keys
+import codesign.tasks as experiments
 from tests.conftest import REPO_ROOT
 
 
@@ -18,22 +18,33 @@ def _work(*args, **kwargs):
     raise WorkStarted
 
 
+def _camera_without_optics(build):
+    """``build_camera`` whose camera starts work (the sentinel) when its optics are first asked for."""
+    def wrapped(*args, **kwargs):
+        camera = build(*args, **kwargs)
+        camera.frozen_optics = _work
+        return camera
+    return wrapped
+
+
 def stop_before_work(monkeypatch) -> None:
     """Replace the first expensive step of every experiment with the sentinel."""
-    import codesign.engine.joint_task as joint
-    import codesign.engine.psf_task as psf
-    import codesign.engine.restoration_tasks as restoration
-    import codesign.engine.restore_task as restore
-    import codesign.engine.search_task as search
-    import codesign.engine.simulate_task as simulate
+    import codesign.tasks.joint as joint
+    import codesign.tasks.psf as psf
+    import codesign.tasks.baseline as restoration
+    import codesign.tasks.evaluate as evaluate
+    import codesign.tasks.restore as restore
+    import codesign.tasks.mask_search as search
+    import codesign.tasks.simulate as simulate
 
     monkeypatch.setattr(psf, "time_forward_backward", _work)
-    monkeypatch.setattr(simulate, "psf_state", _work)
+    monkeypatch.setattr(simulate, "build_camera", _camera_without_optics(simulate.build_camera))
     monkeypatch.setattr(restoration.RestorationTrainer, "fit", _work)
     monkeypatch.setattr(restoration, "run_evaluation", _work)
+    monkeypatch.setattr(evaluate, "run_evaluation", _work)
     monkeypatch.setattr(joint, "_train", _work)
     monkeypatch.setattr(search, "_search_floor", _work)
-    monkeypatch.setattr(restore, "frozen_psf", _work)
+    monkeypatch.setattr(restore, "build_camera", _camera_without_optics(restore.build_camera))
 
 
 def compose_cfg(*overrides: str):

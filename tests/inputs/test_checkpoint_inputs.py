@@ -10,14 +10,14 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from codesign.engine.checkpoint import save_checkpoint
-from codesign.engine.restoration_tasks import (apply_checkpoint_mask, build_model, check_resume_config,
-                                               load_trained, resume_if_possible)
 from codesign.errors import ConfigError
+from codesign.train.checkpoint import save_checkpoint
+from codesign.train.resume import apply_checkpoint_mask, check_resume_config, load_trained, resume_if_possible
+from codesign.train.setup import build_model
 from codesign.optics import OpticalSystem, OpticsSpec
 from codesign.optics.masks import HalfRingMask
 from tests.cli import run_codesign
-from tests.engine._util import tiny_cfg
+from tests.train._util import tiny_cfg
 from tests.inputs._run import config_error
 
 CPU = torch.device("cpu")

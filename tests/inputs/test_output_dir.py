@@ -13,10 +13,12 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from codesign.engine import experiments, io, rundir
-from codesign.engine.checkpoint import save_checkpoint
-from codesign.engine.evaluate import write_csv
-from codesign.engine.restore_task import save_png16
+import codesign.tasks as experiments
+from codesign.io import files as io
+from codesign.tasks import rundir
+from codesign.train.checkpoint import save_checkpoint
+from codesign.train.evaluation import write_csv
+from codesign.io.images import save_png16
 from codesign.errors import ConfigError, OutputWriteError
 from tests.cli import run_codesign
 from tests.inputs._run import config_error
@@ -63,7 +65,7 @@ WRITERS = {
                   lambda mp: mp.setattr(io.np, "save", _half_then_full_disk)),
     "evaluation.csv": (lambda p, v: write_csv(p, [{"v": v}]), lambda p: int(p.read_text().split()[1]),
                        lambda mp: mp.setattr(io, "_fsync", _raise)),  # written, not yet on disk
-    "restored_a.png": (lambda p, v: save_png16(p, np.full((4, 4), v / 65535.0)), _png_value,
+    "restored_a.png": (lambda p, v: save_png16(p, np.full((4, 4), v / 65535.0), scale=65535.0), _png_value,
                        lambda mp: mp.setattr(io.os, "replace", _raise)),  # the rename itself fails
     "figure.png": (lambda p, v: io.save_figure(p, _figure(v)), lambda p: 1,
                    lambda mp: mp.setattr("matplotlib.figure.Figure.savefig", _half_then_full_disk)),

@@ -8,7 +8,7 @@ import torch
 import torch.nn as nn
 
 from codesign.errors import ConfigError
-from codesign.losses import (VGGPerceptualLoss, build_vgg_loss, charbonnier, critic_loss, feature_matching_loss,
+from codesign.models.losses import (VGGPerceptualLoss, build_vgg_loss, charbonnier, critic_loss, feature_matching_loss,
                              fft_loss, generator_adv_loss, gradient_penalty)
 from codesign.models.vgg import ImageNetInput, extract, vgg19_features
 

@@ -399,8 +399,11 @@ def test_model_spec_errors():
         ModelSpec(d_widths=[8])          # a critic needs at least two levels
     with pytest.raises(ConfigError):
         ModelSpec(attention="yes")
-    # the trainer's loss block is ignored by build_sgan
-    assert isinstance(build_sgan({"variant": "sgan_e", "size": "tiny", "loss": {"l1": 1.0}}), SGAN)
+    # the loss block belongs to the restorer (its objective): validated with it, and kept
+    with pytest.raises(ConfigError) as err:
+        build_sgan({"variant": "sgan_e", "size": "tiny", "loss": {"l1": 1.0}})
+    assert err.value.key == "model.loss.l1" and "unknown key" in str(err.value)
+    assert build_sgan({"variant": "sgan_e", "size": "tiny", "loss": {"vgg": 3.0}}).weights.vgg == 3.0
 
 
 def test_check_input_size_rejects_odd_and_small_grids():

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from codesign.optics import OpticalSystem, OpticsSpec, RadialMTF, airy_psf, circular_mtf, metrics
-from codesign.optics.grid import centered_coords
+from codesign.optics.grid import axis_coords
 from codesign.optics.masks import published_halfring
 from codesign.optics.propagation import choose_propagator, exact_fft_size, next_fast_len
 
@@ -32,7 +32,7 @@ def _phases(system: OpticalSystem) -> dict[str, torch.Tensor]:
 
 
 def _focal_radius(spec: OpticsSpec) -> torch.Tensor:
-    c = centered_coords(spec.focal_n, spec.focal_pitch_m, dtype=torch.float64)
+    c = axis_coords(spec.focal_n, spec.focal_pitch_m, dtype=torch.float64)
     return torch.sqrt(c[:, None] ** 2 + c[None, :] ** 2)
 
 

@@ -3,7 +3,7 @@
 The runs stay finite, the losses stay within bounds set from measured ranges, the networks keep learning, and a
 NaN forced mid-run (into the critic's loss, a generator gradient, a simulated batch) skips exactly the update it
 poisons: that side's weights and Adam moments are left as they were, the skip is counted and logged, and the
-following steps are finite again. The short unit checks of the same guards are in tests/engine (test_trainer:
+following steps are finite again. The short unit checks of the same guards are in tests/train (test_trainer:
 _apply on a NaN loss; test_joint: NaN generator loss, NaN mask gradient, NaN mask restored); this file is the
 long, realistic version with both critics and generators and the joint mask path.
 
@@ -21,17 +21,17 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from codesign import losses
-from codesign.engine.joint_data import JointData
-from codesign.engine.joint_trainer import JointTrainer
-from codesign.engine.lsr_constraint import CodesignSpec, LSRConstraint, snapshot
-from codesign.engine.monitor import published_mask_config
-from codesign.engine.restoration_tasks import build_model, loss_weights
-from codesign.engine.train_spec import TrainerSpec
-from codesign.engine.trainer import init_weights
+from codesign.models import losses
+from codesign.train.data import SimulatedData
+from codesign.train.joint_trainer import JointTrainer
+from codesign.design.lsr_constraint import CodesignSpec, LSRConstraint, snapshot
+from codesign.design.monitor import published_mask_config
+from codesign.train.setup import build_model
+from codesign.train.spec import TrainerSpec
+from codesign.train.trainer import init_weights
 from codesign.optics import build_mask
 from tests.conftest import REPO_ROOT
-from tests.engine._util import TINY, tiny_trainer
+from tests.train._util import TINY, tiny_trainer
 
 CPU = torch.device("cpu")
 # Every image dazzled: alpha_l drawn from [1e6, 1e8] instead of the paper's [0, 2e6]; 1e8 is the top of the range
@@ -117,7 +117,7 @@ def _weights_finite(modules) -> bool:
 @pytest.mark.parametrize("steps", [pytest.param(200, id="ci"), pytest.param(600, marks=pytest.mark.slow, id="long")])
 def test_long_wgan_gp_run_under_strong_lasers_stays_finite_bounded_and_learns(tmp_path, steps):
     tr = tiny_trainer(tmp_path, *STRONG_LASER, steps=steps, **NO_IO)
-    assert tr.w.adv > 0 and tr.w.gp > 0  # SGAN-B: WGAN-GP critics D1 and D2 (two scales)
+    assert tr.model.weights.adv > 0 and tr.model.weights.gp > 0  # SGAN-B: WGAN-GP critics D1 and D2 (two scales)
     before = _validation_rec(tr)
     saturated = _record_saturation(tr)
     logs = _train(tr, steps)
@@ -159,7 +159,7 @@ def _same(a, b) -> bool:
 
 def test_forced_nans_mid_run_skip_only_the_poisoned_update_and_training_recovers(tmp_path, caplog, monkeypatch):
     tr = tiny_trainer(tmp_path, *STRONG_LASER, steps=40, ema=0.99, **NO_IO)
-    gens, crits = tr.model.generators(), tr.model.discriminators()
+    gens, crits = tr.model.generators(), tr.model.critics()
     logs = _train(tr, 10)
 
     def before():
@@ -230,12 +230,12 @@ def _joint_trainer(tmp_path: Path, steps: int) -> JointTrainer:
     torch.manual_seed(0)
     model = build_model(cfg)
     init_weights(model)
-    data = JointData(cfg, CPU, 0)
+    data = SimulatedData(cfg, CPU, 0)
     spec = TrainerSpec.from_config(dict(cfg.trainer)).replace(steps=steps, **NO_IO)
     cs = CodesignSpec.from_config({**dict(cfg.codesign), "warmup_fraction": 0.0})
-    ref = build_mask(published_mask_config(dict(cfg.mask)), data.system.grid, data.system.spec.aperture_diameter_m)
-    lsr_max = LSRConstraint(cs, data.system, 1.0).measure(ref)
-    return JointTrainer(model, data, spec, loss_weights(cfg), tmp_path, CPU, {"test": 1}, None, 0, cs, lsr_max)
+    ref = build_mask(published_mask_config(dict(cfg.mask)), data.camera.system.grid, data.camera.system.spec.aperture_diameter_m)
+    lsr_max = LSRConstraint(cs, data.camera.system, 1.0).measure(ref)
+    return JointTrainer(model, data, spec, tmp_path, CPU, {"test": 1}, None, 0, cs, lsr_max)
 
 
 @pytest.mark.parametrize("steps", [pytest.param(12, id="ci"), pytest.param(80, marks=pytest.mark.slow, id="long")])

@@ -1,0 +1,145 @@
+"""The camera as one differentiable object: mask -> phase -> PSF (optics window) -> pixel kernel -> sensor image, and
+the kernel's OTF on the network's padded grid (what a Wiener stage needs).
+
+The same object serves a frozen mask (training a restorer, evaluating, restoring captures) and a trainable one
+(co-design): while the mask is frozen its optics are computed once and cached, keyed by the mask's parameter
+values; while it is trainable every call recomputes them with the mask's graph, so that one backward pass from a
+restoration loss reaches the mask parameters.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from codesign.errors import ConfigError
+from codesign.optics.masks import Mask
+from codesign.optics.psf import OpticalSystem
+from codesign.sensor.kernels import otf_from_kernel
+from codesign.sensor.simulator import PSFState, SensorSimulator, mask_state_key, psf_state
+
+
+@dataclass
+class OpticsOutputs:
+    """What the rest of the chain needs of the optics for one set of mask parameters.
+
+    state: the window PSF and its uncoded normalizers (sensor simulation); kernel: the PSF integrated over one
+    network pixel, (k, k); otf: rfft2 of that kernel on the padded grid, (P, P // 2 + 1); key: cache key of the
+    mask's values (None while the mask trains).
+    """
+
+    state: PSFState
+    kernel: torch.Tensor
+    otf: torch.Tensor
+    key: tuple | None = None
+
+
+class Camera(torch.nn.Module):
+    """An OpticalSystem, a Mask on its pupil grid and a SensorSimulator, with the optics of the current mask.
+
+    Args:
+        system: the optical system (pupil grid, propagator); mask: any Mask built on ``system.grid``;
+        simulator: the sensor model (its optics spec must be ``system.spec``); device: where OTFs live.
+    """
+
+    def __init__(self, system: OpticalSystem, mask: Mask, simulator: SensorSimulator,
+                 device: torch.device | str = "cpu"):
+        super().__init__()
+        self.system, self.mask, self.simulator = system, mask, simulator
+        self.device = torch.device(device)
+        self.mask_forward = mask  # called for the phase; a DistributedDataParallel wrapper may take its place
+        self.trainable = False
+        self._frozen: OpticsOutputs | None = None
+        self.set_trainable(False)
+
+    # ---- geometry ---------------------------------------------------------------------------------------------
+    @property
+    def sensor(self):
+        """The SensorSpec."""
+        return self.simulator.sensor
+
+    @property
+    def optics(self):
+        """The OpticsSpec."""
+        return self.system.spec
+
+    @property
+    def image_size(self) -> int:
+        return self.simulator.sensor.image_size
+
+    @property
+    def padded_size(self) -> int:
+        return self.simulator.sensor.padded_size
+
+    @property
+    def scene_size(self) -> int:
+        """Side of the scene crop a simulation needs (the padded grid plus the kernel's reach)."""
+        return self.simulator.scene_size
+
+    def check_padding(self) -> None:
+        """The padded grid must hold the field plus the PSF's reach, or the (circular) Wiener deconvolution of a
+        restorer and of the baselines wraps the blur of one border onto the other."""
+        s, k = self.simulator.sensor, self.simulator.coarse.ksize
+        need = s.image_size + k - 1
+        if s.padded_size < need:
+            raise ConfigError("data.padded_size", s.padded_size, f"must be >= data.image_size + PSF kernel - 1 = "
+                              f"{s.image_size} + {k} - 1 = {need} at this pitch, so that deconvolution does not wrap")
+
+    # ---- the mask ---------------------------------------------------------------------------------------------
+    def set_trainable(self, flag: bool) -> None:
+        """Let the mask's parameters take gradients (co-design) or freeze them (cached optics)."""
+        self.trainable = bool(flag)
+        for p in self.mask.parameters():
+            p.requires_grad_(self.trainable)
+
+    def invalidate(self) -> None:
+        """The mask's values changed: recompute the cached optics on next use."""
+        self._frozen = None
+
+    # ---- the optics -------------------------------------------------------------------------------------------
+    def optics_of(self, phase: torch.Tensor, key: tuple | None = None) -> OpticsOutputs:
+        """PSF state, network-pitch kernel and padded-grid OTF of a pupil phase; all carry the phase's graph.
+        ``key``: the cache key of a frozen mask's values (the simulator then keeps the kernels for its images)."""
+        state = psf_state(self.system, phase)
+        kernel = self.simulator.kernel(state, key=key)
+        return OpticsOutputs(state, kernel, otf_from_kernel(kernel, self.padded_size).to(self.device), key)
+
+    def current_optics(self) -> OpticsOutputs:
+        """The optics of the mask's current values: with the mask's graph while it is trainable (recomputed every
+        call), else cached without gradient."""
+        if self.trainable:
+            return self.optics_of(self.mask_forward())
+        return self.frozen_optics()
+
+    def frozen_optics(self) -> OpticsOutputs:
+        """The optics of the mask's current values without gradient (cached), whatever ``trainable`` says."""
+        if self._frozen is None:
+            with torch.no_grad():
+                self._frozen = self.optics_of(self.mask.phase(), mask_state_key(self.mask))
+        return self._frozen
+
+    @property
+    def otf(self) -> torch.Tensor:
+        """OTF of the mask's current values on the padded grid, no gradient."""
+        return self.frozen_optics().otf
+
+    # ---- the sensor -------------------------------------------------------------------------------------------
+    def forward(self, scenes: torch.Tensor, params, seed: int, optics: OpticsOutputs | None = None) -> dict:
+        """Simulate a batch (see SensorSimulator.forward for the outputs).
+
+        ``optics``: None = the frozen, cached optics (no gradient, kernels cached by the simulator); an
+        OpticsOutputs from ``current_optics()`` of a trainable mask carries its graph into the sensor image.
+        """
+        if optics is None:
+            frozen = self.frozen_optics()
+            with torch.no_grad():
+                return self.simulator(scenes, params, frozen.state, seed=seed, mask_key=frozen.key)
+        return self.simulator(scenes, params, optics.state, seed=seed, mask_key=None)
+
+
+def field_of_view(x: torch.Tensor, n: int) -> torch.Tensor:
+    """The central n x n of a padded (..., P, P) map: the sensor's field of view (the simulator pads it
+    symmetrically, (P - n) // 2 before)."""
+    p = x.shape[-1]
+    m = (p - n) // 2
+    return x[..., m:m + n, m:m + n]

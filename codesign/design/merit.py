@@ -1,0 +1,75 @@
+"""Figures of merit of a mask on an optical system: LSR (sampled, smooth, refined continuous peak), BSR, MTF, the
+energy kept in the optics window; and the cost of the differentiable chain behind them."""
+from __future__ import annotations
+
+import statistics
+import time
+
+import torch
+
+from codesign.optics import OpticalSystem, RadialMTF, metrics
+
+
+@torch.no_grad()
+def mask_figures_of_merit(system, mask, radial: RadialMTF, band: tuple[float, float], p: float,
+                          refine: bool = False) -> tuple[dict, dict]:
+    """(scalars, arrays) of a mask: LSR (sampled, smooth; refined continuous peak when ``refine``), BSR, MTF.
+
+    arrays: phase (n, n), psf (m, m), mtf2d (m, m, DC centred), mtf_radial (n_bins,).
+    """
+    phase = mask.phase()
+    psf = system.psf(phase)
+    h0 = system.uncoded_peak
+    sampled = float(metrics.lsr_sampled(psf, h0))
+    smooth = float(metrics.lsr_smooth(psf, h0, p))
+    mtf2d = metrics.mtf(psf)
+    rad = radial(mtf2d)
+    mean, mn = radial.summary(rad, band)
+    out = {"lsr_sampled": sampled, "lsr_smooth": smooth, "mtf_mean": float(mean), "mtf_min": float(mn),
+           "bsr": float(psf.sum()) / system.uncoded_energy}
+    if refine:
+        out["lsr"] = system.refined_peak(phase, psf) / h0
+        out["lsr_smooth_gap"] = smooth / out["lsr"] - 1
+    else:
+        out["lsr_smooth_gap"] = smooth / sampled - 1
+    arrays = {"phase": phase, "psf": psf, "mtf2d": torch.fft.fftshift(mtf2d), "mtf_radial": rad}
+    return out, arrays
+
+
+def time_forward_backward(system: OpticalSystem, mask, p: float, repeats: int) -> tuple[float, float]:
+    """Median seconds of (mask params -> phase -> PSF -> smooth LSR) and of its backward, after one warm-up."""
+    def once() -> tuple[float, float]:
+        mask.zero_grad(set_to_none=True)
+        sync = torch.cuda.synchronize if system.grid.rho.is_cuda else (lambda: None)
+        sync()
+        t0 = time.perf_counter()
+        loss = metrics.lsr_smooth(system.psf(mask.phase()), system.uncoded_peak, p)
+        sync()
+        t1 = time.perf_counter()
+        if loss.requires_grad:
+            loss.backward()
+        sync()
+        return t1 - t0, time.perf_counter() - t1
+
+    once()
+    runs = [once() for _ in range(repeats)]
+    return statistics.median(r[0] for r in runs), statistics.median(r[1] for r in runs)
+
+
+def evaluate_mask(system: OpticalSystem, mask, band: tuple[float, float], p: float) -> tuple[dict, dict]:
+    """All figures of merit of a mask on a system; returns (flat metrics, arrays for saving/plotting)."""
+    radial = RadialMTF(system.spec, device=system.grid.rho.device)
+    values, arr = mask_figures_of_merit(system, mask, radial, band, p, refine=True)
+    with torch.no_grad():
+        psf0 = system.uncoded_psf()
+        rad0 = radial(metrics.mtf(psf0))
+        mean0, mn0 = radial.summary(rad0, band)
+    out = {
+        **values, "lsr_smooth_p": p, "mtf_mean_uncoded": float(mean0), "mtf_min_uncoded": float(mn0),
+        "mtf_band_low": band[0], "mtf_band_high": band[1],
+        "psf_energy_in_window": float(arr["psf"].sum()), "psf_uncoded_energy_in_window": float(psf0.sum()),
+        "psf_peak": float(arr["psf"].max()), "psf_uncoded_peak": system.uncoded_peak,
+    }
+    arrays = {"phase": arr["phase"], "psf": arr["psf"], "psf_uncoded": psf0, "mtf2d": arr["mtf2d"],
+              "mtf_radial": torch.stack([radial.freqs.to(rad0), arr["mtf_radial"], rad0])}
+    return out, arrays

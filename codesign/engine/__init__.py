@@ -1,1 +1,0 @@
-"""Experiments, I/O and plotting: everything that runs a job and writes a run directory."""

@@ -1,0 +1,49 @@
+"""16-bit single-channel images: sensor counts in and out (PNG / TIFF)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from codesign.errors import ConfigError
+from codesign.io.files import atomic_write_bytes
+
+
+def save_png16(path: Path, values: np.ndarray, scale: float = 1.0) -> None:
+    """``values * scale`` rounded and clipped to 0..65535, written atomically as a 16-bit PNG."""
+    from PIL import Image
+
+    arr = np.clip(np.rint(np.asarray(values) * scale), 0, 65535).astype(np.uint16)
+    atomic_write_bytes(path, lambda fh: Image.fromarray(arr).save(fh, format="PNG"))
+
+
+def read_counts(path: Path, key: str = "input") -> np.ndarray:
+    """The raw integer samples of a single-channel 16-bit PNG or TIFF, as float64 counts; ConfigError naming
+    ``key`` and the file for anything else."""
+    try:
+        if path.suffix.lower() in (".tif", ".tiff"):
+            import tifffile
+
+            arr = tifffile.imread(path)
+        else:
+            from PIL import Image
+
+            with Image.open(path) as img:
+                mode = img.mode
+                arr = np.array(img)
+                if mode in ("I;16", "I;16B", "I;16L", "I"):
+                    arr = arr.astype(np.uint16) if arr.max(initial=0) < 65536 and arr.min(initial=0) >= 0 else arr
+                elif mode != "L":
+                    raise ConfigError(key, str(path), f"PNG mode {mode}: expected a single-channel 16-bit "
+                                      "image (mode I;16)")
+    except ConfigError:
+        raise
+    except Exception as err:  # noqa: BLE001 - any decoder failure: say which file
+        raise ConfigError(key, str(path), f"cannot be read ({type(err).__name__}: {err})") from None
+    if arr.ndim != 2:
+        raise ConfigError(key, str(path), f"has shape {arr.shape}: expected one channel (H, W)")
+    if arr.dtype != np.uint16:
+        why = "8-bit files cannot hold the sensor's range" if arr.dtype.itemsize == 1 else \
+            "unsigned 16-bit integers, as +experiment=simulate writes them"
+        raise ConfigError(key, str(path), f"has {arr.dtype} samples: expected 16-bit sensor counts ({why})")
+    return arr.astype(np.float64)

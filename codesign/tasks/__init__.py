@@ -1,0 +1,130 @@
+"""The experiments: one thin module each (read the config, call the library, write the outputs), and here their
+registry and the common run wrapper (validation, debug shrink, threads, device, error reporting). Only the entry
+point (codesign/__main__.py) imports this package."""
+from __future__ import annotations
+
+import importlib
+import logging
+import pkgutil
+import shutil
+import sys
+from pathlib import Path
+from typing import Callable
+
+import torch
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
+
+from codesign.config.runtime import (apply_debug_overrides, check_logging, check_seed, explicit_keys, resolve_device,
+                                     set_threads)
+from codesign.errors import ConfigError, OutputWriteError
+from codesign.io import files as io
+from codesign.tasks import rundir
+from codesign.train import distributed
+
+log = logging.getLogger("codesign")
+
+
+# Every module of this package but these is an experiment: codesign.tasks.NAME runs +experiment=NAME through its
+# run(cfg, run_dir, device), reads the root keys COMMON_KEYS + its ROOT_KEYS, and trains under torchrun when it sets
+# DISTRIBUTED. Modules are imported only when their experiment runs (+experiment=psf never loads networks or nlopt).
+_NOT_EXPERIMENTS = ("rundir",)
+EXPERIMENTS: tuple[str, ...] = tuple(sorted(m.name for m in pkgutil.iter_modules(__path__)
+                                            if m.name not in _NOT_EXPERIMENTS))
+
+# Root keys every experiment has (conf/config.yaml and its groups).
+COMMON_KEYS = ("task", "seed", "device", "threads", "optics", "mask", "sensor", "model", "data", "trainer", "logging",
+               "evaluate", "debug")
+
+
+def task_module(name: str):
+    """The module of experiment ``name`` (imported on first use)."""
+    return importlib.import_module(f"codesign.tasks.{name}")
+
+
+def root_keys(name: str) -> tuple[str, ...]:
+    """Every root key experiment ``name`` reads."""
+    return COMMON_KEYS + tuple(task_module(name).ROOT_KEYS)
+
+
+def check_root_keys(cfg: DictConfig, task: str) -> None:
+    """A root key the experiment does not read (e.g. +checkpoint=... on baseline, a typo added with +) is refused
+    rather than ignored."""
+    allowed = root_keys(task)
+    extra = sorted(k for k in cfg if k not in allowed)
+    if extra:
+        raise ConfigError(extra[0], cfg.get(extra[0]), f"unknown key for +experiment={task}; allowed: "
+                          f"{', '.join(allowed)}")
+
+
+def experiment_function(name: str) -> Callable:
+    return task_module(name).run
+
+
+def _run_dir() -> Path:
+    try:
+        return Path(HydraConfig.get().runtime.output_dir)
+    except ValueError:  # not under Hydra (tests calling run_experiment directly)
+        return Path.cwd()
+
+
+def _discard_empty_run_dir(run_dir: Path) -> None:
+    """Remove a run dir that this run created and that holds only Hydra's own files (a run that stopped before
+    writing anything). A run dir that existed before (hydra.run.dir of an earlier run, to resume it) is kept,
+    with the .hydra/ files of that earlier run put back."""
+    if not run_dir.is_dir():
+        return
+    if rundir.existed_before(run_dir):
+        rundir.restore_earlier(run_dir)
+        return
+    ours = [p for p in run_dir.iterdir() if p.name != ".hydra" and not p.name.endswith(".log")]
+    if not ours and run_dir.resolve() != Path.cwd().resolve():
+        shutil.rmtree(run_dir, ignore_errors=True)
+        parent = run_dir.parent  # outputs/<task>/ that this run may have created
+        if parent.is_dir() and not any(parent.iterdir()) and parent.resolve() != Path.cwd().resolve():
+            parent.rmdir()
+
+
+def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None:
+    """Validate the common keys, apply ``debug`` shrinking, then run ``cfg.task``; config errors exit with 2, an
+    output file that cannot be written with 1 (the earlier file is unchanged)."""
+    run_dir = Path(run_dir) if run_dir is not None else _run_dir()
+    ctx = distributed.current()
+    if not ctx.is_main:  # rank 0 reports progress; the others only warnings (into <job>.rank<k>.log)
+        logging.getLogger("codesign").setLevel(logging.WARNING)
+    try:
+        task = cfg.get("task")
+        if task not in EXPERIMENTS:
+            raise ConfigError("task", task, "choose an experiment with +experiment=NAME; available: "
+                              + ", ".join(sorted(EXPERIMENTS)))
+        if ctx.enabled and not getattr(task_module(task), "DISTRIBUTED", False):
+            trainers = ", ".join(n for n in EXPERIMENTS if getattr(task_module(n), "DISTRIBUTED", False))
+            raise ConfigError("task", task, f"does not train networks and runs in one process: start it without "
+                              f"torchrun (training experiments under torchrun: {trainers})")
+        check_root_keys(cfg, task)
+        applied = apply_debug_overrides(cfg, explicit_keys())
+        if applied:
+            log.info("debug=%s: applied %s", cfg.debug.name, ", ".join(applied))
+        seed = check_seed(cfg)
+        check_logging(cfg)
+        threads = set_threads(cfg.get("threads"))
+        device = resolve_device(cfg.get("device", "auto"), ctx.local_rank if ctx.enabled else None)
+        if ctx.is_main:  # the other ranks write nothing
+            io.check_writable_dir(run_dir)  # before any work: never an hour of training, then a failed write
+        torch.manual_seed(seed)
+        log.info("task=%s device=%s threads=%d run_dir=%s%s", task, device, threads, run_dir,
+                 f" ranks={ctx.world} ({distributed.backend_name()})" if ctx.enabled else "")
+        return experiment_function(task)(cfg, run_dir, device)
+    except ConfigError as err:
+        distributed.settle(ctx)  # the same error stops every rank: let the others finish creating the run dir
+        if ctx.is_main:
+            _discard_empty_run_dir(run_dir)
+            print(f"codesign: configuration error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+    except OutputWriteError as err:
+        print(f"codesign: output error: {err}", file=sys.stderr)
+        raise SystemExit(1) from None
+
+
+def resolved_config_yaml(cfg: DictConfig) -> str:
+    return OmegaConf.to_yaml(cfg, resolve=True)

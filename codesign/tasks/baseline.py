@@ -1,0 +1,72 @@
+"""``+experiment=baseline``: train a restorer (default SGAN-B) with the published mask frozen, then evaluate it."""
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig
+
+from codesign.config.runtime import to_container
+from codesign.errors import require_number
+from codesign.io import files as io
+from codesign.train import distributed
+from codesign.train.checkpoint import CHECKPOINT_NAME
+from codesign.train.data import SimulatedData
+from codesign.train.evaluation import eval_settings, run_evaluation
+from codesign.train.resume import resume_if_possible
+from codesign.train.setup import build_model, distributed_metrics, run_metrics
+from codesign.train.spec import TrainerSpec
+from codesign.train.trainer import RestorationTrainer, init_weights
+from codesign.io.tensorboard import open_writer, tensorboard_enabled
+
+log = logging.getLogger("codesign.restoration")
+
+
+# Root keys this experiment reads besides the common ones (conf/experiment/baseline.yaml); any other is refused.
+ROOT_KEYS: tuple[str, ...] = ()
+DISTRIBUTED = True  # trains networks: runs data-parallel under torchrun
+
+def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
+    seed = int(cfg.get("seed", 0))
+    spec = TrainerSpec.from_config(to_container(cfg.trainer))
+    ev = eval_settings(cfg)  # every evaluation setting checked before training starts
+    log_every = require_number("logging.log_every", cfg.get("logging", {}).get("log_every", 10), lo=1,
+                               integer=True)
+    model = build_model(cfg)
+    init_weights(model)
+    ctx = distributed.current()
+    data = SimulatedData(cfg, device, seed, ctx)
+    trainer = RestorationTrainer(model, data, spec, run_dir, device, to_container(cfg), None, seed, ctx)
+    resume_if_possible(trainer, cfg, run_dir)
+    # purge_step drops the events a killed run logged after its last checkpoint; rank 0 alone writes
+    trainer.writer = open_writer(run_dir, tensorboard_enabled(cfg) and ctx.is_main, purge_step=trainer.step)
+    common = run_metrics(cfg, model, device)
+    log.info("%s (%s): generators %.2fM parameters, critics %.2fM; %d steps, batch %d, %d px padded to %d; "
+             "VGG loss %s", common["variant"], common["size"], common["parameters_generators"] / 1e6,
+             common["parameters_critics"] / 1e6, spec.steps, int(cfg.data.batch_size), data.image_size,
+             data.padded_size, model.loss_status)
+    t0 = time.perf_counter()
+    history = trainer.fit(log_every)
+    seconds = time.perf_counter() - t0
+    if not ctx.is_main:  # rank 0 evaluates and writes
+        return None
+    first, last = (history[0], history[-1]) if history else ({}, {})
+    metrics = {**common, **distributed_metrics(trainer), "steps": trainer.step, "seconds": seconds,
+               "skipped_updates": trainer.skipped, "vgg_loss": model.loss_status,
+               "loss_first": first, "loss_last": last, **trainer.last_val,
+               "checkpoint": str(run_dir / CHECKPOINT_NAME)}
+    metrics.update(run_evaluation(ev, model, trainer.restoring_modules(), data, run_dir, seed))
+    io.write_json(run_dir / "metrics.json", metrics)
+    writer = trainer.writer
+    if writer is not None:
+        method = model.method
+        writer.add_hparams({"variant": common["variant"], "size": common["size"], "steps": trainer.step},
+                           {f"hparam/{k}": v for k, v in metrics.items()
+                            if k.startswith((f"psnr_{method}", f"ssim_{method}")) and isinstance(v, float)},
+                           run_name="hparams")
+        writer.close()
+    return metrics.get(f"psnr_{model.method}_laser_1e6", float("nan"))
+
+

@@ -1,0 +1,51 @@
+"""``+experiment=evaluate checkpoint=PATH``: score a trained restorer against the sensor image and classical Wiener
+on held-out scenes, per laser strength and robustness stage."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from codesign.io import files as io
+from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
+from codesign.config.runtime import explicit_keys
+from codesign.errors import ConfigError
+from codesign.train.data import SimulatedData
+from codesign.train.evaluation import eval_settings, run_evaluation
+from codesign.train.resume import apply_checkpoint_mask, load_trained
+from codesign.train.setup import run_metrics
+
+
+# Root keys this experiment reads besides the common ones (conf/experiment/evaluate.yaml); any other is refused.
+ROOT_KEYS: tuple[str, ...] = ("checkpoint",)
+
+def merged_eval_config(cfg: DictConfig, ckpt_cfg: DictConfig, typed: frozenset[str]) -> DictConfig:
+    """The checkpoint's physics, model and data split, with the scene-source keys typed on this command line
+    (``typed``: e.g. data.scenes, data.folder) and this run's ``evaluate`` block. Untyped data keys keep the
+    checkpoint's values, so the test split is the one held out during training."""
+    merged = OmegaConf.create(OmegaConf.to_container(ckpt_cfg, resolve=True))
+    for key in ("scenes", "folder", "test_fraction", "split_seed", "cache_mb"):
+        if f"data.{key}" in typed or "data" in typed:
+            merged.data[key] = cfg.data.get(key)
+    merged.evaluate = cfg.get("evaluate")
+    return merged
+
+
+def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
+    path = cfg.get("checkpoint")
+    if not path:
+        raise ConfigError("checkpoint", path, "give the trained model: +experiment=evaluate checkpoint=PATH")
+    ev = eval_settings(cfg)
+    model, generators, ckpt_cfg, state = load_trained(path, device)
+    merged = merged_eval_config(cfg, ckpt_cfg, explicit_keys())
+    seed = int(cfg.get("seed", 0))
+    data = SimulatedData(merged, device, seed)
+    apply_checkpoint_mask(data.camera.mask, state, path)
+    data.camera.invalidate()
+    metrics = {**run_metrics(merged, model, device), "checkpoint": str(path), "steps": int(state["step"])}
+    metrics.update(run_evaluation(ev, model, generators, data, run_dir, seed))
+    io.write_json(run_dir / "metrics.json", metrics)
+    log_summary(open_writer(run_dir, tensorboard_enabled(cfg)), {**model.summary(), "checkpoint": str(path)},
+                metrics)
+    return metrics.get(f"psnr_{model.method}_laser_1e6", float("nan"))

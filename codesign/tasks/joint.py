@@ -1,0 +1,205 @@
+"""``+experiment=joint``: mask and SGAN trained end to end, then compared with the published mask + an SGAN trained
+with the same steps and seed, on the same test scenes and laser strengths.
+
+Run directory: checkpoint.pt, metrics.json, learned_mask.json (seeds mask.init=PATH), phase / PSF / MTF figures of
+the learned and the published mask, the evaluation tables and panels, and TensorBoard events; the published
+comparison lives in published/ (its own checkpoint, evaluation and events: a second run in TensorBoard).
+A killed run started again on the same run directory (hydra.run.dir=...) resumes where it stopped.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from codesign.config.runtime import to_container
+from codesign.design.lsr_constraint import CodesignSpec
+from codesign.design.monitor import MaskMonitor, published_mask_config, published_reference
+from codesign.errors import require_number
+from codesign.io import files as io, plots
+from codesign.io.tensorboard import open_writer, tensorboard_enabled
+from codesign.optics import HalfRingMask, circular_mtf
+from codesign.optics.masks import halfring_record
+from codesign.train import distributed
+from codesign.train.checkpoint import CHECKPOINT_NAME
+from codesign.train.data import SimulatedData
+from codesign.train.evaluation import eval_settings, run_evaluation
+from codesign.train.joint_trainer import JointTrainer
+from codesign.train.resume import resume_if_possible
+from codesign.train.setup import build_model, distributed_metrics, run_metrics
+from codesign.train.spec import TrainerSpec
+from codesign.train.trainer import RestorationTrainer, init_weights
+
+log = logging.getLogger("codesign.joint")
+# Root keys this experiment reads besides the common ones (conf/experiment/joint.yaml); any other is refused.
+ROOT_KEYS: tuple[str, ...] = ("codesign",)
+DISTRIBUTED = True  # trains networks: runs data-parallel under torchrun
+
+PUBLISHED_DIR = "published"
+
+
+def _train(trainer, cfg, run_dir: Path, log_every: int, label: str) -> dict:
+    resume_if_possible(trainer, cfg, run_dir, extra_keys=("codesign",))
+    main = trainer.dist.is_main  # rank 0 alone writes events and validates
+    trainer.writer = open_writer(run_dir, tensorboard_enabled(cfg) and main, purge_step=trainer.step)
+    start = {}
+    if trainer.step == 0 and main:  # the untrained network's validation scores: the reference for "it learned"
+        start = {f"{k.replace('/', '_')}_start": v for k, v in trainer.validate(images=True).items()}
+    t0 = time.perf_counter()
+    log.info("%s: training from step %d to %d", label, trainer.step, trainer.spec.steps)
+    trainer.fit(log_every)
+    end = {f"{k.replace('/', '_')}_end": v for k, v in trainer.last_val.items()}
+    return {"seconds": time.perf_counter() - t0, **start, **end}
+
+
+def _mask_outputs(monitor: MaskMonitor, system, mask, run_dir: Path, prefix: str, psf0: np.ndarray) -> dict:
+    """Refined figures of merit of a mask, with its phase and PSF figures (``prefix``_*.png; ``psf0``: the
+    uncoded PSF they are shown against)."""
+    values, arrays = monitor.measure(mask, refine=True)
+    spec = system.spec
+    np_ = {k: v.detach().cpu().numpy() for k, v in arrays.items()}
+    io.save_figure(run_dir / f"{prefix}_phase.png", plots.phase_figure(
+        np_["phase"], system.grid.aperture.cpu().numpy(), spec.pupil_pitch_m, f"{prefix} mask: pupil phase"))
+    io.save_figure(run_dir / f"{prefix}_psf_log.png", plots.psf_figure(
+        np_["psf"], psf0, spec.focal_pitch_m, f"{prefix} mask: PSF, LSR = {values['lsr']:.4g}"))
+    return {**values, "mtf_radial": np_["mtf_radial"]}
+
+
+def _save_learned_mask(mask, run_dir: Path, values: dict) -> dict:
+    """learned_phase.npy, and for a half-ring mask learned_mask.json (seeds mask.init=PATH); returns the
+    r_n / theta_n metrics (empty for a freeform mask)."""
+    io.save_npy(run_dir / "learned_phase.npy", mask.phase().detach())
+    if not isinstance(mask, HalfRingMask):
+        return {}
+    record = halfring_record(mask)
+    io.write_json(run_dir / "learned_mask.json", {**record, "lsr": values["lsr"], "lsr_smooth": values["lsr_smooth"],
+                                                  "mtf_mean": values["mtf_mean"]})
+    return {"r_n": record["r"], "theta_n": record["theta"]}
+
+
+def _comparison(evaluation: dict, evaluation_base: dict, method: str) -> dict:
+    """psnr / ssim (and affine-matched) of the restorer's restorations (column ``method``), mean over conditions
+    and per condition."""
+    out = {}
+    for suffix, table in (("", evaluation), ("_baseline", evaluation_base)):
+        for metric in ("psnr", "ssim", "psnr_affine", "ssim_affine"):
+            vals = {cond: t[method][metric] for cond, t in table.items()}
+            out[f"{metric}{suffix}"] = float(np.mean(list(vals.values())))
+            for cond, v in vals.items():
+                out[f"{metric}{suffix}_{cond}"] = v
+    return out
+
+
+def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
+    seed = int(cfg.get("seed", 0))
+    spec = TrainerSpec.from_config(to_container(cfg.trainer))
+    cs = CodesignSpec.from_config(to_container(cfg.get("codesign")) or {})
+    ev = eval_settings(cfg)  # every setting checked before any training
+    log_every = require_number("logging.log_every", cfg.get("logging", {}).get("log_every", 10), lo=1, integer=True)
+    published_cfg = published_mask_config(to_container(cfg.mask))
+
+    torch.manual_seed(seed)
+    model = build_model(cfg)
+    init_weights(model)
+    ctx = distributed.current()
+    data = SimulatedData(cfg, device, seed, ctx)
+    camera = data.camera
+    system = camera.system
+    reference = published_reference(to_container(cfg.mask), system)
+    monitor = MaskMonitor(system, reference, cs.mtf_band, cs.lsr_p)
+    lsr_max = cs.lsr_max if cs.lsr_max is not None else monitor.reference[0]["lsr_smooth"]
+    trainer = JointTrainer(model, data, spec, run_dir, device, to_container(cfg), None, seed, cs, lsr_max, monitor,
+                           ctx)
+    common = run_metrics(cfg, model, device)
+    log.info("joint: %s (%s) generators %.2fM parameters; mask %s (%d parameters, lr %.3g, frozen for %d steps); "
+             "lsr_max %.4g (%s); %d steps, batch %d, %d px padded to %d", common["variant"], common["size"],
+             common["parameters_generators"] / 1e6, to_container(cfg.mask)["kind"],
+             sum(p.numel() for p in camera.mask.parameters()), cs.mask_lr, cs.warmup_steps(spec.steps), lsr_max,
+             "given" if cs.lsr_max is not None else "published mask's smooth LSR", spec.steps,
+             int(cfg.data.batch_size), data.image_size, data.padded_size)
+    timing = _train(trainer, cfg, run_dir, log_every, "joint")
+    camera.set_trainable(False)
+    camera.invalidate()
+    steps = trainer.step
+    # every rank trains the published comparison too; evaluations and files then come from rank 0 alone
+    published = _published_train(cfg, published_cfg, spec, steps, seed, device, run_dir, log_every, ctx) \
+        if cs.compare_published else None
+    if not ctx.is_main:
+        return None
+
+    with torch.no_grad():
+        psf0 = system.uncoded_psf().cpu().numpy()
+    learned = _mask_outputs(monitor, system, camera.mask, run_dir, "learned", psf0)
+    base = _mask_outputs(monitor, system, reference, run_dir, "published", psf0)
+    rings = _save_learned_mask(camera.mask, run_dir, learned)
+    freqs = monitor.radial.freqs.cpu().numpy()
+    io.save_figure(run_dir / "mtf.png", plots.mtf_figure(
+        freqs, {"learned mask": learned.pop("mtf_radial"), "published mask": base.pop("mtf_radial"),
+                "analytic circular pupil": circular_mtf(torch.from_numpy(freqs)).numpy()},
+        cs.mtf_band, f"radial MTF after {steps} joint steps"))
+
+    metrics = {**common, **distributed_metrics(trainer), "mask_max_rank_difference": trainer.mask_diff,
+               "steps": steps, **timing, "lsr_max": lsr_max,
+               "lsr_constraint_met": learned["lsr_smooth"] <= lsr_max * (1 + cs.guard_tolerance),
+               "skipped_updates": trainer.skipped, "mask_rollbacks": trainer.mask_rollbacks,
+               "guard_shortened": trainer.constraint.shortened, "guard_undone": trainer.constraint.undone,
+               "vgg_loss": model.loss_status, "mask_kind": to_container(cfg.mask)["kind"],
+               **learned, **{f"{k}_baseline": v for k, v in base.items()}, **camera.mask.summary(), **rings,
+               "checkpoint": str(run_dir / CHECKPOINT_NAME)}
+    joint_eval = run_evaluation(ev, model, trainer.restoring_modules(), data, run_dir, seed)
+    metrics["evaluation"] = joint_eval["evaluation"]
+    metrics["evaluation_scenes"] = joint_eval["evaluation_scenes"]
+
+    if published is not None:
+        metrics.update(_published_evaluation(*published, run_dir, ev, seed, metrics["evaluation"]))
+    io.write_json(run_dir / "metrics.json", metrics)
+    _hparams(trainer.writer, cfg, metrics)
+    log.info("joint: lsr %.4g (published %.4g), mtf_mean %.4g (published %.4g); psnr %s", metrics["lsr"],
+             metrics["lsr_baseline"], metrics["mtf_mean"], metrics["mtf_mean_baseline"],
+             f"{metrics['psnr']:.2f} dB (published {metrics['psnr_baseline']:.2f} dB)" if "psnr" in metrics
+             else "(no published comparison)")
+    log.info("wrote %s", run_dir)
+    return metrics.get("psnr", float("nan"))
+
+
+def _published_train(cfg, published_cfg, spec, steps, seed, device, run_dir, log_every, ctx) -> tuple:
+    """Train the same restorer on the published mask with the same steps, seed and data draws: (model, trainer, data,
+    timing) for _published_evaluation."""
+    sub = run_dir / PUBLISHED_DIR
+    pub_cfg = OmegaConf.create(to_container(cfg))
+    pub_cfg.mask = published_cfg
+    pub_spec = TrainerSpec.from_config({**to_container(cfg.trainer), "steps": steps, "time_budget_s": None,
+                                        "resume": None})
+    torch.manual_seed(seed)  # the same initial weights as the joint network
+    model = build_model(pub_cfg)
+    init_weights(model)
+    data = SimulatedData(pub_cfg, device, seed, ctx)
+    trainer = RestorationTrainer(model, data, pub_spec, sub, device, to_container(pub_cfg), None, seed, ctx)
+    timing = _train(trainer, pub_cfg, sub, log_every, "published mask")
+    return model, trainer, data, timing
+
+
+def _published_evaluation(model, trainer, data, timing: dict, run_dir, ev, seed, joint_eval) -> dict:
+    """Evaluate the published-mask restorer (rank 0) and compare it with the joint one."""
+    sub = run_dir / PUBLISHED_DIR
+    result = run_evaluation(ev, model, trainer.restoring_modules(), data, sub, seed)
+    io.write_json(sub / "metrics.json", {"steps": trainer.step, **timing, **result})
+    if trainer.writer is not None:
+        trainer.writer.close()
+    return {**{f"{k}_baseline": v for k, v in timing.items()}, "evaluation_baseline": result["evaluation"],
+            **_comparison(joint_eval, result["evaluation"], model.method)}
+
+
+def _hparams(writer, cfg, metrics: dict) -> None:
+    if writer is None:
+        return
+    hp = {"variant": metrics["variant"], "size": metrics["size"], "mask": metrics["mask_kind"],
+          "steps": metrics["steps"], "lsr_max": metrics["lsr_max"]}
+    keys = ("lsr", "lsr_baseline", "lsr_smooth", "mtf_mean", "mtf_mean_baseline", "psnr", "psnr_baseline", "ssim",
+            "ssim_baseline", "psnr_affine", "psnr_affine_baseline")
+    writer.add_hparams(hp, {f"hparam/{k}": float(metrics[k]) for k in keys if k in metrics}, run_name="hparams")
+    writer.close()

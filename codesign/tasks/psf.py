@@ -1,0 +1,84 @@
+"""``+experiment=psf``: the configured mask's phase, PSF, LSR/BSR and MTF, with timings, arrays and figures."""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from codesign.config.runtime import resolve_dtype
+from codesign.design.merit import evaluate_mask, time_forward_backward
+from codesign.design.monitor import MaskMonitor, published_reference
+from codesign.io import files as io, plots
+from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
+from codesign.errors import ConfigError, require_list, require_number
+from codesign.optics import OpticalSystem, OpticsSpec, build_mask, circular_mtf
+
+log = logging.getLogger("codesign.psf")
+
+
+# Root keys this experiment reads besides the common ones (conf/experiment/psf.yaml); any other is refused.
+ROOT_KEYS: tuple[str, ...] = ("precision", "mtf_band", "lsr_smooth_p", "timing_repeats")
+
+def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
+    spec = OpticsSpec.from_config(OmegaConf.to_container(cfg.optics, resolve=True))
+    dtype = resolve_dtype("precision", cfg.get("precision", "float32"))
+    band_allowed = ("must be [low, high] with 0 <= low < high <= 1 (frequency normalized to the incoherent cutoff, "
+                    "beyond which the MTF is 0)")
+    band = tuple(require_list("mtf_band", cfg.get("mtf_band", (0.0, 0.5)), band_allowed))
+    if len(band) != 2 or not 0 <= require_number("mtf_band[0]", band[0]) < require_number("mtf_band[1]", band[1]) \
+            or band[1] > 1:
+        raise ConfigError("mtf_band", list(band), band_allowed)
+    p = require_number("lsr_smooth_p", cfg.get("lsr_smooth_p", 16), lo=1, hi=1024)
+    repeats = require_number("timing_repeats", cfg.get("timing_repeats", 5), lo=1, hi=1000, integer=True)
+    mask_cfg = OmegaConf.to_container(cfg.mask, resolve=True)
+
+    system = OpticalSystem(spec, dtype=dtype, device=device)
+    mask = build_mask(mask_cfg, system.grid, spec.aperture_diameter_m)
+    log.info("pupil %d x %d at %.3g m (%.1f samples across W_a), window %d at %.3g m, propagator %s, %s",
+             spec.grid_n, spec.grid_n, spec.pupil_pitch_m, spec.samples_across_aperture, spec.focal_n,
+             spec.focal_pitch_m, system.method, dtype)
+    t_fwd, t_bwd = time_forward_backward(system, mask, p, repeats)
+    values, arrays = evaluate_mask(system, mask, band, p)
+    metrics_out = {
+        **values,
+        "pupil_n": spec.grid_n, "pupil_pitch_m": spec.pupil_pitch_m,
+        "pupil_samples_across_aperture": spec.samples_across_aperture,
+        "focal_pitch_m": spec.focal_pitch_m, "focal_n": spec.focal_n,
+        "samples_per_lambda_f_over_d": spec.samples_per_lambda_f_over_d,
+        "wavelength_m": spec.wavelength_m, "focal_length_m": spec.focal_length_m,
+        "aperture_diameter_m": spec.aperture_diameter_m, "propagator": system.method,
+        "phase_convention": getattr(mask, "convention", "freeform"), "mask_kind": mask_cfg["kind"],
+        "precision": str(dtype).replace("torch.", ""), "device": str(device), "threads": torch.get_num_threads(),
+        "seconds_forward": t_fwd, "seconds_backward": t_bwd, "timing_repeats": repeats,
+        **mask.summary(),
+    }
+    if hasattr(mask, "orders"):
+        metrics_out["m_o_min"], metrics_out["m_o_max"] = int(mask.orders[0]), int(mask.orders[-1])
+
+    for name, arr in arrays.items():
+        io.save_npy(run_dir / f"{name}.npy", arr)
+    np_ = {k: v.detach().cpu().numpy() for k, v in arrays.items()}
+    label = f"{mask_cfg['kind']} ({metrics_out['phase_convention']})"
+    io.save_figure(run_dir / "phase.png", plots.phase_figure(
+        np_["phase"], system.grid.aperture.cpu().numpy(), spec.pupil_pitch_m, f"pupil phase, {label}"))
+    io.save_figure(run_dir / "psf_log.png", plots.psf_figure(
+        np_["psf"], np_["psf_uncoded"], spec.focal_pitch_m, f"PSF, LSR = {values['lsr']:.3g}"))
+    f, rad, rad0 = np_["mtf_radial"]
+    analytic = circular_mtf(torch.from_numpy(f)).numpy()
+    io.save_figure(run_dir / "mtf.png", plots.mtf_figure(
+        f, {"coded": rad, "uncoded": rad0, "analytic circular pupil": analytic}, band,
+        f"MTF, mean over band = {values['mtf_mean']:.3g}"))
+    step = 1.0 / (spec.focal_n * spec.focal_pitch_m * spec.cutoff_frequency)
+    io.save_figure(run_dir / "mtf2d.png", plots.mtf2d_figure(np_["mtf2d"], step, f"2-D MTF, {label}"))
+    io.write_json(run_dir / "metrics.json", metrics_out)
+    writer = open_writer(run_dir, tensorboard_enabled(cfg))
+    if writer is not None:
+        MaskMonitor(system, published_reference(mask_cfg, system), band, p).log(writer, 0, mask, images=True)
+    log_summary(writer, {"mask": mask_cfg["kind"], "propagator": system.method, "pupil_n": spec.grid_n}, metrics_out)
+    log.info("lsr=%.4g (sampled %.4g, smooth %.4g) bsr=%.4f mtf_mean=%.4g mtf_min=%.4g energy_in_window=%.4f "
+             "forward %.3f s backward %.3f s", values["lsr"], values["lsr_sampled"], values["lsr_smooth"],
+             values["bsr"], values["mtf_mean"], values["mtf_min"], values["psf_energy_in_window"], t_fwd, t_bwd)
+    log.info("wrote %s", run_dir)
+    return values["lsr"]

@@ -1,0 +1,104 @@
+"""``+experiment=restore input=PATH checkpoint=PATH``: restore real or simulated 16-bit sensor captures.
+
+Input: one 16-bit PNG / TIFF, or a folder of them, holding sensor counts (DN) at the checkpoint's network
+resolution (data.image_size square, e.g. the captures +experiment=simulate writes). Every file is checked
+(size, single channel, 16-bit integer samples, counts within the sensor's bit depth) before any restoration
+starts. Output: restored_<name>.png (16-bit, radiance 0..1 -> 0..65535) in the run dir, and metrics.json.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from codesign.camera import build_camera, field_of_view
+from codesign.errors import ConfigError
+from codesign.io import files as io
+from codesign.io.images import read_counts, save_png16
+from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
+from codesign.train.resume import apply_checkpoint_mask, load_trained
+
+log = logging.getLogger("codesign.restore")
+# Root keys this experiment reads besides the common ones (conf/experiment/restore.yaml); any other is refused.
+ROOT_KEYS: tuple[str, ...] = ("input", "checkpoint")
+
+SUFFIXES = (".png", ".tif", ".tiff")
+
+
+def input_files(path) -> list[Path]:
+    if not path:
+        raise ConfigError("input", path, "give a 16-bit PNG/TIFF sensor image or a folder of them: input=PATH")
+    p = Path(str(path)).expanduser()
+    if p.is_file():
+        if p.suffix.lower() not in SUFFIXES:
+            raise ConfigError("input", str(path), f"must be a {', '.join(SUFFIXES)} file")
+        return [p]
+    if p.is_dir():
+        files = sorted(f for f in p.iterdir() if f.suffix.lower() in SUFFIXES and not f.name.startswith("."))
+        if not files:
+            raise ConfigError("input", str(path), f"folder holds no {', '.join(SUFFIXES)} files")
+        stems = [f.stem for f in files]
+        clash = sorted({s for s in stems if stems.count(s) > 1})
+        if clash:
+            raise ConfigError("input", str(path), f"holds files that would write the same output "
+                              f"restored_{clash[0]}.png: rename one of {[f.name for f in files if f.stem == clash[0]]}")
+        return files
+    raise ConfigError("input", str(path), "no such file or folder")
+
+
+def validate(files: list[Path], size: int, saturation_dn: float) -> list[np.ndarray]:
+    images = []
+    for f in files:
+        arr = read_counts(f)
+        if arr.shape != (size, size):
+            raise ConfigError("input", str(f), f"is {arr.shape[1]} x {arr.shape[0]} px: the checkpoint's network "
+                              f"resolution is {size} x {size} (data.image_size)")
+        if arr.max() > saturation_dn:
+            raise ConfigError("input", str(f), f"has counts up to {arr.max():.0f} DN, above the sensor's "
+                              f"{saturation_dn:.0f} DN (sensor.bit_depth)")
+        images.append(arr)
+    return images
+
+
+def run(cfg, run_dir: Path, device: torch.device) -> float:
+    files = input_files(cfg.get("input"))
+    if not cfg.get("checkpoint"):
+        raise ConfigError("checkpoint", cfg.get("checkpoint"), "give the trained model: checkpoint=PATH")
+    model, generators, ckpt_cfg, state = load_trained(cfg.checkpoint, device)
+    try:
+        camera = build_camera(ckpt_cfg, device, torch.float32)
+    except ConfigError as err:  # the checkpoint's own settings: say so, not just the key
+        raise ConfigError("checkpoint", str(cfg.checkpoint), f"its stored configuration is not valid in this "
+                          f"version of codesign: {err}") from None
+    apply_checkpoint_mask(camera.mask, state, cfg.checkpoint)
+    sensor = camera.sensor
+    images = validate(files, sensor.image_size, sensor.saturation_dn)  # everything checked before any work
+    otf = camera.otf
+    n, p = sensor.image_size, sensor.padded_size
+    m = (p - n) // 2
+    written, restored, t0 = [], [], time.perf_counter()
+    with torch.no_grad():
+        for f, arr in zip(files, images):
+            x = torch.from_numpy(arr / (sensor.gain_dn_per_e * sensor.full_well_e)).float()[None, None]
+            x = F.pad(x, (m, p - n - m, m, p - n - m)).to(device)
+            b = field_of_view(model.restore(x, otf, generators)["restored"], n).clamp(0, 1)[0, 0].cpu().numpy()
+            out = run_dir / f"restored_{f.stem}.png"
+            save_png16(out, b, scale=65535.0)
+            written.append(out.name)
+            restored.append(b)
+    seconds = (time.perf_counter() - t0) / len(files)
+    metrics = {"inputs": [str(f) for f in files], "outputs": written, "seconds_per_image": seconds,
+               "checkpoint": str(cfg.checkpoint), "device": str(device), "image_size": n, "padded_size": p}
+    io.write_json(run_dir / "metrics.json", metrics)
+    writer = open_writer(run_dir, tensorboard_enabled(cfg))
+    if writer is not None:
+        for f, arr, b in zip(files, images, restored):
+            writer.add_image(f"input/{f.stem}", (arr / sensor.saturation_dn).astype(np.float32)[None], 0)
+            writer.add_image(f"restored/{f.stem}", b[None], 0)
+    log_summary(writer, {"checkpoint": str(cfg.checkpoint)}, metrics)
+    log.info("restored %d image(s) into %s (%.3f s/image)", len(files), run_dir, seconds)
+    return seconds

@@ -1,0 +1,151 @@
+"""``+experiment=simulate``: example sensor images across laser strengths, 16-bit captures, and metrics."""
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from codesign.camera import build_camera
+from codesign.config.runtime import resolve_dtype
+from codesign.data.params import fixed_scene_params, sample_scene_params
+from codesign.data.scenes import build_scene_source
+from codesign.errors import ConfigError, require_number, require_numbers, unknown_keys
+from codesign.io import files as io
+from codesign.io.images import save_png16
+from codesign.io.plots import plt
+from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
+
+log = logging.getLogger("codesign.simulate")
+# Root keys this experiment reads besides the common ones (conf/experiment/simulate.yaml); any other is refused.
+ROOT_KEYS: tuple[str, ...] = ("precision", "simulate")
+
+SIMULATE_KEYS = ("scenes", "alpha_l", "laser_angle_rad", "params", "timing_repeats")
+
+
+def _grid_figure(images: np.ndarray, rows: list[str], cols: list[float], log_view: bool, full_scale: float):
+    nr, nc = images.shape[:2]
+    # log view: from the darkest 1% of the laser-free captures (read offset + dim scene) to full scale, so that
+    # faint laser structure (alpha_l = 10, 100) stands out
+    log_lo = float(np.log10(max(np.percentile(images[:, 0], 1), 1.0)))
+    fig, axes = plt.subplots(nr, nc, figsize=(1.9 * nc, 2.0 * nr), squeeze=False)
+    for i in range(nr):
+        for j in range(nc):
+            ax = axes[i][j]
+            img = images[i, j]
+            if log_view:
+                ax.imshow(np.log10(np.maximum(img, 1.0)), cmap="gray", vmin=log_lo, vmax=np.log10(full_scale))
+            else:
+                ax.imshow(img, cmap="gray", vmin=0, vmax=full_scale)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if i == 0:
+                ax.set_title(f"alpha_l = {cols[j]:g}", fontsize=8)
+            if j == 0:
+                ax.set_ylabel(rows[i], fontsize=8)
+    fig.suptitle(("log10 counts" if log_view else "counts (linear, 0 .. G e_sat)") + " of the simulated sensor")
+    fig.tight_layout()
+    return fig
+
+
+def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
+    sim_cfg = cfg.get("simulate")
+    if sim_cfg is None:
+        raise ConfigError("simulate", None, "missing: use +experiment=simulate")
+    unknown_keys("simulate", sim_cfg, SIMULATE_KEYS)
+    dtype = resolve_dtype("precision", cfg.get("precision", "float32"))
+    alphas = require_numbers("simulate.alpha_l", sim_cfg.get("alpha_l"), "must be a list of laser strengths >= 0",
+                             lo=0, hi=1e12)
+    n_scenes = require_number("simulate.scenes", sim_cfg.get("scenes"), lo=1, hi=64, integer=True)
+    angle = require_numbers("simulate.laser_angle_rad", sim_cfg.get("laser_angle_rad"), "must be [n_u, n_v] in radians",
+                            2)
+    repeats = require_number("simulate.timing_repeats", sim_cfg.get("timing_repeats", 3), lo=1, integer=True)
+    fixed = sim_cfg.get("params")
+    fixed = {} if fixed is None else OmegaConf.to_container(fixed, resolve=True) if OmegaConf.is_config(fixed) \
+        else fixed
+    if not isinstance(fixed, dict):
+        raise ConfigError("simulate.params", fixed, "must be a mapping of scene parameters (alpha_b, c1, ...)")
+    for key in ("alpha_l", "laser_angle_rad"):  # swept / set by their own simulate.* keys
+        if key in fixed:
+            raise ConfigError(f"simulate.params.{key}", fixed[key], f"is set by simulate.{key}, not here")
+    try:  # the fixed scene parameters, checked now rather than after the PSF is computed
+        fixed_scene_params(1, **fixed)
+    except ConfigError as err:
+        raise ConfigError(f"simulate.params.{err.key}", err.value, err.allowed) from None
+    source = build_scene_source(cfg.data)
+    camera = build_camera(cfg, device, dtype)
+    sim = camera.simulator
+    names = source.split_names("test")[:n_scenes]
+    if len(names) < n_scenes:
+        names = source.split_names("all")[:n_scenes]
+    scenes = source.fixed_batch(names, sim.scene_size).to(device=device, dtype=dtype)
+    log.info("sensor path %s: %d x %d network pixels of %.3g m (bin %.3f), scene crop %d, PSF kernel %d",
+             sim.sensor.path, sim.sensor.image_size, sim.sensor.image_size, sim.sensor.coarse_pitch_m,
+             sim.sensor.bin_factor, sim.scene_size, sim.coarse.ksize)
+    optics = camera.frozen_optics()
+    state, key = optics.state, optics.key
+    seed = int(cfg.get("seed", 0))
+    grid = np.zeros((len(names), len(alphas), sim.sensor.image_size, sim.sensor.image_size))
+    metrics = {}
+    with torch.no_grad():
+        for j, a in enumerate(alphas):
+            params = fixed_scene_params(len(names), dtype=dtype, device=device, alpha_l=a,
+                                        laser_angle_rad=angle, **fixed)
+            out = sim(scenes, params, state, seed=seed + j, mask_key=key)
+            dn = out["sensor_dn"][:, 0].cpu().numpy()
+            grid[:, j] = dn
+            metrics[f"saturated_fraction_alpha_l_{a:g}"] = float(out["saturated"].float().mean())
+            metrics[f"laser_peak_alpha_l_{a:g}"] = float(out["laser"].max())
+            for i, name in enumerate(names):
+                save_png16(run_dir / f"sensor_{name}_alpha_l_{a:g}.png", dn[i])
+            if j == len(alphas) - 1:
+                io.save_npy(run_dir / "example_sensor.npy", out["sensor"][0, 0])
+                io.save_npy(run_dir / "example_irradiance_target.npy", out["irradiance"][0, 0])
+                io.save_npy(run_dir / "example_scene_target.npy", out["scene"][0, 0])
+        # throughput on a training-like batch (random Sec. 6.2 parameters)
+        gen = torch.Generator().manual_seed(seed)
+        batch = int(cfg.data.batch_size)
+        side_m = sim.sensor.side_m
+        sp = sample_scene_params(batch, gen, cfg.data.params, sensor_width_m=side_m, sensor_height_m=side_m,
+                                 focal_length_m=sim.optics.focal_length_m)
+        sp = sp.to(device, dtype)
+        idx = torch.arange(batch) % scenes.shape[0]
+        bscenes = scenes[idx]
+        sim(bscenes, sp, state, seed=seed, mask_key=key)  # warm-up (fills the kernel cache)
+        t0 = time.perf_counter()
+        for r in range(repeats):
+            sim(bscenes, sp, state, seed=seed + r, mask_key=key)
+        seconds = (time.perf_counter() - t0) / (repeats * batch)
+    full = sim.sensor.gain_dn_per_e * sim.sensor.full_well_e
+    io.save_figure(run_dir / "sensor_grid_linear.png", _grid_figure(grid, names, alphas, False, full))
+    io.save_figure(run_dir / "sensor_grid_log.png", _grid_figure(grid, names, alphas, True, full))
+    lsr = float(state.psf.max()) / state.uncoded_peak
+    bsr_window = float(state.psf.sum()) / state.uncoded_energy
+    metrics.update({
+        "seconds_per_image": seconds, "images_per_second": 1.0 / seconds, "batch_size": batch,
+        "sensor_path": sim.sensor.path, "lsr_sampled": lsr,
+        # uniform-background ratio of the simulated image: 1 with the out-of-window veil (energy conservation),
+        # else the window's (sum h / sum h0); the window's value is always reported
+        "bsr": 1.0 if sim.sensor.background_veil else bsr_window,
+        "bsr_window": bsr_window, "window_energy": float(state.psf.sum()),
+        "background_veil": sim.sensor.background_veil,
+        "image_size": sim.sensor.image_size, "padded_size": sim.sensor.padded_size,
+        "network_pixel_pitch_m": sim.sensor.coarse_pitch_m, "sensor_resolution": sim.sensor.resolution,
+        "scene_size": sim.scene_size, "psf_kernel_size": sim.coarse.ksize, "scenes": len(names),
+        "saturation_irradiance_w_m2": sim.sensor.saturation_irradiance(sim.sensor.wavelength_laser_m),
+        "precision": str(dtype).replace("torch.", ""), "device": str(device), "threads": torch.get_num_threads(),
+    })
+    io.write_json(run_dir / "metrics.json", metrics)
+    writer = open_writer(run_dir, tensorboard_enabled(cfg))
+    if writer is not None:
+        for j, a in enumerate(alphas):  # log10 counts, full scale = 1: the laser structure stays visible
+            img = np.log10(np.maximum(grid[:, j], 1.0))[:, None] / np.log10(full)
+            writer.add_images(f"sensor_log10/alpha_l_{a:g}", img.astype(np.float32), 0)
+    log_summary(writer, {"sensor_path": sim.sensor.path, "image_size": sim.sensor.image_size}, metrics)
+    log.info("scenes %s; saturated fraction per alpha_l: %s; %.4f s/image (%.1f images/s, batch %d, %s path)",
+             ", ".join(names), ", ".join(f"{a:g}: {metrics[f'saturated_fraction_alpha_l_{a:g}']:.4f}"
+                                         for a in alphas), seconds, 1 / seconds, batch, sim.sensor.path)
+    return seconds

@@ -1,0 +1,139 @@
+"""Checkpoints: one dict (models, optimizers, schedulers, step, RNG states, resolved config), written atomically."""
+from __future__ import annotations
+
+import pickle
+import random
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from codesign.io import files as io
+from codesign.errors import ConfigError
+
+CHECKPOINT_NAME = "checkpoint.pt"
+
+
+def save_checkpoint(path: Path, state: dict) -> Path:
+    """torch.save to a temp file in the same folder, then rename: a crash never leaves half a checkpoint."""
+    return io.atomic_write_bytes(Path(path), lambda f: torch.save(state, f))
+
+
+def _unreadable(p: Path, err: Exception) -> str:
+    """Why torch.load failed on ``p``, in the user's terms (torch's own text speaks of zip readers and pickles)."""
+    with open(p, "rb") as f:
+        head = f.read(4)
+    text = str(err).strip()
+    refused = isinstance(err, pickle.UnpicklingError) and "weights only" in text.lower()
+    if not head:
+        return "is empty (0 bytes): not a checkpoint (an interrupted copy?)"
+    if refused and (head.startswith(b"PK") or head[:1] == b"\x80"):  # a whole archive / legacy pickle
+        return ("holds Python objects other than tensors and plain values: refused, since reading them could run "
+                "code (codesign checkpoints hold tensors and plain values only)")
+    if head.startswith(b"PK"):  # torch's zip format whose archive cannot be read: cut short or damaged
+        first = text.splitlines()[0].split(". ")[0][:160] if text else type(err).__name__
+        return f"is truncated or corrupt ({first}); copy it again, or use an earlier checkpoint"
+    return "is not a torch checkpoint file (it is neither a torch archive nor a pickle)"
+
+
+def load_checkpoint(path: str | Path, key: str = "checkpoint") -> dict:
+    """Load a checkpoint dict on the CPU; a missing, truncated or foreign file is a ConfigError naming ``key``."""
+    p = Path(str(path)).expanduser()
+    if p.is_dir():
+        inside = p / CHECKPOINT_NAME
+        hint = f": give the file, e.g. {key}={inside}" if inside.is_file() else ""
+        raise ConfigError(key, str(path), f"is a folder, not a checkpoint file{hint}")
+    if not p.is_file():
+        raise ConfigError(key, str(path), "no such checkpoint file")
+    try:
+        # weights_only: a checkpoint holds tensors and plain Python values only, so a file from elsewhere can
+        # never run code while it is read
+        state = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception as err:  # noqa: BLE001 - any unpickling failure means "not our checkpoint"
+        raise ConfigError(key, str(path), _unreadable(p, err)) from None
+    if not isinstance(state, dict) or "model" not in state or "config" not in state:
+        raise ConfigError(key, str(path), "is not a codesign checkpoint (no 'model' / 'config' entries)")
+    return state
+
+
+# What a checkpoint written by the trainer holds, and the config blocks a model and its simulator are built from.
+TRAINED_ENTRIES = ("model", "step", "config")
+CONFIG_BLOCKS = ("model", "optics", "mask", "sensor", "data")
+RESUME_ENTRIES = ("opt_g", "opt_d", "sched_g", "sched_d", "rng")
+
+
+def check_trained(state: dict, path, key: str, resume: bool = False) -> None:
+    """A checkpoint to evaluate, restore with or (``resume``) continue: every entry the trainer writes present,
+    its configuration holding every block the model and simulator are built from; ConfigError naming the file."""
+    need = TRAINED_ENTRIES + (RESUME_ENTRIES if resume else ())
+    missing = [k for k in need if k not in state]
+    cfg = state.get("config")
+    if not missing and not isinstance(cfg, dict):
+        missing = ["config (a mapping)"]
+    if not missing:
+        missing = [f"config.{k}" for k in CONFIG_BLOCKS if not isinstance(cfg.get(k), dict)]
+    if missing:
+        raise ConfigError(key, str(path), f"is not a complete codesign training checkpoint: no {', '.join(missing)} "
+                          f"entry")
+
+
+def state_mismatch(module: torch.nn.Module, state: dict) -> str | None:
+    """How a state dict differs from ``module``'s (missing, unexpected, other shapes), or None when it fits."""
+    if not isinstance(state, dict):
+        return f"a {type(state).__name__} where a state dict belongs"
+    own = module.state_dict()
+    missing = [k for k in own if k not in state]
+    extra = [k for k in state if k not in own]
+    shapes = [k for k in own if k in state and hasattr(state[k], "shape")
+              and tuple(state[k].shape) != tuple(own[k].shape)]
+    parts = []
+    if missing:
+        parts.append(f"{len(missing)} tensor(s) missing (e.g. {missing[0]!r})")
+    if extra:
+        parts.append(f"{len(extra)} unexpected (e.g. {extra[0]!r})")
+    if shapes:
+        k = shapes[0]
+        parts.append(f"{len(shapes)} of another shape (e.g. {k!r}: {list(state[k].shape)} in the file, "
+                     f"{list(own[k].shape)} here)")
+    return "; ".join(parts) or None
+
+
+def load_error(key: str, path, what: str, detail) -> ConfigError:
+    """A ConfigError naming the checkpoint for a state that does not fit what it is loaded into (another model
+    variant or size, another mask, another codesign version). ``detail``: a state_mismatch text or the error."""
+    if isinstance(detail, BaseException):
+        lines = [ln.strip() for ln in str(detail).strip().splitlines() if ln.strip()]
+        detail = f"{type(detail).__name__}: " + (lines[-1][:200] if lines else "")
+    return ConfigError(key, str(path), f"{what}: {detail}; was it written by another configuration or version of "
+                       f"codesign?")
+
+
+def load_module_state(module: torch.nn.Module, state, key: str, path, what: str) -> None:
+    """``module.load_state_dict(state)``, any misfit a ConfigError naming ``key`` and the file."""
+    problem = state_mismatch(module, state)
+    if problem:
+        raise load_error(key, path, what, problem)
+    try:
+        module.load_state_dict(state)
+    except (RuntimeError, KeyError, TypeError, ValueError) as err:
+        raise load_error(key, path, what, err) from None
+
+
+def rng_state() -> dict:
+    """Global RNG states as tensors and plain values (loadable with weights_only=True)."""
+    name, keys, pos, has_gauss, cached = np.random.get_state()
+    out = {"torch": torch.get_rng_state(), "numpy": [name, torch.from_numpy(keys.astype(np.int64)), int(pos),
+                                                     int(has_gauss), float(cached)],
+           "python": random.getstate()}
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        out["cuda"] = torch.cuda.get_rng_state_all()
+    return out
+
+
+def set_rng_state(state: dict) -> None:
+    torch.set_rng_state(state["torch"])
+    name, keys, pos, has_gauss, cached = state["numpy"]
+    np.random.set_state((name, keys.numpy().astype(np.uint32), pos, has_gauss, cached))
+    random.setstate(tuple(tuple(x) if isinstance(x, list) else x for x in state["python"]))
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])

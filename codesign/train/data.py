@@ -1,0 +1,131 @@
+"""Online training data: scenes -> the camera (current mask) -> (sensor, I_b, b) batches.
+
+One object owns everything random about the data (scene crops, scene parameters, noise seeds) so that the trainer
+can checkpoint and restore it exactly. The camera it simulates through may have a frozen mask (a restorer is
+trained for fixed optics) or a trainable one (co-design): then every training batch is simulated through the
+mask's current parameters *with* gradient, so that one backward pass from the restoration loss reaches the mask:
+
+    mask params -> phase -> PSF (window) -> pixel kernel -> sensor image s and OTF (both differentiable)
+
+Targets: the scene b does not depend on the mask; the irradiance target I_b = alpha_b (b * h) does, and is
+detached: it is G1's auxiliary target, and letting the mask move it would reward making the target easy to
+predict rather than making the scene easy to restore (the mask is judged by the final restoration b). While the
+mask is frozen (a warm-up) the batch comes from the cached no-gradient path: same draws, no optics cost.
+"""
+from __future__ import annotations
+
+import torch
+from omegaconf import DictConfig
+
+from codesign.camera import Camera, build_camera
+from codesign.data.params import preset_params, sample_scene_params
+from codesign.data.scenes import SceneSampler, build_scene_sampler, build_scene_source
+from codesign.errors import ConfigError
+from codesign.train.distributed import SINGLE, DistContext
+
+
+def _to_device(x: torch.Tensor, device: torch.device) -> torch.Tensor:
+    if device.type == "cuda" and x.device.type == "cpu":
+        return x.pin_memory().to(device, non_blocking=True)
+    return x.to(device)
+
+
+class SimulatedData:
+    """Simulated training / validation / evaluation batches through ``camera``.
+
+    Batch dict: sensor (B,1,P,P) normalized input, irradiance (B,1,P,P) target I_b, scene (B,1,P,P) target b,
+    saturated and laser maps (B,1,n,n). P = data.padded_size, n = data.image_size. While the camera's mask is
+    trainable, a training batch also carries ``otf`` and ``psf`` (the window PSF) with their graphs.
+
+    ``dist``: under torchrun a training batch is this rank's share of the global batch of data.batch_size (see
+    codesign/train/distributed.py); validation and evaluation batches are whole (rank 0 runs those).
+    """
+
+    def __init__(self, cfg: DictConfig, device: torch.device, seed: int, dist: DistContext = SINGLE,
+                 camera: Camera | None = None):
+        self.cfg, self.device, self.seed, self.dist = cfg, device, seed, dist
+        self.camera = camera if camera is not None else build_camera(cfg, device, torch.float32)
+        self.camera.check_padding()
+        self.source = build_scene_source(cfg.data)
+        self.scene_gen = torch.Generator().manual_seed(seed)
+        self.param_gen = torch.Generator().manual_seed(seed + 1)
+        self.sampler = build_scene_sampler(cfg.data, "train", self.scene_gen, crop_size=self.camera.scene_size,
+                                           source=self.source)
+        if self.sampler.batch_size % dist.world:
+            raise ConfigError("data.batch_size", self.sampler.batch_size, f"must be divisible by the number of "
+                              f"processes ({dist.world}): it is the global batch, split evenly across the ranks")
+        self.camera.frozen_optics()
+
+    @property
+    def otf(self) -> torch.Tensor:
+        """OTF of the camera's current mask on the padded grid (no gradient): what a restorer deconvolves with."""
+        return self.camera.otf
+
+    @property
+    def padded_size(self) -> int:
+        return self.camera.padded_size
+
+    @property
+    def image_size(self) -> int:
+        return self.camera.image_size
+
+    # ---- batches --------------------------------------------------------------------------------------------
+    def simulate(self, scenes: torch.Tensor, params, seed: int, optics=None) -> dict:
+        """Simulate a batch through the current mask's frozen optics (no gradient, kernels cached), or through
+        ``optics`` (the camera's OpticsOutputs of a trainable mask: gradient kept, kernels recomputed)."""
+        # the parameters stay on the host, where the simulator makes its decisions; the scenes go to the device
+        # from page-locked memory without waiting for it
+        params = params.to(dtype=torch.float32)
+        scenes = _to_device(scenes, self.device)
+        out = self.camera(scenes, params, seed, optics)
+        out["read_noise_mean_e"] = params.read_noise_mean_e  # the black level a classical pipeline subtracts
+        return out
+
+    def _params(self, batch: int, generator: torch.Generator):
+        side = self.camera.sensor.side_m
+        return sample_scene_params(batch, generator, self.cfg.data.params, sensor_width_m=side,
+                                   sensor_height_m=side, focal_length_m=self.camera.optics.focal_length_m)
+
+    def train_draw(self, step: int) -> tuple:
+        """(scenes, parameters, noise seeds) of training step ``step``: random crops, Sec. 6.2 parameters and one
+        noise seed per sample. Under torchrun the whole global batch is drawn on every rank (scalars) and this
+        rank's share simulated, so the batches do not depend on the number of processes."""
+        b = self.sampler.batch_size
+        part = self.dist.shard(b)
+        scenes = self.sampler.sample(part)
+        params = self._params(b, self.param_gen).part(part)
+        base = (self.seed * 1_000_003 + step) * 65_536
+        return scenes, params, [base + i for i in range(b)[part]]
+
+    def train_batch(self, step: int) -> dict:
+        """The batch of training step ``step`` (see train_draw); with the mask's graph while it trains."""
+        if not self.camera.trainable:
+            return self.simulate(*self.train_draw(step))
+        optics = self.camera.current_optics()
+        out = self.simulate(*self.train_draw(step), optics=optics)
+        out["irradiance"] = out["irradiance"].detach()
+        out["otf"], out["psf"] = optics.otf, optics.state.psf
+        return out
+
+    def validation_batch(self, size: int) -> dict:
+        """A fixed batch from the training distribution (own generators: independent of training's draws)."""
+        gen = torch.Generator().manual_seed(self.seed + 7919)
+        sampler = SceneSampler(self.source, "train", self.camera.scene_size, size, gen, flips=self.sampler.flips)
+        scenes = sampler.sample()
+        return self.simulate(scenes, self._params(size, gen), seed=self.seed + 104729)
+
+    def preset_batch(self, scenes: torch.Tensor, preset: str, seed: int, **overrides) -> dict:
+        """Evaluation batch: every scene under the named preset (laser_1e3, E1, ...), optional overrides."""
+        params = preset_params(preset, scenes.shape[0])
+        if overrides:
+            params = params.replace(**overrides)
+        return self.simulate(scenes, params, seed=seed)
+
+    # ---- checkpointing of the random state ------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {"scene_gen": self.scene_gen.get_state(), "param_gen": self.param_gen.get_state(), "seed": self.seed}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.seed = int(state["seed"])  # the noise of step k is seeded from (seed, k)
+        self.scene_gen.set_state(state["scene_gen"])
+        self.param_gen.set_state(state["param_gen"])

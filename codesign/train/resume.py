@@ -1,0 +1,97 @@
+"""Resuming a killed run and loading a trained restorer from a checkpoint, with every misfit a ConfigError."""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from codesign.config.runtime import to_container
+from codesign.errors import ConfigError
+from codesign.train.checkpoint import (CHECKPOINT_NAME, check_trained, load_checkpoint, load_error,
+                                       load_module_state, state_mismatch)
+from codesign.train.setup import build_model
+from codesign.train.trainer import EMA
+
+log = logging.getLogger("codesign.train")
+
+
+# Config blocks that must match between a checkpoint and the run that resumes it (trainer.* may change).
+RESUME_MUST_MATCH = ("model", "optics", "mask", "sensor", "data.image_size", "data.padded_size",
+                     "data.batch_size", "data.scenes", "data.folder", "data.test_fraction", "data.split_seed")
+
+
+def check_resume_config(saved: dict, cfg: DictConfig, key: str, extra_keys: tuple = (), path="checkpoint") -> None:
+    """A checkpoint (``path``) resumed under a different model, physics or data geometry is a ConfigError naming
+    the file and the keys."""
+    saved_cfg, current = OmegaConf.create(saved), OmegaConf.create(to_container(cfg))
+    differ = []
+    for dotted in RESUME_MUST_MATCH + tuple(extra_keys):
+        a, b = OmegaConf.select(saved_cfg, dotted), OmegaConf.select(current, dotted)
+        a = OmegaConf.to_container(a) if OmegaConf.is_config(a) else a
+        b = OmegaConf.to_container(b) if OmegaConf.is_config(b) else b
+        if a != b:
+            differ.append(dotted)
+    if differ:
+        raise ConfigError(key, str(path), "was trained with different " + ", ".join(differ) + ": resume with the "
+                          "same settings, or start a new run directory")
+
+
+def resume_if_possible(trainer, cfg: DictConfig, run_dir: Path, extra_keys: tuple = ()) -> None:
+    """Load ``trainer.resume`` or, when there is one, the run dir's own checkpoint (a killed run started again)."""
+    resume = cfg.trainer.get("resume")
+    auto = Path(run_dir) / CHECKPOINT_NAME
+    if resume or auto.is_file():
+        path = resume or auto
+        state = load_checkpoint(path, "trainer.resume")
+        check_trained(state, path, "trainer.resume", resume=True)
+        check_resume_config(state["config"], cfg, "trainer.resume", extra_keys, path)
+        problem = state_mismatch(trainer.model, state["model"])
+        if problem:
+            raise load_error("trainer.resume", path, "cannot be resumed: its weights do not fit this run's model",
+                             problem)
+        try:
+            trainer.load_state_dict(state)
+        except (RuntimeError, KeyError, ValueError, TypeError, IndexError) as err:
+            raise load_error("trainer.resume", path, "cannot be resumed: its state does not fit this run's model "
+                             "and optimizers", err) from None
+        log.info("resumed from %s at step %d (written by %d process(es), resumed by %d)", path, trainer.step,
+                 int(state.get("world_size", 1)), trainer.dist.world)
+
+
+def apply_checkpoint_mask(mask, state: dict, path="checkpoint", key: str = "checkpoint") -> None:
+    """A co-design checkpoint carries its learned mask: load it over the configured one."""
+    if state.get("mask") is not None:
+        load_module_state(mask, state["mask"], key, path, f"its learned mask does not fit the {type(mask).__name__} "
+                          "of its configuration")
+
+
+def load_trained(path, device: torch.device, key: str = "checkpoint"):
+    """(model, generators for restoration, checkpoint config, state) from a checkpoint written by the trainer;
+    every way the file can be wrong (incomplete, a configuration this version refuses, weights that do not fit
+    the model its configuration describes) is a ConfigError naming ``key`` and the file."""
+    state = load_checkpoint(path, key)
+    check_trained(state, path, key)
+    ckpt_cfg = OmegaConf.create(state["config"])
+    try:
+        model = build_model(ckpt_cfg)
+    except ConfigError as err:
+        raise ConfigError(key, str(path), f"its stored configuration is not valid in this version of codesign: "
+                          f"{err}") from None
+    what = (f"its weights do not fit the model its configuration describes (model.variant={model.spec.variant}, "
+            f"model.size={model.spec.size})")
+    load_module_state(model, state["model"], key, path, what)
+    generators = model.generators()
+    if state.get("ema"):
+        ema, states = EMA(generators, 0.0), state["ema"]
+        if not isinstance(states, list) or len(states) != len(generators):
+            n = len(states) if isinstance(states, list) else "no list of"
+            raise load_error(key, path, what, f"its EMA holds {n} generator state(s), the model has "
+                             f"{len(generators)} generators")
+        for shadow, st in zip(ema.shadow, states):
+            load_module_state(shadow, st, key, path, what + " (EMA weights)")
+        generators = ema.shadow
+    model.to(device)
+    generators = [g.to(device) for g in generators]
+    return model, generators, ckpt_cfg, state

@@ -1,0 +1,31 @@
+"""What every training task builds the same way: the restorer of a config, and the run's common metrics."""
+from __future__ import annotations
+
+import torch
+from omegaconf import DictConfig
+
+from codesign.config.runtime import to_container
+from codesign.models import build_restorer, parameter_count
+
+
+def build_model(cfg: DictConfig):
+    """The restorer of ``cfg.model``, checked against the padded input size ``cfg.data.padded_size``."""
+    model = build_restorer(to_container(cfg.model))
+    model.check_input_size(int(cfg.data.padded_size))
+    return model
+
+
+def distributed_metrics(trainer) -> dict:
+    """How a run was spread over processes, and the largest parameter difference between ranks found."""
+    ctx = trainer.dist
+    return {"world_size": ctx.world, "global_batch": int(trainer.data.sampler.batch_size),
+            "parameters_max_rank_difference": trainer.replica_diff}
+
+
+def run_metrics(cfg, model, device) -> dict:
+    """The restorer, its size and where it ran: the keys every training or evaluation metrics.json starts with."""
+    return {**model.summary(), "device": str(device),
+            "threads": torch.get_num_threads(), "torch": torch.__version__,
+            "parameters_generators": sum(parameter_count(g) for g in model.generators()),
+            "parameters_critics": sum(parameter_count(d) for d in model.critics()),
+            "image_size": int(cfg.data.image_size), "padded_size": int(cfg.data.padded_size)}

@@ -1,0 +1,58 @@
+"""Input validation of ``+experiment=restore``: every file is checked before any work, with exact messages."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from codesign.io.images import read_counts
+from codesign.tasks.restore import input_files, validate
+from codesign.errors import ConfigError
+
+
+def _png(path, arr, mode=None):
+    Image.fromarray(arr, mode=mode).save(path) if mode else Image.fromarray(arr).save(path)
+    return path
+
+
+def test_sixteen_bit_png_and_tiff_are_read_as_counts(tmp_path):
+    import tifffile
+
+    arr = (np.arange(64 * 64).reshape(64, 64) * 2).astype(np.uint16)
+    assert np.array_equal(read_counts(_png(tmp_path / "a.png", arr)), arr.astype(np.float64))
+    tifffile.imwrite(tmp_path / "a.tif", arr)
+    assert np.array_equal(read_counts(tmp_path / "a.tif"), arr.astype(np.float64))
+
+
+def test_eight_bit_and_colour_inputs_are_refused(tmp_path):
+    with pytest.raises(ConfigError, match="has uint8 samples: expected 16-bit sensor counts"):
+        read_counts(_png(tmp_path / "g8.png", np.zeros((8, 8), np.uint8)))
+    with pytest.raises(ConfigError, match="PNG mode RGB: expected a single-channel 16-bit image"):
+        read_counts(_png(tmp_path / "rgb.png", np.zeros((8, 8, 3), np.uint8)))
+
+
+def test_size_and_range_are_checked_against_the_sensor(tmp_path):
+    ok = _png(tmp_path / "ok.png", np.full((64, 64), 100, np.uint16))
+    small = _png(tmp_path / "small.png", np.full((32, 64), 100, np.uint16))
+    hot = _png(tmp_path / "hot.png", np.full((64, 64), 60000, np.uint16))
+    assert len(validate([ok], 64, 65535.0)) == 1
+    with pytest.raises(ConfigError, match=r"small.png' ?: is 64 x 32 px: the checkpoint's network resolution is "
+                                          r"64 x 64 \(data.image_size\)"):
+        validate([ok, small], 64, 65535.0)
+    with pytest.raises(ConfigError, match="has counts up to 60000 DN, above the sensor's 4095 DN"):
+        validate([hot], 64, 4095.0)
+
+
+def test_input_paths(tmp_path):
+    with pytest.raises(ConfigError, match="input = None: give a 16-bit PNG/TIFF sensor image"):
+        input_files(None)
+    with pytest.raises(ConfigError, match="no such file or folder"):
+        input_files(tmp_path / "missing.png")
+    (tmp_path / "notes.txt").write_text("x")
+    with pytest.raises(ConfigError, match="folder holds no .png, .tif, .tiff files"):
+        input_files(tmp_path)
+    with pytest.raises(ConfigError, match="must be a .png, .tif, .tiff file"):
+        input_files(tmp_path / "notes.txt")
+    _png(tmp_path / "b.png", np.zeros((4, 4), np.uint16))
+    _png(tmp_path / "a.png", np.zeros((4, 4), np.uint16))
+    assert [p.name for p in input_files(tmp_path)] == ["a.png", "b.png"]

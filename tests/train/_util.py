@@ -1,0 +1,59 @@
+"""Tiny, fast restoration and co-design setups for trainer tests: smoke optics, 48 px padded to 64, tiny SGAN."""
+from __future__ import annotations
+
+import torch
+from hydra import compose, initialize_config_dir
+
+from codesign.design.lsr_constraint import CodesignSpec, LSRConstraint
+from codesign.design.monitor import published_mask_config
+from codesign.optics import build_mask
+from codesign.train.data import SimulatedData
+from codesign.train.distributed import SINGLE
+from codesign.train.joint_trainer import JointTrainer
+from codesign.train.setup import build_model
+from codesign.train.spec import TrainerSpec
+from codesign.train.trainer import RestorationTrainer, init_weights
+from tests.conftest import REPO_ROOT
+
+CPU = torch.device("cpu")
+
+TINY = ["optics.pupil_pitch_m=2.0e-5", "optics.focal_n=160", "data.image_size=48", "data.padded_size=64",
+        "data.batch_size=2", "model.size=tiny", "trainer.val_size=2"]
+
+
+def tiny_cfg(*overrides: str):
+    with initialize_config_dir(config_dir=str(REPO_ROOT / "conf"), version_base="1.3"):
+        return compose("config", overrides=["+experiment=baseline", *TINY, *overrides])
+
+
+def tiny_trainer(tmp_path, *overrides: str, seed: int = 0, **spec_changes) -> RestorationTrainer:
+    cfg = tiny_cfg(*overrides)
+    torch.manual_seed(seed)
+    model = build_model(cfg)
+    init_weights(model)
+    data = SimulatedData(cfg, torch.device("cpu"), seed)
+    spec = TrainerSpec.from_config(dict(cfg.trainer)).replace(**spec_changes)
+    return RestorationTrainer(model, data, spec, tmp_path, torch.device("cpu"), {"test": 1}, None, seed)
+
+
+def joint_cfg(*overrides: str):
+    with initialize_config_dir(config_dir=str(REPO_ROOT / "conf"), version_base="1.3"):
+        return compose("config", overrides=["+experiment=joint", *TINY, *overrides])
+
+
+def joint_trainer(tmp_path, *overrides: str, seed: int = 0, lsr_max: float | None = None, dist=SINGLE,
+                  **codesign) -> JointTrainer:
+    cfg = joint_cfg(*overrides)
+    torch.manual_seed(seed)
+    model = build_model(cfg)
+    init_weights(model)
+    data = SimulatedData(cfg, CPU, seed, dist)
+    spec = TrainerSpec.from_config(dict(cfg.trainer)).replace(steps=4, val_every=0, checkpoint_every=0,
+                                                              image_every=0)
+    cs = CodesignSpec.from_config({**dict(cfg.codesign), "warmup_fraction": 0.0, **codesign})
+    if lsr_max is None:
+        system = data.camera.system
+        ref = build_mask(published_mask_config(dict(cfg.mask)), system.grid, system.spec.aperture_diameter_m)
+        lsr_max = LSRConstraint(cs, system, 1.0).measure(ref)
+    return JointTrainer(model, data, spec, tmp_path, CPU, {"test": 1}, None, seed, cs, lsr_max,
+                        dist=dist)
