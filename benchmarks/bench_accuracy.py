@@ -504,7 +504,7 @@ def _joint_guard_ratio(steps: int) -> float:
     from hydra import compose, initialize_config_dir
 
     from codesign.design.lsr_constraint import CodesignSpec, LSRConstraint
-    from codesign.design.monitor import published_mask_config
+    from codesign.optics.masks import published_mask_config
     from codesign.train.data import SimulatedData
     from codesign.train.joint_trainer import JointTrainer
     from codesign.train.setup import build_model

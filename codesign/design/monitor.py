@@ -11,15 +11,7 @@ import numpy as np
 from codesign.io import plots
 from codesign.design.merit import mask_figures_of_merit
 from codesign.optics import RadialMTF, build_mask
-
-
-def published_mask_config(mask_cfg: dict) -> dict:
-    """The published five half-ring mask under the configured conventions (m_range, atan/atan2, signs)."""
-    base = {"kind": "halfring", "preset": "published", "r": None, "theta": None}
-    if mask_cfg.get("kind") == "halfring":
-        keep = ("m_range", "convention", "harmonic_sign", "strategy", "table_size", "r_bounds")
-        return {**base, **{k: mask_cfg[k] for k in keep if k in mask_cfg}}
-    return {**base, "convention": mask_cfg.get("init_convention", "atan2")}
+from codesign.optics.masks import published_mask_config
 
 
 def published_reference(mask_cfg: dict, system):

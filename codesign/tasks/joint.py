@@ -18,12 +18,13 @@ from omegaconf import DictConfig, OmegaConf
 
 from codesign.config.runtime import to_container
 from codesign.design.lsr_constraint import CodesignSpec
-from codesign.design.monitor import MaskMonitor, published_mask_config, published_reference
+from codesign.design.monitor import MaskMonitor, published_reference
+from codesign.design.records import write_record
 from codesign.errors import require_number
 from codesign.io import files as io, plots
 from codesign.io.tensorboard import open_writer, tensorboard_enabled
 from codesign.optics import HalfRingMask, circular_mtf
-from codesign.optics.masks import halfring_record
+from codesign.optics.masks import published_mask_config
 from codesign.train import distributed
 from codesign.train.checkpoint import CHECKPOINT_NAME
 from codesign.train.data import SimulatedData
@@ -69,15 +70,14 @@ def _mask_outputs(monitor: MaskMonitor, system, mask, run_dir: Path, prefix: str
     return {**values, "mtf_radial": np_["mtf_radial"]}
 
 
-def _save_learned_mask(mask, run_dir: Path, values: dict) -> dict:
-    """learned_phase.npy, and for a half-ring mask learned_mask.json (seeds mask.init=PATH); returns the
-    r_n / theta_n metrics (empty for a freeform mask)."""
+def _save_learned_mask(mask, spec, run_dir: Path, values: dict) -> dict:
+    """learned_phase.npy and learned_mask.json (the mask's record: seeds mask.init=PATH); returns the r_n / theta_n
+    metrics of a half-ring mask (empty for other families)."""
     io.save_npy(run_dir / "learned_phase.npy", mask.phase().detach())
+    record = write_record(run_dir / "learned_mask.json", mask, spec,
+                          {k: values[k] for k in ("lsr", "lsr_smooth", "mtf_mean")})
     if not isinstance(mask, HalfRingMask):
         return {}
-    record = halfring_record(mask)
-    io.write_json(run_dir / "learned_mask.json", {**record, "lsr": values["lsr"], "lsr_smooth": values["lsr_smooth"],
-                                                  "mtf_mean": values["mtf_mean"]})
     return {"r_n": record["r"], "theta_n": record["theta"]}
 
 
@@ -135,7 +135,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         psf0 = system.uncoded_psf().cpu().numpy()
     learned = _mask_outputs(monitor, system, camera.mask, run_dir, "learned", psf0)
     base = _mask_outputs(monitor, system, reference, run_dir, "published", psf0)
-    rings = _save_learned_mask(camera.mask, run_dir, learned)
+    rings = _save_learned_mask(camera.mask, system.spec, run_dir, learned)
     freqs = monitor.radial.freqs.cpu().numpy()
     io.save_figure(run_dir / "mtf.png", plots.mtf_figure(
         freqs, {"learned mask": learned.pop("mtf_radial"), "published mask": base.pop("mtf_radial"),

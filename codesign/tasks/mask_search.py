@@ -22,7 +22,7 @@ from codesign.io import files as io, plots
 from codesign.io.tensorboard import open_writer, tensorboard_enabled
 from codesign.errors import ConfigError
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask, circular_mtf, metrics
-from codesign.optics.masks import PUBLISHED_R, halfring_record
+from codesign.optics.masks import PUBLISHED_R
 
 log = logging.getLogger("codesign.mask_search")
 
@@ -253,7 +253,7 @@ def _outputs(run_dir: Path, s: SearchSpec, system, mask, best: tuple[dict, dict]
     mean0 = uncoded["mtf_mean"]
     summary = mask.summary()
     io.write_json(run_dir / "best_mask.json", {
-        **halfring_record(mask), "lsr": values["lsr"], "lsr_smooth": values["lsr_smooth"],
+        **mask.record(), "lsr": values["lsr"], "lsr_smooth": values["lsr_smooth"],
         "mtf_mean": values["mtf_mean"], "mtf_floor": floor, "feasible": feasible, "bsr": values["bsr"]})
     out = {
         "lsr": values["lsr"], "lsr_smooth": values["lsr_smooth"], "lsr_sampled": values["lsr_sampled"],

@@ -257,10 +257,11 @@ def test_mask_init_round_trip(smoke_run, tmp_path):
 
 
 @pytest.mark.parametrize("content, pattern", [
-    (None, r"^mask\.init = '.*missing\.json': must be null or the path of a best_mask\.json written by "
-           r"\+experiment=mask_search; no such file$"),
+    (None, r"^mask\.init = '.*missing\.json': must be null or the path of a mask record \(best_mask\.json of "
+           r"\+experiment=mask_search, learned_mask\.json of joint, mask\.json of psf\); no such file$"),
     ("{not json", r"; cannot be read as JSON \(Expecting property name"),
-    ('{"kind": "freeform", "r": [1], "theta": [1]}', r"; the file holds kind 'freeform', not 'halfring'$"),
+    ('{"kind": "freeform", "r": [1], "theta": [1]}', r"; the file holds kind 'freeform', not a mask family "
+                                                     r"\(halfring, pixel, spiral, zernike\)$"),
     ('{"kind": "halfring", "r": [1, 2], "theta": [1]}', r"; its r and theta must be non-empty lists of numbers "
                                                         r"of equal length \(got \[1, 2\] and \[1\]\)$"),
     ('{"kind": "halfring", "r": ["a"], "theta": [1]}', r"; its r and theta must be non-empty lists of numbers"),
@@ -282,8 +283,9 @@ def test_mask_init_conflicts_and_freeform_choices(tmp_path):
         build_mask({"kind": "halfring", "init": str(path), "r": [1.0], "theta": [1.0]}, system.grid, 3.83e-3)
     mask = build_mask({"kind": "halfring", "preset": None, "init": str(path)}, system.grid, 3.83e-3)
     assert mask.r.tolist() == [1.0, 2.0]
-    with pytest.raises(ConfigError, match=r"^mask\.init = 'nope': must be one of published, zero or the path of a "
-                                          r"best_mask\.json written by \+experiment=mask_search; no such file$"):
+    with pytest.raises(ConfigError, match=r"^mask\.init = 'nope': must be one of published, zero, defocus or the path "
+                                          r"of a mask record \(best_mask\.json of \+experiment=mask_search, "
+                                          r"learned_mask\.json of joint, mask\.json of psf\); no such file$"):
         build_mask({"kind": "freeform", "init": "nope"}, system.grid, 3.83e-3)
 
 

@@ -115,14 +115,15 @@ def test_root_key_allowlist_accepts_every_shipped_config(experiment):
     ('{"kind": "halfring", "r": [NaN], "theta": [1.0]}', "its r and theta hold NaN or Infinity (got [nan] and [1.0])"),
     ('{"kind": "halfring", "r": [1.0, 2', "cannot be read as JSON (Expecting ',' delimiter: line 1 column 34 "
                                           "(char 33))"),
-    ('[1, 2]', "the file holds kind None, not 'halfring'"),
+    ('[1, 2]', "the file holds kind None, not a mask family (halfring, pixel, spiral, zernike)"),
 ], ids=["unequal-rings", "nan", "truncated", "not-a-mask"])
 def test_mask_init_file_with_bad_rings(tmp_path, monkeypatch, capsys, content, message):
     path = tmp_path / "best_mask.json"
     path.write_text(content)
     line = config_error(monkeypatch, capsys, tmp_path / "run", "+experiment=psf", "debug=smoke", f"mask.init={path}")
-    assert line == (f"codesign: configuration error: mask.init = '{path}': must be null or the path of a "
-                    f"best_mask.json written by +experiment=mask_search; {message}")
+    assert line == (f"codesign: configuration error: mask.init = '{path}': must be null or the path of a mask record "
+                    f"(best_mask.json of +experiment=mask_search, learned_mask.json of joint, mask.json of psf); "
+                    f"{message}")
 
 
 def test_cli_unknown_experiment_lists_the_available_ones(tmp_path):

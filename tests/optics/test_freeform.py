@@ -9,7 +9,7 @@ import torch
 from codesign.errors import ConfigError
 from codesign.optics import OpticalSystem, OpticsSpec, PixelPhaseMask, ZernikeMask, build_mask, metrics
 from codesign.optics.masks import published_halfring
-from codesign.optics.masks.freeform import noll_to_nm, zernike
+from codesign.optics.masks.zernike import noll_to_nm, zernike
 
 W_A = 3.83e-3
 
@@ -216,8 +216,8 @@ def test_build_freeform_zernike_fits_published(system64):
 @pytest.mark.parametrize("cfg,pattern", [
     ({"kind": "freeform", "basis": "spline"}, r"^mask\.basis = 'spline': must be one of pixel, zernike"),
     ({"kind": "freeform", "init": "random"}, r"^mask\.init = 'random': must be one of published, zero"),
-    ({"kind": "freeform", "r": [1.0]}, r"^mask\.r = \[1\.0\]: unknown key for a freeform mask; allowed: basis, init, init_convention, "
-                                       r"kind, max_coeff_rad, n_terms"),
+    ({"kind": "freeform", "r": [1.0]}, r"^mask\.r = \[1\.0\]: unknown key for a freeform mask; allowed: basis, "
+                                       r"defocus_rad, init, init_convention, kind, levels, max_coeff_rad, n_terms"),
     ({"kind": "freeform", "basis": "zernike", "init": "zero", "n_terms": 2.5},
      r"^mask\.n_terms = 2\.5: must be an integer"),
 ])

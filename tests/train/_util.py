@@ -5,7 +5,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from codesign.design.lsr_constraint import CodesignSpec, LSRConstraint
-from codesign.design.monitor import published_mask_config
+from codesign.optics.masks import published_mask_config
 from codesign.optics import build_mask
 from codesign.train.data import SimulatedData
 from codesign.train.distributed import SINGLE

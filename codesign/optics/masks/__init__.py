@@ -1,62 +1,135 @@
-"""Phase masks behind one interface (``Mask``) and a builder from the ``mask`` config group."""
+"""Phase masks behind one interface (base.Mask), one module per family, and a builder from the ``mask`` config.
+
+Families: halfring (the paper's rings, any number), zernike, pixel (a phase per pupil sample), spiral (vortex
+axicon). ``mask=freeform`` (mask.basis=pixel|zernike) is kept as the name the pixel and Zernike families had.
+"""
 from __future__ import annotations
 
-import json
+import importlib
 import logging
-import math
-import os
-from pathlib import Path
+import pkgutil
 from typing import Any, Mapping
 
-from codesign.errors import ConfigError, require_choice, require_list, require_number, require_numbers
-from codesign.optics.masks.base import Mask
-from codesign.optics.masks.freeform import PixelPhaseMask, ZernikeMask
+import torch
+
+from codesign.errors import ConfigError, require_choice
+from codesign.optics.masks.base import FAMILIES, Mask, MaskSpec, check_family_keys, quantize
 from codesign.optics.masks.halfring import PUBLISHED_R, PUBLISHED_THETA, HalfRingMask
+from codesign.optics.masks.pixel import PixelPhaseMask
+from codesign.optics.masks.records import RECORD_PATH, load_record
+from codesign.optics.masks.spiral import SpiralMask
+from codesign.optics.masks.zernike import ZernikeMask
 
-KINDS = ("halfring", "freeform")
-PRESETS = {"published": (PUBLISHED_R, PUBLISHED_THETA)}
-_HALFRING_KEYS = {"kind", "preset", "init", "r", "theta", "m_range", "convention", "harmonic_sign", "strategy",
-                  "table_size", "r_bounds"}
-_FREEFORM_KEYS = {"kind", "basis", "init", "n_terms", "max_coeff_rad", "init_convention"}
 log = logging.getLogger("codesign.masks")
+# the keys of mask=freeform, translated to the pixel or Zernike family
+FREEFORM_KEYS = ("kind", "basis", "init", "n_terms", "max_coeff_rad", "init_convention", "levels", "defocus_rad")
+FREEFORM_DEFAULTS = {"kind": "freeform", "basis": "pixel", "init": "published", "init_convention": "atan2",
+                     "n_terms": 36, "max_coeff_rad": 50.0, "levels": None, "defocus_rad": 40.0}
 
 
-BEST_MASK = "the path of a best_mask.json written by +experiment=mask_search"
+def families() -> tuple[str, ...]:
+    """Every registered family (importing each module of this package registers it)."""
+    for info in pkgutil.iter_modules(__path__):
+        importlib.import_module(f"{__name__}.{info.name}")
+    return tuple(sorted(FAMILIES))
 
 
-def load_best_mask(path: Any, key: str, allowed: str = f"must be {BEST_MASK}") -> dict:
-    """The contents of a best_mask.json written by +experiment=mask_search: kind "halfring", r (units of
-    lambda f / W_a) and theta [rad] of equal lengths; ConfigError naming ``key`` otherwise, whose message starts
-    with ``allowed`` (what ``key`` accepts) and then says what is wrong with the file."""
-    if not isinstance(path, (str, os.PathLike)):
-        raise ConfigError(key, path, allowed)
-    try:
-        data = json.loads(Path(path).expanduser().read_text())
-    except FileNotFoundError:
-        raise ConfigError(key, path, f"{allowed}; no such file") from None
-    except (OSError, UnicodeDecodeError, ValueError) as err:  # JSONDecodeError is a ValueError
-        raise ConfigError(key, path, f"{allowed}; cannot be read as JSON ({err})") from None
-    kind = data.get("kind") if isinstance(data, dict) else None
-    if kind != "halfring":
-        raise ConfigError(key, path, f"{allowed}; the file holds kind {kind!r}, not 'halfring'")
-    r, theta = data.get("r"), data.get("theta")
-    number = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)  # noqa: E731
-    if not (isinstance(r, list) and isinstance(theta, list) and r and len(r) == len(theta)
-            and all(map(number, r + theta))):
-        raise ConfigError(key, path, f"{allowed}; its r and theta must be non-empty lists of numbers of equal "
-                          f"length (got {r!r} and {theta!r})")
-    if not all(math.isfinite(v) for v in r + theta):  # json reads NaN / Infinity: name the file, not mask.r[i]
-        raise ConfigError(key, path, f"{allowed}; its r and theta hold NaN or Infinity (got {r!r} and {theta!r})")
-    return data
+def _from_freeform(cfg: Mapping[str, Any], prefix: str) -> dict:
+    """mask=freeform (basis pixel|zernike) as the pixel or Zernike family's config."""
+    extra = sorted(set(cfg) - set(FREEFORM_KEYS))
+    if extra:
+        hint = f" (to switch masks use the config group, e.g. mask=halfring, not {prefix}.kind=...)" \
+            if set(extra) & set(HalfRingMask.Spec.defaults()) else ""
+        raise ConfigError(f"{prefix}.{extra[0]}", cfg[extra[0]], f"unknown key for a freeform mask; allowed: "
+                          f"{', '.join(sorted(FREEFORM_KEYS))}{hint}")
+    basis = require_choice(f"{prefix}.basis", cfg.get("basis", "pixel"), ("pixel", "zernike"))
+    keep = ("init", "init_convention", "levels", "defocus_rad") + (("n_terms", "max_coeff_rad") if basis == "zernike"
+                                                                     else ())
+    if basis == "pixel":  # checked for either basis (pixel ignores them): a bad value is a typo whichever runs
+        ZernikeMask.Spec.from_config({k: cfg[k] for k in ("n_terms", "max_coeff_rad") if k in cfg}, prefix)
+    return {"kind": basis, **{k: cfg[k] for k in keep if k in cfg}}
 
 
-def halfring_record(mask: HalfRingMask) -> dict:
-    """What load_best_mask reads back: kind, r, theta, and the settings that fix the phase besides them
-    (convention, harmonic_sign, m_range), so that mask.init=PATH rebuilds the same mask, freeform included."""
-    return {"kind": "halfring", "r": [float(v) for v in mask.r.detach().cpu()],
-            "theta": [float(v) for v in mask.theta.detach().cpu()], "convention": mask.convention,
-            "harmonic_sign": mask.harmonic_sign,
-            "m_range": [(int(mask.orders[0]) - 1) // 2, (int(mask.orders[-1]) - 1) // 2]}
+def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix: str = "mask") -> Mask:
+    """Build a mask from a config mapping (``kind`` picks the family; see conf/README of each family's Spec);
+    every value is validated first. ``init``: a record path starts the mask from that record (a record of another
+    family is taken as a phase, where the family can start from one)."""
+    cfg = dict(cfg)
+    require_choice(f"{prefix}.kind", cfg.get("kind"), families() + ("freeform",))
+    if cfg.get("kind") == "freeform":
+        cfg = _from_freeform(cfg, prefix)
+    kind = cfg["kind"]
+    cls = FAMILIES[kind]
+    check_family_keys(cls, cfg, prefix)
+    cls.Spec.from_config({k: v for k, v in cfg.items() if k != "kind"} | {"kind": kind}, prefix)  # levels etc.
+    init = cfg.get("init")
+    named = ("published", "zero", "defocus") if kind in ("pixel", "zernike") else ()
+    if init is None or init in named:
+        return cls.from_config(cfg, grid, aperture_diameter_m, prefix=prefix)
+    allowed = f"must be {'one of ' + ', '.join(named) + ' or ' if named else 'null or '}{RECORD_PATH}"
+    record = load_record(init, f"{prefix}.init", allowed)
+    if record["kind"] == kind:
+        for k in ("convention", "harmonic_sign", "m_range"):  # r, theta alone do not fix the phase: say so
+            as_list = lambda v: list(v) if isinstance(v, (list, tuple)) else v  # noqa: E731
+            if k in record and k in cfg and as_list(record[k]) != as_list(cfg[k]):
+                log.warning("%s.init: %s was searched with %s=%s, this mask uses %s", prefix, init, k, record[k],
+                            cfg[k])
+        if kind == "pixel":
+            return cls.from_config(cfg, grid, aperture_diameter_m, record_phase(record, grid, aperture_diameter_m),
+                                   prefix=prefix)
+        if kind == "zernike":
+            cfg = {**cfg, "n_terms": len(record["coeffs"]), "max_coeff_rad": record.get("max_coeff_rad",
+                                                                                           cfg.get("max_coeff_rad"))}
+        return cls.from_config(cfg, grid, aperture_diameter_m, record=record, prefix=prefix)
+    if kind not in ("pixel", "zernike"):
+        raise ConfigError(f"{prefix}.init", init, f"holds a {record['kind']} mask; a {kind} mask starts only from a "
+                          f"{kind} record: use mask={record['kind']} to build it as it is")
+    return cls.from_config(cfg, grid, aperture_diameter_m, start_phase=record_phase(record, grid, aperture_diameter_m),
+                           prefix=prefix)
+
+
+def record_phase(record: dict, grid, aperture_diameter_m: float) -> torch.Tensor:
+    """The (n, n) phase of a loaded record's mask on ``grid`` (a pixel record designed on another grid is
+    interpolated from it)."""
+    kind = record["kind"]
+    if kind == "pixel":
+        from codesign.optics.masks.pixel import interpolate_phase
+
+        values = torch.tensor(record["values"], dtype=torch.float64)
+        if int(record["grid_n"]) == grid.n and abs(float(record["pitch_m"]) / grid.pitch - 1) < 1e-9 and \
+                values.numel() == grid.support.numel():
+            return grid.scatter(values.to(grid.rho)).detach()
+        src = _record_grid(record, grid)
+        if values.numel() != src.support.numel():
+            raise ConfigError("mask.init", record.get("path", "record"), f"holds {values.numel()} pixel values, "
+                              f"its grid ({src.n} x {src.n}) has {src.support.numel()} samples in the aperture")
+        return interpolate_phase(src.scatter(values), src, grid).to(grid.rho)
+    mask = FAMILIES[kind].from_config({**record, "levels": record.get("levels")}, grid, aperture_diameter_m,
+                                      **({"record": record} if kind != "halfring" else {}))
+    return mask.freeze().phase().detach()
+
+
+def _record_grid(record: dict, grid):
+    """The pupil grid a pixel record was designed on (its optics, else this grid's aperture at its pitch)."""
+    from codesign.optics.grid import PupilGrid
+    from codesign.optics.spec import OpticsSpec
+
+    optics = record.get("optics") or {}
+    fields = {k: optics[k] for k in ("wavelength_m", "focal_length_m", "aperture_diameter_m",
+                                      "supergaussian_order") if k in optics}
+    spec = OpticsSpec(**fields, pupil_pitch_m=float(record["pitch_m"]), pupil_n=int(record["grid_n"]),
+                      focal_n=8, focal_pitch_m=1e-9)
+    return PupilGrid.from_spec(spec, dtype=torch.float64)
+
+
+def published_mask_config(mask_cfg: Mapping[str, Any]) -> dict:
+    """The published five half-ring mask under the configured conventions (m_range, atan/atan2, signs) when the
+    configured mask is a half ring; under its init_convention for the pixel and Zernike families."""
+    base = {**HalfRingMask.Spec.defaults(), "preset": "published"}
+    if mask_cfg.get("kind") == "halfring":
+        keep = ("m_range", "convention", "harmonic_sign", "strategy", "table_size", "r_bounds")
+        return {**base, **{k: mask_cfg[k] for k in keep if k in mask_cfg}}
+    return {**base, "convention": mask_cfg.get("init_convention", "atan2")}
 
 
 def published_halfring(grid, aperture_diameter_m: float, **kw: Any) -> HalfRingMask:
@@ -64,83 +137,6 @@ def published_halfring(grid, aperture_diameter_m: float, **kw: Any) -> HalfRingM
     return HalfRingMask(grid, aperture_diameter_m, PUBLISHED_R, PUBLISHED_THETA, **kw).freeze()
 
 
-def _check_keys(cfg: Mapping[str, Any], allowed: set[str], prefix: str) -> None:
-    extra = sorted(set(cfg) - allowed)
-    if extra:
-        hint = ""
-        if cfg.get("kind") == "freeform" and set(extra) & _HALFRING_KEYS:
-            hint = f" (to switch masks use the config group, mask=freeform, not {prefix}.kind=freeform)"
-        raise ConfigError(f"{prefix}.{extra[0]}", cfg[extra[0]],
-                          f"unknown key for a {cfg.get('kind')} mask; allowed: {', '.join(sorted(allowed))}{hint}")
-
-
-def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix: str = "mask") -> Mask:
-    """Build a mask from a config mapping (see conf/mask/*.yaml); every value is validated first."""
-    kind = require_choice(f"{prefix}.kind", cfg.get("kind"), KINDS)
-    if kind == "halfring":
-        _check_keys(cfg, _HALFRING_KEYS, prefix)
-        preset = cfg.get("preset")
-        r, theta = cfg.get("r"), cfg.get("theta")
-        init = cfg.get("init")
-        if init is not None:  # a searched mask; wins over preset, which has a default that would clash otherwise
-            if r is not None or theta is not None:
-                raise ConfigError(f"{prefix}.init", init, f"cannot be combined with explicit {prefix}.r / "
-                                  f"{prefix}.theta; set {prefix}.init=null to use your own values")
-            data = load_best_mask(init, f"{prefix}.init", f"must be null or {BEST_MASK}")
-            r, theta = data["r"], data["theta"]
-            as_list = lambda v: list(v) if isinstance(v, (list, tuple)) else v  # noqa: E731 - m_range: list/tuple
-            for k in ("convention", "harmonic_sign", "m_range"):  # r, theta alone do not fix the phase: say so
-                if k in data and k in cfg and as_list(data[k]) != as_list(cfg[k]):
-                    log.warning("%s.init: %s was searched with %s=%s, this mask uses %s", prefix, init, k, data[k],
-                                cfg[k])
-        elif preset is not None:
-            require_choice(f"{prefix}.preset", preset, tuple(PRESETS))
-            if r is not None or theta is not None:
-                raise ConfigError(f"{prefix}.preset", preset,
-                                  f"cannot be combined with explicit {prefix}.r / {prefix}.theta; "
-                                  f"set {prefix}.preset=null to use your own values")
-            r, theta = PRESETS[preset]
-        elif r is None or theta is None:
-            raise ConfigError(f"{prefix}.r", r, f"{prefix}.r and {prefix}.theta are required when {prefix}.preset "
-                              f"is null (allowed presets: {', '.join(PRESETS)})")
-        r = require_numbers(f"{prefix}.r", r, "must be a list of ring radii (units of lambda f / W_a)")
-        theta = require_numbers(f"{prefix}.theta", theta, f"must be a list of ring angles [rad], as many as {prefix}.r")
-        m_range = require_list(f"{prefix}.m_range", cfg.get("m_range", (1, 17)), "must be [m_min, m_max]")
-        r_bounds = require_list(f"{prefix}.r_bounds", cfg.get("r_bounds", (0.5, 200.0)), "must be [lo, hi] with "
-                                "0 < lo < hi")  # its length and values: HalfRingMask
-        return HalfRingMask(grid, aperture_diameter_m, r, theta,
-                            m_range=tuple(m_range),
-                            convention=cfg.get("convention", "atan2"),
-                            harmonic_sign=cfg.get("harmonic_sign", "printed"),
-                            strategy=cfg.get("strategy", "exact"),
-                            table_size=cfg.get("table_size", 4096), r_bounds=tuple(r_bounds),
-                            prefix=prefix)
-    _check_keys(cfg, _FREEFORM_KEYS, prefix)
-    basis = require_choice(f"{prefix}.basis", cfg.get("basis", "pixel"), ("pixel", "zernike"))
-    # checked for either basis (pixel ignores them): a bad value is a typo whichever basis runs
-    require_number(f"{prefix}.n_terms", cfg.get("n_terms", 36), lo=1, hi=1000, integer=True)
-    require_number(f"{prefix}.max_coeff_rad", cfg.get("max_coeff_rad", 50.0), lo=0, lo_open=True)
-    require_choice(f"{prefix}.init_convention", cfg.get("init_convention", "atan2"), ("atan", "atan2"))
-    init = cfg.get("init", "published")
-    phase = None
-    if init == "published":
-        conv = cfg.get("init_convention", "atan2")
-        phase = published_halfring(grid, aperture_diameter_m, convention=conv).phase().detach()
-    elif init != "zero":  # the phase of a searched half ring, with the settings it was searched with
-        data = load_best_mask(init, f"{prefix}.init", f"must be one of published, zero or {BEST_MASK}")
-        phase = HalfRingMask(grid, aperture_diameter_m, data["r"], data["theta"],
-                             m_range=tuple(data.get("m_range", (1, 17))),
-                             convention=data.get("convention", cfg.get("init_convention", "atan2")),
-                             harmonic_sign=data.get("harmonic_sign", "printed"), prefix=f"{prefix}.init").freeze()
-        phase = phase.phase().detach()
-    if basis == "pixel":
-        return PixelPhaseMask(grid, phase)
-    mask = ZernikeMask(grid, aperture_diameter_m, n_terms=cfg.get("n_terms", 36),
-                       max_coeff_rad=cfg.get("max_coeff_rad", 50.0), prefix=prefix)
-    if phase is not None:
-        mask.fit(phase)
-    return mask
-
-
-__all__ = ["Mask", "HalfRingMask", "PixelPhaseMask", "ZernikeMask", "build_mask", "published_halfring",
-           "load_best_mask", "halfring_record", "PUBLISHED_R", "PUBLISHED_THETA"]
+__all__ = ["Mask", "MaskSpec", "HalfRingMask", "PixelPhaseMask", "ZernikeMask", "SpiralMask", "FAMILIES",
+           "build_mask", "families", "load_record", "published_halfring", "published_mask_config", "quantize",
+           "record_phase", "PUBLISHED_R", "PUBLISHED_THETA", "RECORD_PATH"]

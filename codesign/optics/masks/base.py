@@ -1,9 +1,62 @@
-"""The one mask interface: a module with a differentiable ``phase()`` on its pupil grid and a ``project()``."""
+"""The one mask interface: a module with a differentiable ``phase()`` on its pupil grid, its free parameters as one
+vector with bounds, a ``project()`` onto what can be built, and a JSON record that rebuilds it.
+
+A mask family is one module of this package: a ``Mask`` subclass with a ``kind`` (its name in ``mask.kind`` and in
+records) and a ``Spec`` dataclass (its config keys and their defaults, the single source of both). Importing
+``codesign.optics.masks`` registers every family; ``build_mask`` builds any of them from a config mapping.
+"""
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from typing import Any, ClassVar, Mapping
 
 import torch
 
+from codesign.errors import ConfigError, require_number
 from codesign.optics.grid import PupilGrid
+from codesign.spec_base import SpecMixin
+
+FAMILIES: dict[str, type["Mask"]] = {}
+
+
+@dataclass(frozen=True)
+class MaskSpec(SpecMixin):
+    """Keys every family has. kind: the family; init: a mask record to start from (JSON written by mask_search,
+    joint or psf; any family's record: a different family is fitted to its phase where the family can be);
+    levels: quantize the phase to this many levels in [-pi, pi) (a buildable multi-level plate; the gradient passes
+    straight through), null = continuous."""
+
+    kind: str = ""
+    init: str | None = None
+    levels: int | None = None
+    prefix: str = field(default="mask", compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.levels is not None:
+            object.__setattr__(self, "levels", require_number(f"{self.prefix}.levels", self.levels, lo=2, hi=65536,
+                                                              integer=True))
+
+    @classmethod
+    def defaults(cls) -> dict:
+        """The config node of the family: every key with its default (lists for tuples)."""
+        out = {}
+        for f in fields(cls):
+            if f.name == "prefix":
+                continue
+            v = f.default
+            out[f.name] = list(v) if isinstance(v, tuple) else v
+        return out
+
+
+def quantize(phase: torch.Tensor, levels: int) -> torch.Tensor:
+    """``phase`` wrapped into [-pi, pi) and rounded to ``levels`` equally spaced values there; the gradient is the
+    identity (straight-through), so that search and co-design can move a quantized mask's parameters."""
+    step = 2 * math.pi / levels
+    wrapped = torch.remainder(phase + math.pi, 2 * math.pi) - math.pi
+    q = torch.round(wrapped / step) * step
+    q = torch.where(q >= math.pi, q - 2 * math.pi, q)
+    return phase + (q - phase).detach()
 
 
 class Mask(torch.nn.Module):
@@ -11,20 +64,34 @@ class Mask(torch.nn.Module):
 
     Subclasses hold their learnable parameters and implement ``support_phase()``: the phase [rad] at the grid's
     support samples, shape (n_support,). ``phase()`` places it on the full (n, n) grid (0 outside the aperture,
-    where the field is exactly zero anyway). ``project()`` clamps the parameters, in place and without autograd,
-    to what can be built; the trainer calls it after each optimizer step.
+    where the field is exactly zero anyway), quantized when ``levels`` is set. ``project()`` clamps the parameters,
+    in place and without autograd, to what can be built; the trainer and the search call it after each update.
     """
 
-    def __init__(self, grid: PupilGrid):
+    kind: ClassVar[str] = ""
+    Spec: ClassVar[type[MaskSpec]] = MaskSpec
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if cls.kind:
+            FAMILIES[cls.kind] = cls
+
+    def __init__(self, grid: PupilGrid, levels: int | None = None):
         super().__init__()
         self.grid = grid
+        self.levels = None if levels is None else require_number("mask.levels", levels, lo=2, hi=65536,
+                                                                  integer=True)
 
+    # ---- the phase ------------------------------------------------------------------------------------------------
     def support_phase(self) -> torch.Tensor:  # pragma: no cover - abstract
         raise NotImplementedError
 
     def phase(self) -> torch.Tensor:
         """Pupil phase [rad], shape (n, n), on the grid's dtype/device."""
-        return self.grid.scatter(self.support_phase())
+        values = self.support_phase()
+        if self.levels is not None:
+            values = quantize(values, self.levels)
+        return self.grid.scatter(values)
 
     def forward(self) -> torch.Tensor:
         """``mask()`` is ``mask.phase()``, so torch.func.functional_call can evaluate a mask at given parameters."""
@@ -34,11 +101,76 @@ class Mask(torch.nn.Module):
     def project(self) -> None:
         """Clamp parameters to the buildable set (default: nothing to clamp)."""
 
-    def summary(self) -> dict[str, float]:
-        """Flat, JSON-ready parameter values for metrics and logging."""
-        return {}
-
     def freeze(self) -> "Mask":
         for p in self.parameters():
             p.requires_grad_(False)
         return self
+
+    # ---- the parameter vector (searches) ------------------------------------------------------------------------
+    def to_vector(self) -> torch.Tensor:
+        """Every free parameter, flattened in ``parameters()`` order, float64 on the CPU."""
+        return torch.cat([p.detach().reshape(-1).to(torch.float64).cpu() for p in self.parameters()])
+
+    @torch.no_grad()
+    def set_vector(self, x) -> None:
+        """Write a vector (``to_vector`` layout) into the parameters."""
+        x = torch.as_tensor(x, dtype=torch.float64).reshape(-1)
+        if x.numel() != self.vector_size:
+            raise ValueError(f"a {self.kind} mask has {self.vector_size} parameters, got a vector of {x.numel()}")
+        at = 0
+        for p in self.parameters():
+            p.copy_(x[at:at + p.numel()].view_as(p).to(p))
+            at += p.numel()
+
+    def vector_grad(self) -> torch.Tensor:
+        """The parameters' gradients in ``to_vector`` layout (zeros where a parameter has none)."""
+        return torch.cat([(p.grad if p.grad is not None else torch.zeros_like(p)).detach().reshape(-1)
+                          .to(torch.float64).cpu() for p in self.parameters()])
+
+    @property
+    def vector_size(self) -> int:
+        return sum(p.numel() for p in self.parameters())
+
+    def bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(lower, upper) of every parameter in ``to_vector`` layout (float64): the box a search stays in."""
+        n = self.vector_size
+        return torch.full((n,), -math.inf, dtype=torch.float64), torch.full((n,), math.inf, dtype=torch.float64)
+
+    def vector_names(self) -> list[str] | None:
+        """A name per parameter for tables and CSV columns (None when there are too many to list)."""
+        return None
+
+    # ---- records ----------------------------------------------------------------------------------------------------
+    def settings(self) -> dict[str, Any]:
+        """The family's settings besides its parameter values (what, with the values, fixes the phase)."""
+        return {}
+
+    def parameter_values(self) -> dict[str, Any]:
+        """The parameter values by name, JSON-ready."""
+        return {name: p.detach().cpu().tolist() for name, p in self.named_parameters()}
+
+    def record(self) -> dict[str, Any]:
+        """What ``mask.init=PATH`` reads back: kind, settings, levels and values."""
+        return {"kind": self.kind, **self.settings(), "levels": self.levels, **self.parameter_values()}
+
+    def summary(self) -> dict[str, float]:
+        """Flat, JSON-ready parameter values for metrics and logging (empty when there are too many)."""
+        return {}
+
+    # ---- other grids --------------------------------------------------------------------------------------------
+    def on_grid(self, grid: PupilGrid, aperture_diameter_m: float) -> "Mask":
+        """The same physical mask sampled on another pupil grid (a finer one, to check that the design grid resolves
+        the phase), frozen."""
+        raise NotImplementedError(f"{type(self).__name__}.on_grid")  # pragma: no cover - every family has one
+
+
+def check_family_keys(cls: type[Mask], cfg: Mapping[str, Any], prefix: str) -> None:
+    """ConfigError for a key the family does not have, with a hint when it belongs to another family."""
+    allowed = {f.name for f in fields(cls.Spec)} - {"prefix"}
+    extra = sorted(set(cfg) - allowed)
+    if extra:
+        others = [k for k, c in FAMILIES.items() if c is not cls and extra[0] in {f.name for f in fields(c.Spec)}]
+        hint = f" (it is a key of mask={others[0]}: choose the family with the config group, mask={others[0]}, " \
+               f"not {prefix}.kind=...)" if others and "kind" in cfg else ""
+        raise ConfigError(f"{prefix}.{extra[0]}", cfg[extra[0]],
+                          f"unknown key for a {cls.kind} mask; allowed: {', '.join(sorted(allowed))}{hint}")

@@ -23,22 +23,55 @@ for large grids); ``table`` on a uniform radial table of ``table_size`` points w
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from dataclasses import dataclass
+from typing import Any, Mapping, Sequence
 
 import torch
 
-from codesign.errors import ConfigError, require_choice, require_number
+from codesign.errors import ConfigError, require_choice, require_list, require_number, require_numbers
 from codesign.optics.atan2 import atan_of_ratio
 from codesign.optics.bessel import bessel_j
 from codesign.optics.grid import PupilGrid
-from codesign.optics.masks.base import Mask
+from codesign.optics.masks.base import Mask, MaskSpec
 
 PUBLISHED_R = (13.6, 91.8, 6.3, 10.3, 4.2)
 PUBLISHED_THETA = (1.86, 1.09, 1.15, 1.21, 1.22)
+PRESETS = {"published": (PUBLISHED_R, PUBLISHED_THETA)}
 CONVENTIONS = ("atan", "atan2")
 STRATEGIES = ("exact", "table", "direct")
 HARMONIC_SIGNS = ("printed", "fourier")
 _HARMONIC_CACHE_BYTES = 256 * 2**20  # cache sin/cos(m_o Phi) on the support up to this size
+
+
+@dataclass(frozen=True)
+class HalfRingSpec(MaskSpec):
+    """preset: published (r_n = [13.6, 91.8, 6.3, 10.3, 4.2] lambda f / W_a, theta_n = [1.86, 1.09, 1.15, 1.21, 1.22]
+    rad) or null to give r, theta; rings: with preset, r and theta null, this many rings at a plain start (r
+    geometric from 4 to 90, theta 1.2 rad: a search's start 0); m_range: [m_min, m_max], orders m_o = 2m + 1 (as
+    written: 3..35; [0, 17] adds the first order); convention: atan2 (argument of the complex pupil field) | atan
+    (as printed); harmonic_sign: printed | fourier ((-1)^m per order: true half rings); strategy: exact (distinct
+    radii) | table (radial table, linear interpolation) | direct (reference); table_size; r_bounds: the box of r
+    that project() clamps into and a search explores (units of lambda f / W_a; the 640-sample window's half-width
+    is ~95 such units: rings beyond it send light out of the window)."""
+
+    kind: str = "halfring"
+    preset: str | None = "published"
+    r: tuple | None = None
+    theta: tuple | None = None
+    rings: int | None = None
+    m_range: tuple = (1, 17)
+    convention: str = "atan2"
+    harmonic_sign: str = "printed"
+    strategy: str = "exact"
+    table_size: int = 4096
+    r_bounds: tuple = (0.5, 100.0)
+
+
+def plain_rings(n: int) -> tuple[list[float], list[float]]:
+    """A plain start for ``n`` rings: radii geometric from 4 to 90 lambda f / W_a, angles 1.2 rad."""
+    if n == 1:
+        return [10.0], [1.2]
+    return [4.0 * (90.0 / 4.0) ** (k / (n - 1)) for k in range(n)], [1.2] * n
 
 
 class HalfRingMask(Mask):
@@ -52,15 +85,20 @@ class HalfRingMask(Mask):
         harmonic_sign: "printed" or "fourier" (see module docstring).
         strategy: "exact", "table" or "direct"; table_size: radial samples of the "table" strategy.
         r_bounds: (lo, hi) box that ``project()`` clamps r into; theta is wrapped into [0, 2 pi).
+        levels: quantize the phase to this many levels (None: continuous).
         prefix: config key prefix used in error messages.
+    Defaults: HalfRingSpec's.
     """
 
+    kind = "halfring"
+    Spec = HalfRingSpec
+
     def __init__(self, grid: PupilGrid, aperture_diameter_m: float, r: Sequence[float] = PUBLISHED_R,
-                 theta: Sequence[float] = PUBLISHED_THETA, m_range: Sequence[int] = (1, 17),
-                 convention: str = "atan2", harmonic_sign: str = "printed", strategy: str = "exact",
-                 table_size: int = 4096,
-                 r_bounds: Sequence[float] = (0.5, 200.0), prefix: str = "mask"):
-        super().__init__(grid)
+                 theta: Sequence[float] = PUBLISHED_THETA, m_range: Sequence[int] = HalfRingSpec.m_range,
+                 convention: str = HalfRingSpec.convention, harmonic_sign: str = HalfRingSpec.harmonic_sign,
+                 strategy: str = HalfRingSpec.strategy, table_size: int = HalfRingSpec.table_size,
+                 r_bounds: Sequence[float] = HalfRingSpec.r_bounds, prefix: str = "mask", levels: int | None = None):
+        super().__init__(grid, levels)
         r, theta = [float(v) for v in r], [float(v) for v in theta]
         if len(r) == 0 or len(r) != len(theta):
             raise ConfigError(f"{prefix}.theta", theta, f"must have the same length as {prefix}.r "
@@ -164,3 +202,67 @@ class HalfRingMask(Mask):
         out = {f"r_{i + 1}": float(v) for i, v in enumerate(self.r.detach().cpu())}
         out.update({f"theta_{i + 1}": float(v) for i, v in enumerate(self.theta.detach().cpu())})
         return out
+
+    # ---- the family interface -------------------------------------------------------------------------------------
+    def bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
+        n = self.r.numel()
+        lo = torch.tensor([self.r_bounds[0]] * n + [0.0] * n, dtype=torch.float64)
+        hi = torch.tensor([self.r_bounds[1]] * n + [2 * math.pi] * n, dtype=torch.float64)
+        return lo, hi
+
+    def vector_names(self) -> list[str]:
+        n = self.r.numel()
+        return [f"r_{i + 1}" for i in range(n)] + [f"theta_{i + 1}" for i in range(n)]
+
+    @property
+    def m_range(self) -> tuple[int, int]:
+        return (int(self.orders[0]) - 1) // 2, (int(self.orders[-1]) - 1) // 2
+
+    def settings(self) -> dict[str, Any]:
+        return {"convention": self.convention, "harmonic_sign": self.harmonic_sign, "m_range": list(self.m_range),
+                "r_bounds": list(self.r_bounds)}
+
+    def parameter_values(self) -> dict[str, Any]:
+        return {"r": [float(v) for v in self.r.detach().cpu()], "theta": [float(v) for v in self.theta.detach().cpu()]}
+
+    def on_grid(self, grid: PupilGrid, aperture_diameter_m: float) -> "HalfRingMask":
+        v = self.parameter_values()
+        return HalfRingMask(grid, aperture_diameter_m, v["r"], v["theta"], self.m_range, self.convention,
+                            self.harmonic_sign, "exact", self.table_size, self.r_bounds, levels=self.levels).freeze()
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any], grid: PupilGrid, aperture_diameter_m: float,
+                    record: dict | None = None, prefix: str = "mask") -> "HalfRingMask":
+        """Build from a validated ``mask`` mapping; ``record``: a loaded mask.init record of this family (its r,
+        theta and settings win over the preset)."""
+        preset, r, theta, rings = cfg.get("preset"), cfg.get("r"), cfg.get("theta"), cfg.get("rings")
+        if record is not None:
+            if r is not None or theta is not None:
+                raise ConfigError(f"{prefix}.init", cfg.get("init"), f"cannot be combined with explicit {prefix}.r / "
+                                  f"{prefix}.theta; set {prefix}.init=null to use your own values")
+            r, theta = record["r"], record["theta"]
+        elif preset is not None:
+            require_choice(f"{prefix}.preset", preset, tuple(PRESETS))
+            if r is not None or theta is not None:
+                raise ConfigError(f"{prefix}.preset", preset, f"cannot be combined with explicit {prefix}.r / "
+                                  f"{prefix}.theta; set {prefix}.preset=null to use your own values")
+            if rings is not None and rings != len(PRESETS[preset][0]):
+                raise ConfigError(f"{prefix}.rings", rings, f"the {preset} preset has {len(PRESETS[preset][0])} "
+                                  f"rings: set {prefix}.preset=null for another number")
+            r, theta = PRESETS[preset]
+        elif r is None and theta is None and rings is not None:
+            r, theta = plain_rings(require_number(f"{prefix}.rings", rings, lo=1, hi=100, integer=True))
+        elif r is None or theta is None:
+            raise ConfigError(f"{prefix}.r", r, f"{prefix}.r and {prefix}.theta are required when {prefix}.preset "
+                              f"is null (allowed presets: {', '.join(PRESETS)}), or {prefix}.rings for a plain start")
+        r = require_numbers(f"{prefix}.r", r, "must be a list of ring radii (units of lambda f / W_a)")
+        theta = require_numbers(f"{prefix}.theta", theta, f"must be a list of ring angles [rad], as many as {prefix}.r")
+        m_range = require_list(f"{prefix}.m_range", cfg.get("m_range", HalfRingSpec.m_range), "must be [m_min, m_max]")
+        r_bounds = require_list(f"{prefix}.r_bounds", cfg.get("r_bounds", HalfRingSpec.r_bounds), "must be [lo, hi] "
+                                "with 0 < lo < hi")  # its length and values: the constructor
+        return cls(grid, aperture_diameter_m, r, theta, m_range=tuple(m_range),
+                   convention=cfg.get("convention", HalfRingSpec.convention),
+                   harmonic_sign=cfg.get("harmonic_sign", HalfRingSpec.harmonic_sign),
+                   strategy=cfg.get("strategy", HalfRingSpec.strategy),
+                   table_size=cfg.get("table_size", HalfRingSpec.table_size), r_bounds=tuple(r_bounds),
+                   prefix=prefix, levels=cfg.get("levels"))

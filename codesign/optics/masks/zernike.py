@@ -1,42 +1,31 @@
-"""Freeform masks: a per-pixel phase, and a smooth low-dimensional Zernike basis."""
+"""The Zernike family: phase = sum_j c_j Z_j (Noll j = 1..n_terms), orthonormal on the aperture disk of radius
+W_a / 2; a smooth, low-dimensional freeform phase."""
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import Any, Mapping
 
 import torch
 
-from codesign.errors import require_number
+from codesign.errors import require_choice, require_number
 from codesign.optics.grid import PupilGrid
-from codesign.optics.masks.base import Mask
+from codesign.optics.masks.base import Mask, MaskSpec
 
 
-class PixelPhaseMask(Mask):
-    """A learnable phase [rad] at every support sample of the pupil grid.
+@dataclass(frozen=True)
+class ZernikeSpec(MaskSpec):
+    """n_terms: Noll modes 1..n_terms; max_coeff_rad: the box [-max, max] of every coefficient [rad RMS]
+    (project() clamps into it; the plate's depth budget); init: published | zero | defocus (the phase fitted by
+    least squares) or the path of a mask record (any family: fitted); init_convention, defocus_rad: as for the
+    pixel family."""
 
-    ``project()`` wraps the phase into [-pi, pi): a phase plate is built modulo 2 pi, and the wrap leaves the
-    field exp(i phi) unchanged.
-    """
-
-    def __init__(self, grid: PupilGrid, init_phase: torch.Tensor | None = None):
-        super().__init__(grid)
-        n_s = grid.support.numel()
-        if init_phase is None:
-            values = torch.zeros(n_s, dtype=grid.rho.dtype, device=grid.rho.device)
-        else:
-            if tuple(init_phase.shape) != (grid.n, grid.n):
-                raise ValueError(f"mask.init phase has shape {tuple(init_phase.shape)}, the pupil grid is "
-                                 f"{grid.n} x {grid.n}")
-            values = init_phase.detach().reshape(-1)[grid.support].to(grid.rho)
-        if not bool(torch.isfinite(values).all()):
-            raise ValueError("mask.init phase holds NaN or Inf inside the aperture")
-        self.values = torch.nn.Parameter(values.clone())
-
-    def support_phase(self) -> torch.Tensor:
-        return self.values
-
-    @torch.no_grad()
-    def project(self) -> None:
-        self.values.add_(math.pi).remainder_(2 * math.pi).sub_(math.pi)
+    kind: str = "zernike"
+    init: str | None = "published"
+    init_convention: str = "atan2"
+    defocus_rad: float = 40.0
+    n_terms: int = 36
+    max_coeff_rad: float = 50.0
 
 
 def noll_to_nm(j: int) -> tuple[int, int]:
@@ -73,9 +62,14 @@ class ZernikeMask(Mask):
     ``project()`` clamps every coefficient into [-max_coeff_rad, max_coeff_rad] (the plate's depth budget).
     """
 
-    def __init__(self, grid: PupilGrid, aperture_diameter_m: float, n_terms: int = 36,
-                 init_coeffs: torch.Tensor | None = None, max_coeff_rad: float = 50.0, prefix: str = "mask"):
-        super().__init__(grid)
+    kind = "zernike"
+    Spec = ZernikeSpec
+
+    def __init__(self, grid: PupilGrid, aperture_diameter_m: float, n_terms: int = ZernikeSpec.n_terms,
+                 init_coeffs: torch.Tensor | None = None, max_coeff_rad: float = ZernikeSpec.max_coeff_rad,
+                 prefix: str = "mask", levels: int | None = None):
+        super().__init__(grid, levels)
+        self.aperture_diameter_m = aperture_diameter_m
         n_terms = require_number(f"{prefix}.n_terms", n_terms, lo=1, hi=1000, integer=True)
         self.max_coeff_rad = require_number(f"{prefix}.max_coeff_rad", max_coeff_rad, lo=0, lo_open=True)
         rho = grid.rho.reshape(-1)[grid.support] / (aperture_diameter_m / 2)
@@ -108,3 +102,43 @@ class ZernikeMask(Mask):
 
     def summary(self) -> dict[str, float]:
         return {f"zernike_{j + 1}": float(v) for j, v in enumerate(self.coeffs.detach().cpu())}
+
+    # ---- the family interface -------------------------------------------------------------------------------------
+    def bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
+        n = self.coeffs.numel()
+        return (torch.full((n,), -self.max_coeff_rad, dtype=torch.float64),
+                torch.full((n,), self.max_coeff_rad, dtype=torch.float64))
+
+    def vector_names(self) -> list[str]:
+        return [f"zernike_{j + 1}" for j in range(self.coeffs.numel())]
+
+    def settings(self) -> dict[str, Any]:
+        return {"n_terms": self.coeffs.numel(), "max_coeff_rad": self.max_coeff_rad}
+
+    def parameter_values(self) -> dict[str, Any]:
+        return {"coeffs": [float(v) for v in self.coeffs.detach().cpu()]}
+
+    def on_grid(self, grid: PupilGrid, aperture_diameter_m: float) -> "ZernikeMask":
+        return ZernikeMask(grid, aperture_diameter_m, self.coeffs.numel(), self.coeffs.detach(), self.max_coeff_rad,
+                           levels=self.levels).freeze()
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any], grid: PupilGrid, aperture_diameter_m: float,
+                    start_phase: torch.Tensor | None = None, record: dict | None = None,
+                    prefix: str = "mask") -> "ZernikeMask":
+        """``record``: a zernike record (its coefficients); ``start_phase``: the (n, n) phase of another family's
+        record, fitted; else ``init`` (published, zero or defocus), fitted."""
+        from codesign.optics.masks.pixel import start
+
+        mask = cls(grid, aperture_diameter_m, n_terms=cfg.get("n_terms", ZernikeSpec.n_terms),
+                   max_coeff_rad=cfg.get("max_coeff_rad", ZernikeSpec.max_coeff_rad), prefix=prefix,
+                   levels=cfg.get("levels"))
+        if record is not None:
+            mask.set_vector(torch.tensor(record["coeffs"], dtype=torch.float64)[:mask.coeffs.numel()])
+            return mask
+        if start_phase is None:
+            init = require_choice(f"{prefix}.init", cfg.get("init", ZernikeSpec.init), ("published", "zero", "defocus"))
+            start_phase = start(init, grid, aperture_diameter_m, cfg)
+        if start_phase is not None:
+            mask.fit(start_phase)
+        return mask
