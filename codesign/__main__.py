@@ -22,8 +22,13 @@ def _hydra_main(cfg: DictConfig) -> float | None:
 
 
 def main() -> None:
+    from codesign.config.runtime import renamed_key_error
     from codesign.train import distributed
 
+    problem = renamed_key_error(sys.argv[1:])
+    if problem:
+        print(f"codesign: configuration error: {problem}", file=sys.stderr)
+        raise SystemExit(2)
     distributed.launch_setup(sys.argv[1:])
     try:
         _hydra_main()

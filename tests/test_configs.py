@@ -5,13 +5,20 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+from hydra.core.config_store import ConfigStore
+
 from codesign.tasks import EXPERIMENTS, experiment_function
+from tests.cli import run_codesign
 from tests.conftest import REPO_ROOT
 
 CONF = REPO_ROOT / "conf"
 EXPERIMENT_FILES = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
-GROUP_OPTIONS = sorted((d.name, p.stem) for d in CONF.iterdir() if d.is_dir() and d.name != "experiment"
-                       for p in d.glob("*.yaml"))
+# the options of every group: YAML files under conf/ and the nodes the spec dataclasses registered
+# (the codesign and search blocks belong to the joint and mask_search experiments, which include them)
+ROOT_GROUPS = ("optics", "mask", "sensor", "model", "data", "trainer", "metrics", "logging", "evaluate")
+STORED = {(group, name.removesuffix(".yaml")) for group in ROOT_GROUPS for name in ConfigStore.instance().list(group)}
+GROUP_OPTIONS = sorted({(d.name, p.stem) for d in CONF.iterdir() if d.is_dir() and d.name not in ("experiment", "hydra")
+                        for p in d.glob("*.yaml")} | STORED)
 
 
 def test_every_registered_experiment_has_a_config_and_back():
@@ -28,11 +35,47 @@ def test_every_group_option_composes_with_every_experiment(experiment):
             assert cfg.task == experiment, (group, option)
 
 
-def test_trainer_presets_size_the_run():
+def test_presets_size_the_run_and_trainers_only_schedule_it():
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cpu = compose("config", overrides=["+experiment=joint"])
-        paper = compose("config", overrides=["+experiment=joint", "trainer=paper"])
+        paper = compose("config", overrides=["+experiment=joint", "preset=paper", "trainer=paper"])
+        schedule_only = compose("config", overrides=["+experiment=joint", "preset=joint_cpu", "trainer=paper"])
+        baseline = compose("config", overrides=["+experiment=baseline"])
     assert (cpu.model.size, cpu.data.image_size, cpu.data.padded_size) == ("cpu", 96, 128)
     assert (paper.model.size, paper.data.image_size, paper.data.padded_size) == ("paper", 256, 384)
+    assert (baseline.model.size, baseline.data.image_size, baseline.data.padded_size) == ("cpu", 128, 192)
     # the paper schedule: the full Sec. 6.2 decay (first quarter, then x0.3 every eighth)
     assert (paper.trainer.first_fraction, paper.trainer.every_fraction, paper.trainer.factor) == (0.25, 0.125, 0.3)
+    # choosing a trainer does not resize the run
+    assert (schedule_only.model.size, schedule_only.data.image_size, schedule_only.trainer.steps) == ("cpu", 96, 500000)
+
+
+def test_group_defaults_are_the_spec_dataclasses():
+    from codesign.data.scenes import DataConfig
+    from codesign.models.spec import ModelSpec
+    from codesign.optics import OpticsSpec
+    from codesign.sensor.spec import SensorSpec
+    from codesign.train.spec import TrainerSpec
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("config", overrides=["+experiment=psf"])
+    assert OpticsSpec.from_config(dict(cfg.optics)) == OpticsSpec()
+    assert SensorSpec.from_config(dict(cfg.sensor)) == SensorSpec()
+    assert TrainerSpec.from_config(dict(cfg.trainer)) == TrainerSpec()
+    assert ModelSpec.from_config({k: v for k, v in cfg.model.items() if k not in ("kind", "loss")}) == ModelSpec()
+    assert cfg.data.image_size == DataConfig.image_size and cfg.data.batch_size == DataConfig.batch_size
+    # the three disagreements of earlier versions, fixed: 384 samples across, 300 steps, validation every 25
+    assert (cfg.optics.pupil_pitch_m, cfg.trainer.steps, cfg.trainer.val_every) == (9.974e-6, 300, 25)
+
+
+@pytest.mark.parametrize("args, message", [
+    (("+experiment=psf", "lsr_smooth_p=8"), "lsr_smooth_p was renamed: use metrics.lsr_p"),
+    (("+experiment=joint", "codesign.mtf_band=[0,0.3]"), "codesign.mtf_band was renamed: use metrics.mtf_band"),
+    (("+experiment=mask_search", "search.lsr_p=8"), "search.lsr_p was renamed: use metrics.lsr_p"),
+    (("+experiment=joint", "trainer=paper"), "trainer=paper sets the paper's schedule only; the paper's network "
+                                            "widths and image sizes are preset=paper"),
+])
+def test_renamed_keys_name_the_new_key(tmp_path, args, message):
+    proc = run_codesign(*args, f"hydra.run.dir={tmp_path / 'run'}")
+    assert proc.returncode == 2 and f"codesign: configuration error: {message}" in proc.stderr, proc.stderr
+    assert not (tmp_path / "run").exists()

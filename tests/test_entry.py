@@ -129,7 +129,17 @@ def _pitch_used(run_dir: Path):
 
 # ---- composition with Hydra's compose API ---------------------------------------------------------------------
 def _group_options() -> dict[str, list[str]]:
-    return {d.name: sorted(p.stem for p in d.glob("*.yaml")) for d in sorted(CONF.iterdir()) if d.is_dir()}
+    """Every option of every root group: the YAML files under conf/ and the nodes the spec dataclasses registered
+    (codesign/config/store.py)."""
+    from hydra.core.config_store import ConfigStore
+
+    import codesign  # noqa: F401 - registers the nodes
+
+    cs = ConfigStore.instance()
+    out = {d.name: {p.stem for p in d.glob("*.yaml")} for d in sorted(CONF.iterdir()) if d.is_dir() and d.name != "hydra"}
+    for group in ("optics", "mask", "sensor", "model", "data", "trainer", "metrics", "logging", "evaluate"):
+        out.setdefault(group, set()).update(n.removesuffix(".yaml") for n in cs.list(group))
+    return {k: sorted(v) for k, v in out.items()}
 
 
 def _compose(overrides):
@@ -142,7 +152,9 @@ def _compose(overrides):
 def test_config_groups_hold_the_expected_options():
     groups = _group_options()
     assert "psf" in groups["experiment"]
-    assert {"freeform", "halfring"} <= set(groups["mask"])
+    assert {"freeform", "halfring", "pixel", "spline", "spiral", "zernike"} <= set(groups["mask"])
+    assert {"sgan_b", "sgan_e", "sgan_f", "wiener_unet"} <= set(groups["model"])
+    assert {"cpu", "joint_cpu", "paper"} <= set(groups["preset"])
     assert {"default", "paper"} <= set(groups["optics"])
     assert "smoke" in groups["debug"]
 
@@ -165,7 +177,7 @@ def test_every_group_option_composes(group, option):
     assert apply_debug_overrides(cfg)
     spec = OpticsSpec.from_config(OmegaConf.to_container(cfg.optics, resolve=True))
     assert spec.pupil_pitch_m == pytest.approx(2e-5)
-    assert cfg.mask.kind in ("halfring", "freeform")
+    assert cfg.mask.kind in ("halfring", "freeform", "pixel", "spline", "spiral", "zernike")
 
 
 @pytest.mark.parametrize("optics", ["default", "paper"])

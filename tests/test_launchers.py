@@ -164,9 +164,9 @@ def test_mask_search_floor_sweep(tmp_path):
     for job, floor in zip(jobs, ("0.05", "0.07")):
         assert f"search.mtf_floor={floor}" in _overrides(job)
         m = _metrics(job)
-        assert m["mtf_floor"] == pytest.approx(float(floor))
+        assert m["limits"]["mtf"] == pytest.approx(float(floor))
         assert (job / "best_mask.json").is_file()
-        floors.append(m["mtf_floor"])
+        floors.append(m["limits"]["mtf"])
     assert floors[0] != floors[1]
 
 
@@ -179,7 +179,7 @@ def test_sweep_stops_at_a_refused_value(tmp_path):
     assert proc.returncode == 2, proc.stderr[-4000:]
     assert "configuration error: search.mtf_floor = 0.7" in proc.stderr
     assert [j.name for j in _jobs(sweep)] == ["0"]
-    assert _metrics(sweep / "0")["mtf_floor"] == pytest.approx(0.05)
+    assert _metrics(sweep / "0")["limits"]["mtf"] == pytest.approx(0.05)
 
 
 def test_sgan_variant_ablation_sweep(tmp_path):
@@ -210,7 +210,7 @@ def test_local_pool_sweep(tmp_path):
     assert _launcher_of(sweep) == JOBLIB_TARGET
     jobs = _jobs(sweep)
     assert [j.name for j in jobs] == ["0", "1"]
-    assert [_metrics(j)["mtf_floor"] for j in jobs] == pytest.approx([0.05, 0.07])
+    assert [_metrics(j)["limits"]["mtf"] for j in jobs] == pytest.approx([0.05, 0.07])
     assert "Joblib.Parallel(n_jobs=2" in proc.stderr + proc.stdout
 
 
@@ -237,7 +237,7 @@ def test_submitit_local_sweep(tmp_path):
     assert proc.returncode == 0, proc.stderr[-4000:]
     jobs = _jobs(sweep)
     assert [j.name for j in jobs] == ["0", "1"]
-    assert [_metrics(j)["mtf_floor"] for j in jobs] == pytest.approx([0.05, 0.07])
+    assert [_metrics(j)["limits"]["mtf"] for j in jobs] == pytest.approx([0.05, 0.07])
     assert (sweep / ".submitit").is_dir()
 
 

@@ -16,7 +16,12 @@ from codesign.errors import ConfigError
 from codesign.optics.masks import Mask
 from codesign.optics.psf import OpticalSystem
 from codesign.sensor.kernels import otf_from_kernel
-from codesign.sensor.simulator import PSFState, SensorSimulator, mask_state_key, psf_state
+from codesign.sensor.simulator import (
+    PSFState,
+    SensorSimulator,
+    mask_state_key,
+    psf_state,
+)
 
 
 @dataclass

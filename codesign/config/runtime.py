@@ -1,11 +1,15 @@
 """Config-level helpers shared by every experiment: debug shrinking, typed keys, device and thread selection."""
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from codesign.errors import ConfigError, require_choice, require_number, unknown_keys
+from codesign.config.store import register, spec_node
+from codesign.errors import ConfigError, require_choice, require_number
+from codesign.spec_base import SpecMixin
 
 
 def apply_debug_overrides(cfg: DictConfig, explicit: frozenset[str] = frozenset()) -> list[str]:
@@ -51,6 +55,31 @@ def to_container(node) -> dict:
     return OmegaConf.to_container(node, resolve=True) if node is not None else {}
 
 
+# Keys that were renamed or moved: typed on the command line they stop the run with the new key's name, before
+# Hydra composes (Hydra would only say that the old key is not in the config).
+RENAMED_KEYS: dict[str, str] = {
+    "lsr_smooth_p": "metrics.lsr_p", "mtf_band": "metrics.mtf_band",
+    "codesign.lsr_p": "metrics.lsr_p", "codesign.mtf_band": "metrics.mtf_band",
+    "search.lsr_p": "metrics.lsr_p", "search.mtf_band": "metrics.mtf_band",
+    "search.r_bounds": "mask.r_bounds (the search explores the mask family's own box)",
+    "search.theta_bounds": "nothing: theta_n is periodic and the search explores [0, 2 pi)",
+    "mask.basis": "the family's own config group: mask=pixel or mask=zernike (mask=freeform keeps mask.basis)",
+}
+
+
+def renamed_key_error(argv: list[str]) -> str | None:
+    """The message for a renamed key (RENAMED_KEYS) or for trainer=paper alone among the command-line arguments
+    ``argv``, else None."""
+    keys = command_line_keys([a for a in argv if "=" in a])
+    for key in sorted(keys):
+        if key in RENAMED_KEYS and not (key == "mask.basis" and any(a == "mask=freeform" for a in argv)):
+            return f"{key} was renamed: use {RENAMED_KEYS[key]}"
+    if "trainer=paper" in argv and not any(a.startswith("preset=") for a in argv):
+        return ("trainer=paper sets the paper's schedule only; the paper's network widths and image sizes are "
+                "preset=paper: add preset=paper (or name the preset you want, e.g. preset=cpu)")
+    return None
+
+
 def resolve_device(name: str, local_rank: int | None = None) -> torch.device:
     """'auto' -> CUDA when available, else CPU; 'cpu', 'cuda', 'cuda:N' as given (validated).
 
@@ -88,23 +117,62 @@ def resolve_dtype(key: str, name: str) -> torch.dtype:
     return {"float32": torch.float32, "float64": torch.float64}[require_choice(key, name, ("float32", "float64"))]
 
 
+@dataclass(frozen=True)
+class RunSpec(SpecMixin):
+    """The root keys of every run: seed (torch, numpy and the data draws; search.seed defaults to it); device:
+    auto (CUDA when present, else CPU) | cpu | cuda | cuda:N; threads: torch intra-op threads (null: torch's
+    default)."""
+
+    seed: int = 0
+    device: str = "auto"
+    threads: int | None = None
+    prefix: str = field(default="", compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "seed", require_number("seed", self.seed, lo=0, hi=1e9, integer=True))
+        if self.threads is not None:
+            object.__setattr__(self, "threads", require_number("threads", self.threads, lo=1, hi=1024, integer=True))
+
+
+register("run", "default", {**spec_node(RunSpec)}, package="_global_")
+
+
+def run_spec(cfg) -> RunSpec:
+    """The validated root keys of a composed config (RunSpec's defaults for keys it lacks)."""
+    return RunSpec(**{k: cfg.get(k) for k in ("seed", "device", "threads") if cfg.get(k) is not None})
+
+
 def check_seed(cfg) -> int:
-    """The root ``seed``: an integer (it seeds torch, numpy and the data draws; search.seed defaults to it)."""
-    return require_number("seed", cfg.get("seed", 0), lo=0, hi=1e9, integer=True)
+    """The root ``seed`` (RunSpec)."""
+    return run_spec(cfg).seed
 
 
-LOGGING_KEYS = ("tensorboard", "log_every")
+@dataclass(frozen=True)
+class LoggingSpec(SpecMixin):
+    """Run outputs: every experiment writes metrics.json; tensorboard: TensorBoard events under the run dir;
+    log_every: steps (or evaluations) between progress lines and logged losses."""
+
+    tensorboard: bool = True
+    log_every: int = 10
+    prefix: str = field(default="logging", compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.tensorboard, bool):
+            raise ConfigError("logging.tensorboard", self.tensorboard, "must be true or false")
+        object.__setattr__(self, "log_every", require_number("logging.log_every", self.log_every, lo=1,
+                                                             integer=True))
 
 
-def check_logging(cfg) -> None:
-    """The ``logging`` block (conf/logging/default.yaml), whichever experiment runs."""
+def logging_spec(cfg) -> LoggingSpec:
+    """The validated ``logging`` block of a composed config (defaults when it has none), whichever experiment."""
     node = cfg.get("logging")
     if node is None:
-        return
+        return LoggingSpec()
     if not hasattr(node, "keys"):
-        raise ConfigError("logging", node, "must be a mapping with tensorboard and log_every "
-                          "(conf/logging/default.yaml)")
-    unknown_keys("logging", node, LOGGING_KEYS)
-    if not isinstance(node.get("tensorboard", True), bool):
-        raise ConfigError("logging.tensorboard", node.get("tensorboard"), "must be true or false")
-    require_number("logging.log_every", node.get("log_every", 10), lo=1, integer=True)
+        raise ConfigError("logging", node, "must be a mapping with tensorboard and log_every")
+    return LoggingSpec.from_config(dict(node))
+
+
+check_logging = logging_spec  # validates; the runner calls it before any work
+
+register("logging", "default", spec_node(LoggingSpec))

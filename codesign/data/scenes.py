@@ -5,12 +5,13 @@ its device): random crops with random flips for training, centre crops for evalu
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import torch
 
+from codesign.config.store import register, spec_node
 from codesign.data.builtin import builtin_scene_names
 from codesign.data.images import UnreadableImage
 from codesign.data.paramconfig import ParamConfig, param_config
@@ -105,22 +106,31 @@ class SceneSampler:
 
 @dataclass(frozen=True)
 class DataConfig:
-    """The validated ``data`` block (see conf/data/default.yaml). Sizes in pixels."""
+    """The validated ``data`` block; its field defaults are the config's (codesign/config/store.py). Sizes in px.
 
-    scenes: str                 # builtin | folder
-    folder: Path | None         # the image folder when scenes == folder
-    image_size: int             # network image side (the simulated capture is downsampled to it)
-    padded_size: int            # network input side after zero padding, >= image_size
-    batch_size: int
-    test_fraction: float        # share of the scenes held out for testing, in (0, 1)
-    split_seed: int             # seed of the fixed train/test split
-    flips: bool                 # random flips of training crops
-    cache_mb: float             # decoded-image cache, MiB
-    params: ParamConfig         # data.params: the scene-parameter distribution
+    scenes: builtin (photographs shipped inside scikit-image + procedural charts: no download) | folder (every
+    PNG/JPEG/TIFF under ``folder``, recursive; 8/16 bit; colour -> luma); folder: the image folder when scenes is
+    folder (relative to the launch directory); image_size: network image side (simulated captures are downsampled
+    to it, and the default crop size); padded_size: network input side after zero padding (>= image_size);
+    batch_size: the global batch; test_fraction: share of the scenes held out for testing, in (0, 1) (>= 1 test
+    scene when >= 2 scenes); split_seed: seed of the fixed train/test split (hash of seed and relative path);
+    flips: random horizontal / vertical flips of training crops; cache_mb: decoded-image cache, MiB (least recently
+    used images are evicted); params: the Sec. 6.2 scene-parameter distribution (ParamConfig).
+    """
+
+    scenes: str = "builtin"
+    folder: Path | None = None
+    image_size: int = 256
+    padded_size: int = 384
+    batch_size: int = 8
+    test_fraction: float = 0.1
+    split_seed: int = 0
+    flips: bool = True
+    cache_mb: float = 1024.0
+    params: ParamConfig = field(default_factory=ParamConfig)
 
 
-DATA_KEYS = ("scenes", "folder", "image_size", "padded_size", "batch_size", "test_fraction", "split_seed", "flips",
-             "cache_mb", "params")
+DATA_KEYS = tuple(f.name for f in fields(DataConfig))
 
 
 def data_config(cfg: Mapping | Any) -> DataConfig:
@@ -128,9 +138,10 @@ def data_config(cfg: Mapping | Any) -> DataConfig:
     if cfg is not None and "data" in cfg and "scenes" not in cfg:
         cfg = cfg["data"]
     if cfg is None or not hasattr(cfg, "get"):
-        raise ConfigError("data", cfg, "must be a mapping (conf/data/default.yaml)")
+        raise ConfigError("data", cfg, "must be a mapping of the data.* keys (codesign/data/scenes.py: DataConfig)")
     unknown_keys("data", cfg, DATA_KEYS)
-    scenes = require_choice("data.scenes", cfg.get("scenes", "builtin"), ("builtin", "folder"))
+    d = DataConfig  # the defaults of keys a mapping leaves out
+    scenes = require_choice("data.scenes", cfg.get("scenes", d.scenes), ("builtin", "folder"))
     folder = cfg.get("folder")
     if scenes == "folder":
         if not isinstance(folder, (str, Path)) or not str(folder).strip():
@@ -138,23 +149,23 @@ def data_config(cfg: Mapping | Any) -> DataConfig:
         folder = Path(str(folder)).expanduser()
     elif folder is not None and not isinstance(folder, (str, Path)):
         raise ConfigError("data.folder", folder, "must be a path or null")
-    image_size = require_number("data.image_size", cfg.get("image_size", 256), lo=1, integer=True)
-    padded = cfg.get("padded_size", 384)
+    image_size = require_number("data.image_size", cfg.get("image_size", d.image_size), lo=1, integer=True)
+    padded = cfg.get("padded_size", d.padded_size)
     padded_size = require_number("data.padded_size", padded, lo=1, integer=True)
     if padded_size < image_size:
         raise ConfigError("data.padded_size", padded, f"must be an integer >= data.image_size ({image_size})")
-    flips = cfg.get("flips", True)
+    flips = cfg.get("flips", d.flips)
     if not isinstance(flips, bool):
         raise ConfigError("data.flips", flips, "must be true or false")
     return DataConfig(
         scenes=scenes, folder=Path(folder).expanduser() if scenes == "folder" else None,
         image_size=image_size, padded_size=padded_size,
-        batch_size=require_number("data.batch_size", cfg.get("batch_size", 8), lo=1, integer=True),
-        test_fraction=require_number("data.test_fraction", cfg.get("test_fraction", 0.1), lo=0, hi=1,
+        batch_size=require_number("data.batch_size", cfg.get("batch_size", d.batch_size), lo=1, integer=True),
+        test_fraction=require_number("data.test_fraction", cfg.get("test_fraction", d.test_fraction), lo=0, hi=1,
                                      lo_open=True, hi_open=True),
-        split_seed=require_number("data.split_seed", cfg.get("split_seed", 0), lo=0, integer=True),
+        split_seed=require_number("data.split_seed", cfg.get("split_seed", d.split_seed), lo=0, integer=True),
         flips=flips,
-        cache_mb=require_number("data.cache_mb", cfg.get("cache_mb", 1024), lo=0),
+        cache_mb=require_number("data.cache_mb", cfg.get("cache_mb", d.cache_mb), lo=0),
         params=param_config(cfg.get("params")),
     )
 
@@ -176,3 +187,6 @@ def build_scene_sampler(cfg: Mapping | DataConfig, split: str, generator: torch.
     source = source if source is not None else build_scene_source(dc)
     crop = dc.image_size if crop_size is None else crop_size
     return SceneSampler(source, split, crop, dc.batch_size, generator, flips=dc.flips and split == "train")
+
+
+register("data", "default", spec_node(DataConfig))

@@ -16,9 +16,19 @@ from typing import Iterable, Sequence
 import torch
 import torch.nn.functional as F
 
-from codesign.data.builtin import PROCEDURAL_DEFAULT_SIZE, PROCEDURAL_SCENES, available_skimage_scenes, \
-    procedural_scene
-from codesign.data.images import SceneLoadWarning, UnreadableImage, find_image_files, load_image, probe_image
+from codesign.data.builtin import (
+    PROCEDURAL_DEFAULT_SIZE,
+    PROCEDURAL_SCENES,
+    available_skimage_scenes,
+    procedural_scene,
+)
+from codesign.data.images import (
+    SceneLoadWarning,
+    UnreadableImage,
+    find_image_files,
+    load_image,
+    probe_image,
+)
 from codesign.errors import ConfigError, require_choice, require_number
 
 __all__ = ["SceneEntry", "SceneSource", "split_scene_names", "upscale_to_fit", "centre_crop", "SPLITS"]

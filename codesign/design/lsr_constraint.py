@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from codesign.config.store import register, spec_node
 from codesign.errors import ConfigError, require_choice, require_number
 from codesign.optics import metrics
 from codesign.spec_base import SpecMixin
@@ -27,7 +28,7 @@ SCHEDULES = ("constant", "trainer", "cosine")
 
 @dataclass(frozen=True)
 class CodesignSpec(SpecMixin):
-    """lsr_max: the smooth-LSR ceiling (null = the published mask's smooth LSR); lsr_p: p of the smooth LSR;
+    """lsr_max: the smooth-LSR ceiling (null = the published mask's smooth LSR; p of the smooth LSR: metrics.lsr_p);
     penalty_weight, margin: the penalty (0 weight = off); guard, guard_halvings, guard_tolerance: the
     feasibility guard (relative tolerance on lsr_max).
     mask_lr: Adam learning rate of the mask parameters (units of the parameters per step: r_n in lambda f / W_a,
@@ -35,11 +36,9 @@ class CodesignSpec(SpecMixin):
     factors) | cosine (to zero at trainer.steps); warmup_fraction: share of the steps with the mask frozen (the
     network first learns to restore, so that the mask's gradient means something).
     compare_published: also train a network on the published mask, same steps and seed, and evaluate both.
-    mtf_band: normalized-frequency band of the mtf_mean / mtf_min summaries.
     """
 
     lsr_max: float | None = None
-    lsr_p: float = 16.0
     penalty_weight: float = 1.0e4
     margin: float = 0.02
     guard: bool = True
@@ -50,14 +49,12 @@ class CodesignSpec(SpecMixin):
     mask_schedule: str = "constant"
     warmup_fraction: float = 0.25
     compare_published: bool = True
-    mtf_band: tuple = (0.0, 0.5)
     prefix: str = field(default="codesign", compare=False, repr=False)
 
     def __post_init__(self) -> None:
         p = self.prefix
         if self.lsr_max is not None:
             require_number(f"{p}.lsr_max", self.lsr_max, lo=0, lo_open=True, hi=1)
-        require_number(f"{p}.lsr_p", self.lsr_p, lo=1, hi=1024)
         require_number(f"{p}.penalty_weight", self.penalty_weight, lo=0)
         require_number(f"{p}.margin", self.margin, lo=0, hi=0.5)
         require_number(f"{p}.guard_halvings", self.guard_halvings, lo=0, hi=60, integer=True)
@@ -72,12 +69,6 @@ class CodesignSpec(SpecMixin):
         for key in ("guard", "compare_published"):
             if not isinstance(getattr(self, key), bool):
                 raise ConfigError(f"{p}.{key}", getattr(self, key), "must be true or false")
-        band = _as_list(self.mtf_band)
-        if len(band) != 2 or not 0 <= require_number(f"{p}.mtf_band[0]", band[0]) < \
-                require_number(f"{p}.mtf_band[1]", band[1]) <= 1:
-            raise ConfigError(f"{p}.mtf_band", self.mtf_band, "must be [low, high] with 0 <= low < high <= 1 "
-                              "(frequency normalized to the incoherent cutoff)")
-        object.__setattr__(self, "mtf_band", (float(band[0]), float(band[1])))
 
     def warmup_steps(self, steps: int) -> int:
         return int(round(self.warmup_fraction * steps))
@@ -110,15 +101,16 @@ def restore(mask, values: list[torch.Tensor]) -> None:
 
 
 class LSRConstraint:
-    """The penalty term and the feasibility guard of a mask on an OpticalSystem (see module docstring)."""
+    """The penalty term and the feasibility guard of a mask on an OpticalSystem (see module docstring); ``p``: the
+    exponent of the smooth LSR (metrics.lsr_p)."""
 
-    def __init__(self, spec: CodesignSpec, system, lsr_max: float):
-        self.spec, self.system, self.lsr_max = spec, system, float(lsr_max)
+    def __init__(self, spec: CodesignSpec, system, lsr_max: float, p: float = 16.0):
+        self.spec, self.system, self.lsr_max, self.p = spec, system, float(lsr_max), float(p)
         self.shortened = 0  # updates the guard shortened
         self.undone = 0  # updates the guard undid entirely
 
     def smooth_lsr(self, psf: torch.Tensor) -> torch.Tensor:
-        return metrics.lsr_smooth(psf, self.system.uncoded_peak, self.spec.lsr_p)
+        return metrics.lsr_smooth(psf, self.system.uncoded_peak, self.p)
 
     @torch.no_grad()
     def measure(self, mask) -> float:
@@ -154,3 +146,6 @@ class LSRConstraint:
         restore(mask, previous)
         self.undone += 1
         return previous_lsr, 0.0
+
+
+register("codesign", "default", spec_node(CodesignSpec))

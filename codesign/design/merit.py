@@ -4,10 +4,45 @@ from __future__ import annotations
 
 import statistics
 import time
+from dataclasses import dataclass, field
 
 import torch
 
+from codesign.config.store import register, spec_node
+from codesign.errors import ConfigError, require_list, require_number
 from codesign.optics import OpticalSystem, RadialMTF, metrics
+from codesign.spec_base import SpecMixin
+
+BAND_ALLOWED = ("must be [low, high] with 0 <= low < high <= 1 (frequency normalized to the incoherent cutoff, "
+                "beyond which the MTF is 0)")
+
+
+@dataclass(frozen=True)
+class MetricsSpec(SpecMixin):
+    """How every experiment (psf, joint, mask_search) scores a mask. lsr_p: p of the smooth LSR ||h||_p / h0(0)
+    (>= the sampled LSR; the differentiable LSR of every objective and constraint); mtf_band: [low, high] of
+    normalized frequency (nu / cutoff) over which mtf_mean and mtf_min summarize the radial MTF."""
+
+    lsr_p: float = 16.0
+    mtf_band: tuple = (0.0, 0.5)
+    prefix: str = field(default="metrics", compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        p = self.prefix
+        object.__setattr__(self, "lsr_p", require_number(f"{p}.lsr_p", self.lsr_p, lo=1, hi=1024))
+        band = require_list(f"{p}.mtf_band", self.mtf_band, BAND_ALLOWED)
+        if len(band) != 2 or not 0 <= require_number(f"{p}.mtf_band[0]", band[0]) < \
+                require_number(f"{p}.mtf_band[1]", band[1]) <= 1:
+            raise ConfigError(f"{p}.mtf_band", list(band), BAND_ALLOWED)
+        object.__setattr__(self, "mtf_band", (float(band[0]), float(band[1])))
+
+
+register("metrics", "default", spec_node(MetricsSpec))
+
+
+def metrics_spec(cfg) -> MetricsSpec:
+    """The validated ``metrics`` block of a composed config (defaults when it has none)."""
+    return MetricsSpec.from_config(dict(cfg.get("metrics") or {}))
 
 
 @torch.no_grad()

@@ -8,8 +8,8 @@ import math
 
 import numpy as np
 
-from codesign.io import plots
 from codesign.design.merit import mask_figures_of_merit
+from codesign.io import plots
 from codesign.optics import RadialMTF, build_mask
 from codesign.optics.masks import published_mask_config
 

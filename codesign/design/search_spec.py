@@ -1,99 +1,124 @@
-"""Validated settings of ``+experiment=mask_search`` (the ``search.*`` block, see conf/experiment/mask_search.yaml)."""
+"""Validated settings of ``+experiment=mask_search`` (the ``search.*`` block; its defaults are the config's)."""
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
-from codesign.design.search import CONSTRAINED, LOCAL, check_algorithm
-from codesign.errors import ConfigError, require_choice, require_number
+from codesign.config.store import register, spec_node
+from codesign.design.optimize import ALGORITHMS, LOCAL, check_algorithm
+from codesign.errors import ConfigError, require_choice, require_list, require_number
 from codesign.spec_base import SpecMixin
 
 INITS = ("published", "random", "mask")
+OBJECTIVES = ("lsr", "restorability")
+SMALL = 20  # parameter vectors up to this size: derivative-free search and several starts by default
+DEFAULT_SCHEDULE = (16.0, 32.0, 64.0, 128.0, 256.0, 1024.0)
 
 
-def _pair(key: str, value, lo: float | None, hi: float | None, what: str) -> tuple[float, float]:
-    """[low, high] with low < high, both finite numbers within [lo, hi]."""
-    if not isinstance(value, (list, tuple)) or len(value) != 2:
-        raise ConfigError(key, value, f"must be [low, high] ({what})")
-    a, b = (require_number(f"{key}[{i}]", v, lo=lo, hi=hi) for i, v in enumerate(value))
-    if a >= b:
-        raise ConfigError(key, list(value), f"must be [low, high] with low < high ({what})")
-    return a, b
+def _fraction_or(key: str, value, names: tuple[str, ...], what: str):
+    """One of ``names``, null, or a number in (0, 1]."""
+    if value is None or value in names:
+        return value
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 < value <= 1:  # NaN fails too
+        raise ConfigError(key, value, f"must be {', '.join(names)}, {what}, or null (off)")
+    return float(value)
 
 
 @dataclass(frozen=True)
 class SearchSpec(SpecMixin):
-    """algorithm: nlopt algorithm with inequality constraints (CONSTRAINED); local_algorithm: polish after a
-    global (GN_*) one, from LOCAL or None; polish_max_evals: evaluations of that polish.
-    init: start 0 = "published" (the published r_n, theta_n), "random", or "mask" (the configured mask, e.g.
-    mask.init=PATH); starts: number of starts, the others random within the bounds from ``seed``.
-    max_evals: evaluations per start; xtol_rel, ftol_rel: nlopt's relative stopping tolerances (0 = off).
-    lsr_p: p of the smooth LSR; mtf_band: (low, high] normalized frequency of mtf_mean.
-    mtf_floor: "published" (the published mask's mtf_mean) or a number; the constraint is
-    mtf_mean >= mtf_floor * mtf_floor_factor. energy_floor: "published" (the published mask's PSF energy inside the
-    optics window), a fraction in (0, 1], or None: the second constraint, energy in the window >= energy_floor.
-    r_bounds: box of r_n (units of lambda f / W_a); theta_bounds: box of theta_n [rad].
-    pareto_factors: floor factors of the Pareto sweep (None or empty = off); pareto_starts / pareto_max_evals:
-    its starts per factor and evaluations per start. precision: float32 | float64. log_every: evaluations between
-    progress lines. ``from_config`` (SpecMixin) rejects unknown keys, naming them.
+    """algorithm: auto (LN_COBYLA for masks of <= 20 parameters, AL_LBFGS above), AL_LBFGS (augmented Lagrangian on
+    nlopt's LD_LBFGS, docs/codesign.md) or an nlopt algorithm that takes inequality constraints: LD_MMA, LD_CCSAQ,
+    LD_SLSQP, LN_COBYLA, GN_ISRES, GN_AGS, GN_ORIG_DIRECT(_L) (global ones are followed by ``local_algorithm`` for
+    ``polish_max_evals``). init: start 0 = published (the published mask in this family: its r_n, theta_n; its phase
+    for the pixel, spline and Zernike families), mask (the configured mask, e.g. mask.init=PATH) or random; starts:
+    number of starts (null: 4 for <= 20 parameters, else 1), the others random (the family's random start) from
+    ``seed``; max_evals: evaluations per start (null: 150 for <= 20 parameters, else 2400); xtol_rel, ftol_rel:
+    nlopt's relative stopping tolerances (0 = off).
+    objective: lsr (minimize the smooth LSR) | restorability (maximize the expected Wiener PSNR).
+    Constraints: mtf_floor: published (the published mask's mtf_mean on this window), a number in (0, 1], or null,
+    times mtf_floor_factor; energy_floor: the PSF energy kept in the optics window, auto (the family's: the
+    published mask's for half rings, whose light the window never holds, 0.98 for the others), published, a
+    fraction in (0, 1] or null; restorability_floor: expected Wiener PSNR floor [dB] or null; lsr_ceiling: smooth-LSR
+    ceiling (published = the published mask's) or null; restorability_alpha_l: the laser strength whose saturated
+    footprint the restorability counts (null: none); max_phase_step: cap [rad] on the phase step between
+    neighbouring pupil samples, auto (the family's: 1.0 for the pixel family, none for the others) | number | null.
+    lsr_p_schedule: the continuation on p (auto: 16 .. 1024 for gradient algorithms, [metrics.lsr_p] for
+    derivative-free ones) or a list. pareto_factors: floor factors of the Pareto sweep (null or [] = off);
+    pareto_starts / pareto_max_evals (null: max_evals / 2): per factor. check: re-check the best design on a pupil
+    grid twice as fine and a window that holds its PSF, within check_tolerance. precision: float32 | float64.
+    log_every: evaluations between progress lines.
     """
 
-    algorithm: str = "LN_COBYLA"
+    algorithm: str = "auto"
     local_algorithm: str | None = "LD_MMA"
     polish_max_evals: int = 50
     init: str = "published"
-    starts: int = 4
+    starts: int | None = None
     seed: int = 0
-    max_evals: int = 150
+    max_evals: int | None = None
     xtol_rel: float = 1e-4
     ftol_rel: float = 1e-6
-    lsr_p: float = 16.0
-    mtf_band: tuple = (0.0, 0.5)
-    mtf_floor: str | float = "published"
+    objective: str = "lsr"
+    mtf_floor: str | float | None = "published"
     mtf_floor_factor: float = 1.0
-    energy_floor: str | float | None = "published"
-    r_bounds: tuple = (0.5, 100.0)
-    theta_bounds: tuple = (0.0, 2 * math.pi)
+    energy_floor: str | float | None = "auto"
+    restorability_floor: float | None = None
+    lsr_ceiling: str | float | None = None
+    restorability_alpha_l: float | None = None
+    max_phase_step: str | float | None = "auto"
+    lsr_p_schedule: str | tuple = "auto"
     pareto_factors: tuple | None = (0.7, 0.85, 1.0, 1.15)
     pareto_starts: int = 2
-    pareto_max_evals: int = 60
+    pareto_max_evals: int | None = 60
+    check: bool = True
+    check_tolerance: float = 0.02
     precision: str = "float32"
     log_every: int = 20
     prefix: str = field(default="search", compare=False, repr=False)
 
     def __post_init__(self) -> None:
         p, put = self.prefix, lambda k, v: object.__setattr__(self, k, v)
-        check_algorithm(f"{p}.algorithm", self.algorithm, CONSTRAINED)
+        if self.algorithm != "auto":
+            check_algorithm(f"{p}.algorithm", self.algorithm, ALGORITHMS)
         if self.local_algorithm is not None:
             check_algorithm(f"{p}.local_algorithm", self.local_algorithm, LOCAL)
-        for key, lo in (("polish_max_evals", 0), ("starts", 1), ("seed", 0), ("max_evals", 1), ("pareto_starts", 1),
-                        ("pareto_max_evals", 1), ("log_every", 1)):
+        for key, lo in (("polish_max_evals", 0), ("seed", 0), ("pareto_starts", 1), ("log_every", 1)):
             put(key, require_number(f"{p}.{key}", getattr(self, key), lo=lo, hi=10**9, integer=True))
+        for key in ("starts", "max_evals", "pareto_max_evals"):
+            if getattr(self, key) is not None:
+                put(key, require_number(f"{p}.{key}", getattr(self, key), lo=1, hi=10**9, integer=True))
         require_choice(f"{p}.init", self.init, INITS)
+        require_choice(f"{p}.objective", self.objective, OBJECTIVES)
         for key in ("xtol_rel", "ftol_rel"):
             put(key, require_number(f"{p}.{key}", getattr(self, key), lo=0, hi=1, hi_open=True))
-        put("lsr_p", require_number(f"{p}.lsr_p", self.lsr_p, lo=1, hi=1024))
-        band = _pair(f"{p}.mtf_band", self.mtf_band, 0, 1, "normalized frequency, 0 <= low < high <= 1: beyond the "
-                     "incoherent cutoff 1 the MTF is 0")
-        put("mtf_band", band)
-        if self.mtf_floor != "published":
-            v = self.mtf_floor
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= 1:  # NaN fails too
-                raise ConfigError(f"{p}.mtf_floor", v, "must be published (the published mask's mtf_mean) or a "
-                                  "number in (0, 1] (an MTF band mean)")
-            put("mtf_floor", float(v))
-        if self.energy_floor is not None and self.energy_floor != "published":
-            v = self.energy_floor
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= 1:  # NaN fails too
-                raise ConfigError(f"{p}.energy_floor", v, "must be published (the published mask's PSF energy in "
-                                  "the optics window), a fraction in (0, 1], or null (no floor)")
-            put("energy_floor", float(v))
+        put("mtf_floor", _fraction_or(f"{p}.mtf_floor", self.mtf_floor, ("published",),
+                                      "a number in (0, 1] (an MTF band mean)"))
+        put("energy_floor", _fraction_or(f"{p}.energy_floor", self.energy_floor, ("auto", "published"),
+                                         "a fraction in (0, 1]"))
         put("mtf_floor_factor", require_number(f"{p}.mtf_floor_factor", self.mtf_floor_factor, lo=0, lo_open=True))
-        # HalfRingMask accepts 0 < r <= 1e4; theta is periodic, so any finite box works.
-        put("r_bounds", _pair(f"{p}.r_bounds", self.r_bounds, 0, 1e4, "ring radii in lambda f / W_a, 0 < low"))
-        if self.r_bounds[0] <= 0:
-            raise ConfigError(f"{p}.r_bounds", list(self.r_bounds), "must be [low, high] with 0 < low < high <= 1e4")
-        put("theta_bounds", _pair(f"{p}.theta_bounds", self.theta_bounds, None, None, "ring angles in rad"))
+        if self.restorability_floor is not None:
+            put("restorability_floor", require_number(f"{p}.restorability_floor", self.restorability_floor,
+                                                      lo=0, hi=200))
+        if self.lsr_ceiling not in (None, "published"):
+            put("lsr_ceiling", require_number(f"{p}.lsr_ceiling", self.lsr_ceiling, lo=0, lo_open=True, hi=1))
+        if self.restorability_alpha_l is not None:
+            put("restorability_alpha_l", require_number(f"{p}.restorability_alpha_l", self.restorability_alpha_l,
+                                                        lo=0, hi=1e12))
+        if self.max_phase_step not in (None, "auto"):
+            put("max_phase_step", require_number(f"{p}.max_phase_step", self.max_phase_step, lo=0, lo_open=True,
+                                                 hi=3.2))
+        if self.objective == "restorability" and self.lsr_ceiling is None:
+            raise ConfigError(f"{p}.lsr_ceiling", None, "must be set (published or a number) with "
+                              "search.objective=restorability: maximizing restorability alone removes the mask")
+        if self.objective == "lsr" and self.mtf_floor is None and self.restorability_floor is None:
+            raise ConfigError(f"{p}.mtf_floor", None, "a search for the lowest LSR needs a floor on what the mask "
+                              "keeps: set search.mtf_floor or search.restorability_floor")
+        if self.lsr_p_schedule != "auto":
+            allowed = "must be auto or a list of smooth-LSR exponents p >= 1 (the continuation)"
+            sched = require_list(f"{p}.lsr_p_schedule", self.lsr_p_schedule, allowed)
+            if not sched:
+                raise ConfigError(f"{p}.lsr_p_schedule", self.lsr_p_schedule, allowed)
+            put("lsr_p_schedule", tuple(require_number(f"{p}.lsr_p_schedule[{i}]", v, lo=1, hi=65536)
+                                        for i, v in enumerate(sched)))
         factors = self.pareto_factors
         if factors is not None and not isinstance(factors, (list, tuple)):
             raise ConfigError(f"{p}.pareto_factors", factors, "must be a list of floor factors > 0, or null / [] "
@@ -101,13 +126,26 @@ class SearchSpec(SpecMixin):
         factors = tuple(require_number(f"{p}.pareto_factors[{i}]", v, lo=0, lo_open=True)
                         for i, v in enumerate(factors or ()))
         put("pareto_factors", factors or None)
+        if not isinstance(self.check, bool):
+            raise ConfigError(f"{p}.check", self.check, "must be true or false")
+        put("check_tolerance", require_number(f"{p}.check_tolerance", self.check_tolerance, lo=0, lo_open=True,
+                                              hi=1))
         require_choice(f"{p}.precision", self.precision, ("float32", "float64"))
 
-    def energy_floor_value(self, published_energy: float) -> float | None:
-        """The floor on the PSF energy inside the optics window (None = no floor)."""
-        return published_energy if self.energy_floor == "published" else self.energy_floor
+    # ---- what "auto" means for a mask of ``n`` parameters ---------------------------------------------------------
+    def resolved_algorithm(self, n: int) -> str:
+        return self.algorithm if self.algorithm != "auto" else ("LN_COBYLA" if n <= SMALL else "AL_LBFGS")
 
-    def floor_value(self, published_mtf_mean: float, factor: float | None = None) -> float:
-        """The MTF floor (band mean) for ``factor`` (default: mtf_floor_factor)."""
-        base = published_mtf_mean if self.mtf_floor == "published" else self.mtf_floor
-        return base * (self.mtf_floor_factor if factor is None else factor)
+    def resolved_starts(self, n: int) -> int:
+        return self.starts if self.starts is not None else (4 if n <= SMALL else 1)
+
+    def resolved_max_evals(self, n: int) -> int:
+        return self.max_evals if self.max_evals is not None else (150 if n <= SMALL else 2400)
+
+    def schedule(self, n: int, lsr_p: float) -> tuple[float, ...]:
+        if self.lsr_p_schedule != "auto":
+            return tuple(self.lsr_p_schedule)
+        return DEFAULT_SCHEDULE if self.resolved_algorithm(n).startswith(("LD", "GD", "AL")) else (lsr_p,)
+
+
+register("search", "default", spec_node(SearchSpec, seed="${seed}"))

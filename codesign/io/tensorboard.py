@@ -5,10 +5,12 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from codesign.config.runtime import logging_spec
+
 
 def tensorboard_enabled(cfg) -> bool:
-    """``logging.tensorboard`` of a composed config (true when the block is absent)."""
-    return bool((cfg.get("logging") or {}).get("tensorboard", True))
+    """``logging.tensorboard`` of a composed config (the LoggingSpec default when the block is absent)."""
+    return logging_spec(cfg).tensorboard
 
 
 def open_writer(run_dir: Path, enabled: bool = True, purge_step: int | None = None):

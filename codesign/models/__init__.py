@@ -1,6 +1,12 @@
 """Restoration networks behind one interface (codesign/models/restorer.py): the sandwich GAN (SGAN-B/E/F) and
 plug-ins; their blocks, losses and the quality metrics; see docs/models.md."""
-from codesign.models.restorer import Restorer, TrainContext, build_restorer, parameter_count, restorer_kinds
+from codesign.models.restorer import (
+    Restorer,
+    TrainContext,
+    build_restorer,
+    parameter_count,
+    restorer_kinds,
+)
 from codesign.models.sgan import SGAN, coordinates, downsample2, pyramid
 from codesign.models.spec import SIZES, VARIANTS, ModelSpec
 from codesign.models.wiener import classical_wiener, wiener_filter

@@ -14,8 +14,14 @@ from kornia.filters import get_gaussian_kernel1d
 from kornia.metrics import ssim as _kornia_ssim
 
 from codesign.errors import ConfigError
-from codesign.models.vgg import (IMAGENET_MEAN, IMAGENET_STD, extract, read_state_dict, require_tensor,
-                                 vgg_from_state_dict)
+from codesign.models.vgg import (
+    IMAGENET_MEAN,
+    IMAGENET_STD,
+    extract,
+    read_state_dict,
+    require_tensor,
+    vgg_from_state_dict,
+)
 
 WINDOW, SIGMA = 11, 1.5
 MS_SSIM_WEIGHTS = (0.0448, 0.2856, 0.3001, 0.2363, 0.1333)  # Wang, Simoncelli, Bovik 2003

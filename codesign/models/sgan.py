@@ -14,6 +14,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from codesign.config.store import register, spec_node
 from codesign.models import losses
 from codesign.models.discriminators import PatchDiscriminator
 from codesign.models.losses import LossWeights
@@ -230,3 +231,17 @@ def _targets(batch: dict) -> list[torch.Tensor]:
     if batch.get("targets") is None:
         batch["targets"] = pyramid(batch["scene"])
     return batch["targets"]
+
+
+# The loss weights of each variant (supplement, Table "Values of Hyperparameters in Model Training"); the rest of the
+# variant is LossWeights' defaults, SGAN-B's: s1 200, s2 50, ADV 1, GP 10; its "VGG 50" column contradicts Eq.
+# (TotalObj_B) (B has no VGG term) and is read as lambda_MDF = 50. SGAN-E adds the VGG perceptual loss and SGAN-F
+# the FFT loss (ortho normalization); both VGG terms stay off, and say so in metrics.json, without vgg_weights.
+VARIANT_LOSSES: dict[str, dict[str, float]] = {
+    "sgan_b": {},
+    "sgan_e": {"l1_stage1": 300.0, "l1_stage2": 50.0, "mdf": 100.0, "vgg": 100.0, "adv": 0.1, "gp": 1.0},
+    "sgan_f": {"l1_stage1": 10.0, "l1_stage2": 10.0, "mdf": 0.1, "vgg": 0.1, "fft": 100.0, "adv": 0.1, "gp": 1.0},
+}
+for _variant, _loss in VARIANT_LOSSES.items():  # the config options model=sgan_b|sgan_e|sgan_f
+    register("model", _variant, {"kind": SGAN.kind, **spec_node(ModelSpec, variant=_variant),
+                                 "loss": spec_node(LossWeights, **_loss)})

@@ -15,8 +15,14 @@ from typing import Sequence
 import torch
 import torch.nn as nn
 
-from codesign.models.blocks import (EfficientAttention, InstanceNorm, ResBlock, ResFFTBlock, conv_norm_act,
-                                    match_size)
+from codesign.models.blocks import (
+    EfficientAttention,
+    InstanceNorm,
+    ResBlock,
+    ResFFTBlock,
+    conv_norm_act,
+    match_size,
+)
 
 
 def residual_block(kind: str, channels: int, kernel: int = 3) -> nn.Module:

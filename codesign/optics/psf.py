@@ -25,7 +25,9 @@ def airy_psf(r: torch.Tensor, spec: OpticsSpec) -> torch.Tensor:
 
     h0(r) = h0(0) [2 J1(v) / v]^2 with v = pi W_a r / (lambda f) and h0(0) = (pi W_a^2 / 4) dx^2 / (lambda f)^2.
     """
-    from codesign.optics.bessel import bessel_j  # local: avoids a cycle for users that only need the grid
+    from codesign.optics.bessel import (
+        bessel_j,  # local: avoids a cycle for users that only need the grid
+    )
 
     v = math.pi * spec.aperture_diameter_m * r / spec.lambda_f
     j1 = bessel_j(v, 1)[..., 1]

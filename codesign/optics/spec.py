@@ -9,6 +9,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+from codesign.config.store import register, spec_node
 from codesign.errors import ConfigError, require_choice, require_number
 from codesign.spec_base import SpecMixin
 
@@ -28,7 +29,9 @@ class OpticsSpec(SpecMixin):
         focal_length_m: effective focal length f [m] (Table 1: 0.11 m).
         aperture_diameter_m: aperture diameter W_a [m] (Table 1: 3.83 mm).
         supergaussian_order: exponent P of A = exp(-(4 rho^2 / W_a^2)^P) (Sec. 3.1: 50).
-        pupil_pitch_m: pupil sample pitch Delta_u [m] (Table 1: 3.74 um = 1024 samples across W_a).
+        pupil_pitch_m: pupil sample pitch Delta_u [m]: 9.974 um = 384 samples across W_a, the coarsest sampling whose
+            LSR is within 1 % of the converged float64 value (docs/optics.md); Table 1's 3.74 um (1024 across) is
+            the optics=paper preset.
         pupil_n: pupil grid size in samples; None = the smallest even grid that holds the aperture.
         focal_pitch_m: focal-plane sample pitch [m], the sensor pitch (Table 1: 5.4 um).
         focal_n: focal window size in samples (centred on the axis).
@@ -42,7 +45,7 @@ class OpticsSpec(SpecMixin):
     focal_length_m: float = 0.11
     aperture_diameter_m: float = 3.83e-3
     supergaussian_order: float = 50.0
-    pupil_pitch_m: float = 3.74e-6
+    pupil_pitch_m: float = 9.974e-6  # 3.83 mm / 384
     pupil_n: int | None = None
     focal_pitch_m: float = 5.4e-6
     focal_n: int = 640
@@ -152,3 +155,6 @@ class OpticsSpec(SpecMixin):
         """The spec whose pupil pitch puts ``samples`` pupil samples across the aperture diameter."""
         d = kw.get("aperture_diameter_m", cls.aperture_diameter_m)
         return cls(pupil_pitch_m=d / samples, **kw)
+
+
+register("optics", "default", spec_node(OpticsSpec))

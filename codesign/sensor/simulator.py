@@ -38,7 +38,13 @@ from codesign.errors import ConfigError
 from codesign.optics.propagation import next_fast_len
 from codesign.optics.spec import OpticsSpec
 from codesign.sensor import kernels
-from codesign.sensor.noise import NoiseStreams, dark_current, photons, read_noise, round_ste
+from codesign.sensor.noise import (
+    NoiseStreams,
+    dark_current,
+    photons,
+    read_noise,
+    round_ste,
+)
 from codesign.sensor.spec import SensorSpec, kernel_size
 
 

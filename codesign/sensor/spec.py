@@ -4,6 +4,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from codesign.config.store import register, spec_node
 from codesign.errors import ConfigError, require_choice, require_number
 from codesign.spec_base import SpecMixin
 
@@ -115,3 +116,7 @@ def kernel_size(extent_m: float, pitch_m: float) -> int:
     """Odd number of samples at ``pitch_m`` that covers ``extent_m`` (the PSF support)."""
     n = math.ceil(extent_m / pitch_m)
     return n + (1 - n % 2)
+
+
+# the network resolution (image_size, padded_size) is data.*: not a sensor key a user types
+register("sensor", "default", spec_node(SensorSpec, drop=("image_size", "padded_size")))

@@ -15,8 +15,14 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from codesign.config.runtime import (apply_debug_overrides, check_logging, check_seed, explicit_keys, resolve_device,
-                                     set_threads)
+from codesign.config.runtime import (
+    apply_debug_overrides,
+    check_logging,
+    explicit_keys,
+    resolve_device,
+    run_spec,
+    set_threads,
+)
 from codesign.errors import ConfigError, OutputWriteError
 from codesign.io import files as io
 from codesign.tasks import rundir
@@ -33,8 +39,8 @@ EXPERIMENTS: tuple[str, ...] = tuple(sorted(m.name for m in pkgutil.iter_modules
                                             if m.name not in _NOT_EXPERIMENTS))
 
 # Root keys every experiment has (conf/config.yaml and its groups).
-COMMON_KEYS = ("task", "seed", "device", "threads", "optics", "mask", "sensor", "model", "data", "trainer", "logging",
-               "evaluate", "debug")
+COMMON_KEYS = ("task", "seed", "device", "threads", "optics", "mask", "sensor", "model", "data", "trainer", "metrics",
+               "logging", "evaluate", "debug")
 
 
 def task_module(name: str):
@@ -105,10 +111,11 @@ def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None
         applied = apply_debug_overrides(cfg, explicit_keys())
         if applied:
             log.info("debug=%s: applied %s", cfg.debug.name, ", ".join(applied))
-        seed = check_seed(cfg)
+        root = run_spec(cfg)
+        seed = root.seed
         check_logging(cfg)
-        threads = set_threads(cfg.get("threads"))
-        device = resolve_device(cfg.get("device", "auto"), ctx.local_rank if ctx.enabled else None)
+        threads = set_threads(root.threads)
+        device = resolve_device(root.device, ctx.local_rank if ctx.enabled else None)
         if ctx.is_main:  # the other ranks write nothing
             io.check_writable_dir(run_dir)  # before any work: never an hour of training, then a failed write
         torch.manual_seed(seed)

@@ -8,9 +8,9 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig
 
-from codesign.config.runtime import to_container
-from codesign.errors import require_number
+from codesign.config.runtime import check_seed, logging_spec, to_container
 from codesign.io import files as io
+from codesign.io.tensorboard import open_writer, tensorboard_enabled
 from codesign.train import distributed
 from codesign.train.checkpoint import CHECKPOINT_NAME
 from codesign.train.data import SimulatedData
@@ -19,7 +19,6 @@ from codesign.train.resume import resume_if_possible
 from codesign.train.setup import build_model, distributed_metrics, run_metrics
 from codesign.train.spec import TrainerSpec
 from codesign.train.trainer import RestorationTrainer, init_weights
-from codesign.io.tensorboard import open_writer, tensorboard_enabled
 
 log = logging.getLogger("codesign.restoration")
 
@@ -29,11 +28,10 @@ ROOT_KEYS: tuple[str, ...] = ()
 DISTRIBUTED = True  # trains networks: runs data-parallel under torchrun
 
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
-    seed = int(cfg.get("seed", 0))
+    seed = check_seed(cfg)
     spec = TrainerSpec.from_config(to_container(cfg.trainer))
     ev = eval_settings(cfg)  # every evaluation setting checked before training starts
-    log_every = require_number("logging.log_every", cfg.get("logging", {}).get("log_every", 10), lo=1,
-                               integer=True)
+    log_every = logging_spec(cfg).log_every
     model = build_model(cfg)
     init_weights(model)
     ctx = distributed.current()

@@ -7,15 +7,14 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from codesign.config.runtime import check_seed, explicit_keys
+from codesign.errors import ConfigError
 from codesign.io import files as io
 from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
-from codesign.config.runtime import explicit_keys
-from codesign.errors import ConfigError
 from codesign.train.data import SimulatedData
 from codesign.train.evaluation import eval_settings, run_evaluation
 from codesign.train.resume import apply_checkpoint_mask, load_trained
 from codesign.train.setup import run_metrics
-
 
 # Root keys this experiment reads besides the common ones (conf/experiment/evaluate.yaml); any other is refused.
 ROOT_KEYS: tuple[str, ...] = ("checkpoint",)
@@ -39,7 +38,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     ev = eval_settings(cfg)
     model, generators, ckpt_cfg, state = load_trained(path, device)
     merged = merged_eval_config(cfg, ckpt_cfg, explicit_keys())
-    seed = int(cfg.get("seed", 0))
+    seed = check_seed(cfg)
     data = SimulatedData(merged, device, seed)
     apply_checkpoint_mask(data.camera.mask, state, path)
     data.camera.invalidate()

@@ -16,12 +16,14 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from codesign.config.runtime import to_container
+from codesign.config.runtime import check_seed, logging_spec, to_container
 from codesign.design.lsr_constraint import CodesignSpec
+from codesign.design.limits import MTFLimit
+from codesign.design.merit import metrics_spec
 from codesign.design.monitor import MaskMonitor, published_reference
 from codesign.design.records import write_record
-from codesign.errors import require_number
-from codesign.io import files as io, plots
+from codesign.io import files as io
+from codesign.io import plots
 from codesign.io.tensorboard import open_writer, tensorboard_enabled
 from codesign.optics import HalfRingMask, circular_mtf
 from codesign.optics.masks import published_mask_config
@@ -58,9 +60,12 @@ def _train(trainer, cfg, run_dir: Path, log_every: int, label: str) -> dict:
 
 
 def _mask_outputs(monitor: MaskMonitor, system, mask, run_dir: Path, prefix: str, psf0: np.ndarray) -> dict:
-    """Refined figures of merit of a mask, with its phase and PSF figures (``prefix``_*.png; ``psf0``: the
-    uncoded PSF they are shown against)."""
+    """Refined figures of merit of a mask with its physical limit (lsr_limit at its mtf_mean, lsr_over_limit), and
+    its phase and PSF figures (``prefix``_*.png; ``psf0``: the uncoded PSF they are shown against)."""
     values, arrays = monitor.measure(mask, refine=True)
+    energy = float(arrays["psf"].sum())
+    values["lsr_limit"] = MTFLimit(system, monitor.band).lsr_limit(values["mtf_mean"], energy)
+    values["lsr_over_limit"] = values["lsr"] / values["lsr_limit"]
     spec = system.spec
     np_ = {k: v.detach().cpu().numpy() for k, v in arrays.items()}
     io.save_figure(run_dir / f"{prefix}_phase.png", plots.phase_figure(
@@ -95,11 +100,12 @@ def _comparison(evaluation: dict, evaluation_base: dict, method: str) -> dict:
 
 
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
-    seed = int(cfg.get("seed", 0))
+    seed = check_seed(cfg)
     spec = TrainerSpec.from_config(to_container(cfg.trainer))
     cs = CodesignSpec.from_config(to_container(cfg.get("codesign")) or {})
+    ms = metrics_spec(cfg)
     ev = eval_settings(cfg)  # every setting checked before any training
-    log_every = require_number("logging.log_every", cfg.get("logging", {}).get("log_every", 10), lo=1, integer=True)
+    log_every = logging_spec(cfg).log_every
     published_cfg = published_mask_config(to_container(cfg.mask))
 
     torch.manual_seed(seed)
@@ -110,10 +116,10 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     camera = data.camera
     system = camera.system
     reference = published_reference(to_container(cfg.mask), system)
-    monitor = MaskMonitor(system, reference, cs.mtf_band, cs.lsr_p)
+    monitor = MaskMonitor(system, reference, ms.mtf_band, ms.lsr_p)
     lsr_max = cs.lsr_max if cs.lsr_max is not None else monitor.reference[0]["lsr_smooth"]
     trainer = JointTrainer(model, data, spec, run_dir, device, to_container(cfg), None, seed, cs, lsr_max, monitor,
-                           ctx)
+                           ctx, ms.lsr_p)
     common = run_metrics(cfg, model, device)
     log.info("joint: %s (%s) generators %.2fM parameters; mask %s (%d parameters, lr %.3g, frozen for %d steps); "
              "lsr_max %.4g (%s); %d steps, batch %d, %d px padded to %d", common["variant"], common["size"],
@@ -140,7 +146,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     io.save_figure(run_dir / "mtf.png", plots.mtf_figure(
         freqs, {"learned mask": learned.pop("mtf_radial"), "published mask": base.pop("mtf_radial"),
                 "analytic circular pupil": circular_mtf(torch.from_numpy(freqs)).numpy()},
-        cs.mtf_band, f"radial MTF after {steps} joint steps"))
+        ms.mtf_band, f"radial MTF after {steps} joint steps"))
 
     metrics = {**common, **distributed_metrics(trainer), "mask_max_rank_difference": trainer.mask_diff,
                "steps": steps, **timing, "lsr_max": lsr_max,

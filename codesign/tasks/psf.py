@@ -8,30 +8,28 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from codesign.config.runtime import resolve_dtype
-from codesign.design.merit import evaluate_mask, time_forward_backward
+from codesign.design.limits import MTFLimit
+from codesign.design.merit import evaluate_mask, metrics_spec, time_forward_backward
+from codesign.design.records import write_record
 from codesign.design.monitor import MaskMonitor, published_reference
-from codesign.io import files as io, plots
+from codesign.errors import require_number
+from codesign.io import files as io
+from codesign.io import plots
 from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
-from codesign.errors import ConfigError, require_list, require_number
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask, circular_mtf
 
 log = logging.getLogger("codesign.psf")
 
 
 # Root keys this experiment reads besides the common ones (conf/experiment/psf.yaml); any other is refused.
-ROOT_KEYS: tuple[str, ...] = ("precision", "mtf_band", "lsr_smooth_p", "timing_repeats")
+ROOT_KEYS: tuple[str, ...] = ("precision", "timing_repeats")
 
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     spec = OpticsSpec.from_config(OmegaConf.to_container(cfg.optics, resolve=True))
-    dtype = resolve_dtype("precision", cfg.get("precision", "float32"))
-    band_allowed = ("must be [low, high] with 0 <= low < high <= 1 (frequency normalized to the incoherent cutoff, "
-                    "beyond which the MTF is 0)")
-    band = tuple(require_list("mtf_band", cfg.get("mtf_band", (0.0, 0.5)), band_allowed))
-    if len(band) != 2 or not 0 <= require_number("mtf_band[0]", band[0]) < require_number("mtf_band[1]", band[1]) \
-            or band[1] > 1:
-        raise ConfigError("mtf_band", list(band), band_allowed)
-    p = require_number("lsr_smooth_p", cfg.get("lsr_smooth_p", 16), lo=1, hi=1024)
-    repeats = require_number("timing_repeats", cfg.get("timing_repeats", 5), lo=1, hi=1000, integer=True)
+    dtype = resolve_dtype("precision", cfg.get("precision"))
+    ms = metrics_spec(cfg)
+    band, p = ms.mtf_band, ms.lsr_p
+    repeats = require_number("timing_repeats", cfg.get("timing_repeats"), lo=1, hi=1000, integer=True)
     mask_cfg = OmegaConf.to_container(cfg.mask, resolve=True)
 
     system = OpticalSystem(spec, dtype=dtype, device=device)
@@ -41,6 +39,9 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
              spec.focal_pitch_m, system.method, dtype)
     t_fwd, t_bwd = time_forward_backward(system, mask, p, repeats)
     values, arrays = evaluate_mask(system, mask, band, p)
+    limit = MTFLimit(system, band)
+    values["lsr_limit"] = limit.lsr_limit(values["mtf_mean"], values["psf_energy_in_window"])
+    values["lsr_over_limit"] = values["lsr"] / values["lsr_limit"]
     metrics_out = {
         **values,
         "pupil_n": spec.grid_n, "pupil_pitch_m": spec.pupil_pitch_m,
@@ -72,6 +73,8 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         f"MTF, mean over band = {values['mtf_mean']:.3g}"))
     step = 1.0 / (spec.focal_n * spec.focal_pitch_m * spec.cutoff_frequency)
     io.save_figure(run_dir / "mtf2d.png", plots.mtf2d_figure(np_["mtf2d"], step, f"2-D MTF, {label}"))
+    write_record(run_dir / "mask.json", mask, spec, {k: values[k] for k in (
+        "lsr", "lsr_smooth", "lsr_sampled", "mtf_mean", "lsr_limit", "lsr_over_limit")})
     io.write_json(run_dir / "metrics.json", metrics_out)
     writer = open_writer(run_dir, tensorboard_enabled(cfg))
     if writer is not None:

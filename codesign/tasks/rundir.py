@@ -14,8 +14,8 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from codesign.io import files as io
 from codesign.errors import ConfigError
+from codesign.io import files as io
 
 # absolute run dir that existed before this run -> {file name in its .hydra/: bytes}, or None without a .hydra/
 EARLIER: dict[Path, dict[str, bytes] | None] = {}

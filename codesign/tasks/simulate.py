@@ -10,7 +10,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from codesign.camera import build_camera
-from codesign.config.runtime import resolve_dtype
+from codesign.config.runtime import check_seed, resolve_dtype
 from codesign.data.params import fixed_scene_params, sample_scene_params
 from codesign.data.scenes import build_scene_source
 from codesign.errors import ConfigError, require_number, require_numbers, unknown_keys
@@ -56,13 +56,13 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     if sim_cfg is None:
         raise ConfigError("simulate", None, "missing: use +experiment=simulate")
     unknown_keys("simulate", sim_cfg, SIMULATE_KEYS)
-    dtype = resolve_dtype("precision", cfg.get("precision", "float32"))
+    dtype = resolve_dtype("precision", cfg.get("precision"))
     alphas = require_numbers("simulate.alpha_l", sim_cfg.get("alpha_l"), "must be a list of laser strengths >= 0",
                              lo=0, hi=1e12)
     n_scenes = require_number("simulate.scenes", sim_cfg.get("scenes"), lo=1, hi=64, integer=True)
     angle = require_numbers("simulate.laser_angle_rad", sim_cfg.get("laser_angle_rad"), "must be [n_u, n_v] in radians",
                             2)
-    repeats = require_number("simulate.timing_repeats", sim_cfg.get("timing_repeats", 3), lo=1, integer=True)
+    repeats = require_number("simulate.timing_repeats", sim_cfg.get("timing_repeats"), lo=1, integer=True)
     fixed = sim_cfg.get("params")
     fixed = {} if fixed is None else OmegaConf.to_container(fixed, resolve=True) if OmegaConf.is_config(fixed) \
         else fixed
@@ -87,7 +87,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
              sim.sensor.bin_factor, sim.scene_size, sim.coarse.ksize)
     optics = camera.frozen_optics()
     state, key = optics.state, optics.key
-    seed = int(cfg.get("seed", 0))
+    seed = check_seed(cfg)
     grid = np.zeros((len(names), len(alphas), sim.sensor.image_size, sim.sensor.image_size))
     metrics = {}
     with torch.no_grad():

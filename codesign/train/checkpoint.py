@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from codesign.io import files as io
 from codesign.errors import ConfigError
+from codesign.io import files as io
 
 CHECKPOINT_NAME = "checkpoint.pt"
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 import csv
 import io as _io
 import logging
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -26,12 +27,25 @@ import torch
 import torch.nn.functional as F
 
 from codesign.camera import field_of_view as centre
-from codesign.data.params import LASER_STRENGTHS, PRESETS, ROBUSTNESS_STAGES, laser_preset_name
-from codesign.errors import ConfigError, require_choice, require_list, require_number, require_numbers, unknown_keys
+from codesign.config.store import register, spec_node
+from codesign.data.params import (
+    LASER_STRENGTHS,
+    PRESETS,
+    ROBUSTNESS_STAGES,
+    laser_preset_name,
+)
+from codesign.errors import (
+    ConfigError,
+    require_choice,
+    require_list,
+    require_number,
+    require_numbers,
+)
 from codesign.io import files as io
 from codesign.io.plots import plt
 from codesign.models import quality
 from codesign.models.wiener import classical_wiener, classical_wiener_sweep
+from codesign.spec_base import SpecMixin
 
 log = logging.getLogger("codesign.evaluate")
 
@@ -233,36 +247,60 @@ def flat_summary(results: dict) -> dict:
     return out
 
 
-EVALUATE_KEYS = ("split", "max_scenes", "laser_strengths", "stages", "tuning_size", "batch_size", "laser_angle_rad",
-                 "lpips_weights", "dists_weights")
+@dataclass(frozen=True)
+class EvaluateSpec(SpecMixin):
+    """The ``evaluate`` block. split: test | train | all (of the data source: data.scenes / data.folder);
+    max_scenes; laser_strengths: the paper's figure strengths evaluated (laser on axis); stages: robustness stages
+    (supplement table); tuning_size: images from the training distribution that tune the baselines' nsr and gain;
+    batch_size: images per network pass (memory); laser_angle_rad: [n_u, n_v] to move the laser off axis in every
+    condition, null = the presets (on axis); lpips_weights, dists_weights: paths of LPIPS (VGG16) / DISTS weights,
+    null = reported as unavailable."""
+
+    split: str = "test"
+    max_scenes: int = 8
+    laser_strengths: tuple = LASER_STRENGTHS
+    stages: tuple = tuple(ROBUSTNESS_STAGES)
+    tuning_size: int = 8
+    batch_size: int = 8
+    laser_angle_rad: tuple | None = None
+    lpips_weights: str | None = None
+    dists_weights: str | None = None
+    prefix: str = field(default="evaluate", compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        put = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
+        require_choice("evaluate.split", self.split, ("test", "train", "all"))
+        put("max_scenes", require_number("evaluate.max_scenes", self.max_scenes, lo=1, hi=100000, integer=True))
+        allowed = ", ".join(f"{a:g}" for a in LASER_STRENGTHS)
+        lasers = require_list("evaluate.laser_strengths", self.laser_strengths,
+                              f"must be a list of the paper's strengths {allowed}")
+        for i, a in enumerate(lasers):
+            a = require_number(f"evaluate.laser_strengths[{i}]", a, lo=0)
+            if laser_preset_name(float(a)) not in PRESETS or PRESETS[laser_preset_name(float(a))]["alpha_l"] != a:
+                raise ConfigError(f"evaluate.laser_strengths[{i}]", a, f"must be one of the paper's strengths {allowed}")
+        put("laser_strengths", tuple(float(a) for a in lasers))
+        stages = require_list("evaluate.stages", self.stages,
+                              f"must be a list of robustness stages from {', '.join(ROBUSTNESS_STAGES)} (or [])")
+        for i, st in enumerate(stages):
+            require_choice(f"evaluate.stages[{i}]", st, tuple(ROBUSTNESS_STAGES))
+        put("stages", tuple(stages))
+        put("tuning_size", require_number("evaluate.tuning_size", self.tuning_size, lo=1, hi=256, integer=True))
+        put("batch_size", require_number("evaluate.batch_size", self.batch_size, lo=1, hi=4096, integer=True))
+        if self.laser_angle_rad is not None:
+            put("laser_angle_rad", tuple(require_numbers("evaluate.laser_angle_rad", self.laser_angle_rad,
+                                                         "must be [n_u, n_v] in radians, or null", 2)))
+
+
+register("evaluate", "default", spec_node(EvaluateSpec))
 
 
 def eval_settings(cfg) -> dict:
     """Validate ``evaluate.*`` (and load LPIPS / DISTS when given), before any training or simulation."""
-    ev = cfg.get("evaluate") or {}
-    unknown_keys("evaluate", ev, EVALUATE_KEYS)
-    split = require_choice("evaluate.split", ev.get("split", "test"), ("test", "train", "all"))
-    max_scenes = require_number("evaluate.max_scenes", ev.get("max_scenes", 8), lo=1, hi=100000, integer=True)
-    allowed = ", ".join(f"{a:g}" for a in LASER_STRENGTHS)
-    lasers = require_list("evaluate.laser_strengths", ev.get("laser_strengths", LASER_STRENGTHS),
-                          f"must be a list of the paper's strengths {allowed}")
-    for i, a in enumerate(lasers):
-        a = require_number(f"evaluate.laser_strengths[{i}]", a, lo=0)
-        if laser_preset_name(float(a)) not in PRESETS or PRESETS[laser_preset_name(float(a))]["alpha_l"] != float(a):
-            raise ConfigError(f"evaluate.laser_strengths[{i}]", a, f"must be one of the paper's strengths {allowed}")
-    stages = require_list("evaluate.stages", ev.get("stages", list(ROBUSTNESS_STAGES)),
-                          f"must be a list of robustness stages from {', '.join(ROBUSTNESS_STAGES)} (or [])")
-    for i, st in enumerate(stages):
-        require_choice(f"evaluate.stages[{i}]", st, tuple(ROBUSTNESS_STAGES))
-    tuning = require_number("evaluate.tuning_size", ev.get("tuning_size", 8), lo=1, hi=256, integer=True)
-    batch = require_number("evaluate.batch_size", ev.get("batch_size", 8), lo=1, hi=4096, integer=True)
-    angle = ev.get("laser_angle_rad")
-    if angle is not None:
-        angle = require_numbers("evaluate.laser_angle_rad", angle, "must be [n_u, n_v] in radians, or null", 2)
-    return {"split": split, "max_scenes": max_scenes, "lasers": [float(a) for a in lasers], "stages": stages,
-            "tuning": tuning, "batch_size": batch,
-            "perceptual": quality.perceptual_metrics(ev.get("lpips_weights"), ev.get("dists_weights")),
-            "overrides": {} if angle is None else {"laser_angle_rad": angle}}
+    ev = EvaluateSpec.from_config(dict(cfg.get("evaluate") or {}))
+    return {"split": ev.split, "max_scenes": ev.max_scenes, "lasers": list(ev.laser_strengths),
+            "stages": list(ev.stages), "tuning": ev.tuning_size, "batch_size": ev.batch_size,
+            "perceptual": quality.perceptual_metrics(ev.lpips_weights, ev.dists_weights),
+            "overrides": {} if ev.laser_angle_rad is None else {"laser_angle_rad": list(ev.laser_angle_rad)}}
 
 
 def run_evaluation(ev: dict, model, generators, data, run_dir: Path, seed: int) -> dict:

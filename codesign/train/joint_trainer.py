@@ -18,7 +18,13 @@ import logging
 
 import torch
 
-from codesign.design.lsr_constraint import CodesignSpec, LSRConstraint, restore, snapshot
+from codesign.design.lsr_constraint import (
+    CodesignSpec,
+    LSRConstraint,
+    restore,
+    snapshot,
+)
+from codesign.design.merit import MetricsSpec
 from codesign.train import distributed
 from codesign.train.data import SimulatedData
 from codesign.train.trainer import RestorationTrainer
@@ -32,7 +38,8 @@ class JointTrainer(RestorationTrainer):
 
     def __init__(self, model, data: SimulatedData, spec, run_dir, device, config: dict, writer=None,
                  seed: int = 0, codesign: CodesignSpec | None = None, lsr_max: float | None = None,
-                 monitor=None, dist: distributed.DistContext = distributed.SINGLE):
+                 monitor=None, dist: distributed.DistContext = distributed.SINGLE,
+                 lsr_p: float = MetricsSpec.lsr_p):
         self.cs = codesign or CodesignSpec()  # needed by the optimizer hooks the base constructor calls
         self.camera = data.camera
         self.mask = self.camera.mask
@@ -44,7 +51,7 @@ class JointTrainer(RestorationTrainer):
             self.camera.mask_forward = distributed.wrap(self.mask, dist, device)
             self.camera.set_trainable(trainable)
         self.mask_diff = 0.0
-        self.constraint = LSRConstraint(self.cs, self.camera.system, lsr_max)
+        self.constraint = LSRConstraint(self.cs, self.camera.system, lsr_max, lsr_p)
         self.monitor = monitor
         self.lsr = self.constraint.measure(self.mask)
         self.mask_rollbacks = 0

@@ -9,8 +9,14 @@ from omegaconf import DictConfig, OmegaConf
 
 from codesign.config.runtime import to_container
 from codesign.errors import ConfigError
-from codesign.train.checkpoint import (CHECKPOINT_NAME, check_trained, load_checkpoint, load_error,
-                                       load_module_state, state_mismatch)
+from codesign.train.checkpoint import (
+    CHECKPOINT_NAME,
+    check_trained,
+    load_checkpoint,
+    load_error,
+    load_module_state,
+    state_mismatch,
+)
 from codesign.train.setup import build_model
 from codesign.train.trainer import EMA
 

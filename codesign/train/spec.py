@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from codesign.config.store import register, spec_node
 from codesign.errors import ConfigError, require_number
 from codesign.spec_base import SpecMixin
 
@@ -26,7 +27,7 @@ class TrainerSpec(SpecMixin):
     needs a double backward that compiled graphs do not support).
     """
 
-    steps: int = 200
+    steps: int = 300
     lr_weights: float = 2e-4
     lr_biases: float = 4e-4
     betas: tuple = (0.9, 0.999)
@@ -38,7 +39,7 @@ class TrainerSpec(SpecMixin):
     grad_clip: float | None = None
     ema: float | None = None
     checkpoint_every: int = 100
-    val_every: int = 50
+    val_every: int = 25
     image_every: int = 100
     val_size: int = 4
     resume: str | None = None
@@ -85,3 +86,6 @@ class TrainerSpec(SpecMixin):
             return 1.0
         k = int((step - first) // (self.every_fraction * self.steps))
         return self.first_factor * self.factor**k
+
+
+register("trainer", "default", spec_node(TrainerSpec))

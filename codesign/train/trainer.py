@@ -26,12 +26,17 @@ from pathlib import Path
 import torch
 import torch.nn as nn
 
+from codesign.camera import field_of_view
 from codesign.models import losses
 from codesign.models.quality import psnr, ssim
-from codesign.camera import field_of_view
 from codesign.models.restorer import Restorer, TrainContext
 from codesign.train import distributed
-from codesign.train.checkpoint import CHECKPOINT_NAME, rng_state, save_checkpoint, set_rng_state
+from codesign.train.checkpoint import (
+    CHECKPOINT_NAME,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
 from codesign.train.spec import TrainerSpec
 
 log = logging.getLogger("codesign.train")

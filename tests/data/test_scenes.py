@@ -236,8 +236,10 @@ def test_procedural_scenes_any_size(size):
         procedural_scene("spiral", size)
 
 
-def test_default_yaml_and_config_validation(folder):
-    cfg = OmegaConf.load(REPO / "conf" / "data" / "default.yaml")
+def test_default_node_and_config_validation(folder):
+    from hydra.core.config_store import ConfigStore
+
+    cfg = OmegaConf.create(ConfigStore.instance().load("data/default.yaml").node)  # the config option data=default
     dc = data_config(cfg)
     assert isinstance(dc, DataConfig) and dc.params == ParamConfig()
     assert (dc.scenes, dc.image_size, dc.padded_size, dc.batch_size) == ("builtin", 256, 384, 8)

@@ -1,5 +1,6 @@
-"""+experiment=mask_search: the nlopt objective and its gradients, the search itself, settings and floor checks,
-failure reporting, mask.init=PATH, and an end-to-end smoke run through the CLI."""
+"""+experiment=mask_search: the design problem and its gradients, the optimizers (nlopt and AL_LBFGS under the p
+continuation), every family improved from a poor start, settings and floor checks, failure reporting, the
+re-check, and an end-to-end smoke run through the CLI."""
 from __future__ import annotations
 
 import json
@@ -11,23 +12,22 @@ import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
 
-from codesign.design.search import CONSTRAINED, MaskObjective, run_start
+from codesign.design.check import verify_design
+from codesign.design.optimize import ALGORITHMS, run_start
+from codesign.design.problem import DesignProblem, Limits
 from codesign.design.search_spec import SearchSpec
-from codesign.tasks.mask_search import run as run_mask_search
 from codesign.errors import ConfigError
-from codesign.optics import OpticalSystem, OpticsSpec, RadialMTF, build_mask, metrics
-from codesign.optics.masks import HalfRingMask
+from codesign.optics import OpticalSystem, OpticsSpec, RadialMTF, build_mask
+from codesign.tasks.mask_search import run as run_mask_search
 from tests.cli import run_codesign
 from tests.conftest import REPO_ROOT
 
-# 64 pupil samples across the aperture, 128 x 128 window (rings up to r ~ 19 lambda f / W_a fit): ~10 ms/evaluation
+# 64 pupil samples across the aperture, 128 x 128 window (rings up to r ~ 18 lambda f / W_a fit): ~5 ms/evaluation
 TINY = {"pupil_pitch_m": 6.0e-5, "focal_n": 128}
-TINY_CLI = [f"optics.{k}={v}" for k, v in TINY.items()] + ["search.r_bounds=[0.5,18]", "logging.tensorboard=false"]
-ALLOWED = ", ".join(CONSTRAINED)
-LO = np.array([0.5] * 5 + [0.0] * 5)
-HI = np.array([18.0] * 5 + [2 * math.pi] * 5)
+TINY_CLI = [f"optics.{k}={v}" for k, v in TINY.items()] + ["logging.tensorboard=false"]
+ALLOWED = ", ".join(ALGORITHMS)
+BAND = (0.0, 0.5)
 
 
 @pytest.fixture(autouse=True, scope="module")
@@ -43,84 +43,110 @@ def _system(dtype=torch.float32):
     return OpticalSystem(spec, dtype=dtype), RadialMTF(spec)
 
 
-def _objective(x0, floor, dtype=torch.float32, on_eval=None):
+def _problem(mask_cfg: dict, limits: Limits, dtype=torch.float32, on_eval=None):
     system, radial = _system(dtype)
-    mask = HalfRingMask(system.grid, system.spec.aperture_diameter_m, x0[:5], x0[5:])
-    return MaskObjective(system, mask, radial, (0.0, 0.5), 16.0, floor, on_eval)
+    mask = build_mask(mask_cfg, system.grid, system.spec.aperture_diameter_m)
+    return DesignProblem(system, mask, radial, BAND, "lsr", limits, on_eval=on_eval), mask
 
 
 def _cfg(*overrides: str):
+    rings = [] if any(o.startswith("mask=") for o in overrides) else ["mask.r_bounds=[0.5,18]"]  # in the window
     with initialize_config_dir(config_dir=str(REPO_ROOT / "conf"), version_base="1.3"):
-        return compose("config", overrides=["+experiment=mask_search", *TINY_CLI, *overrides])
+        return compose("config", overrides=["+experiment=mask_search", *TINY_CLI, *rings, *overrides])
 
 
-# ---- (a) the search improves a poor mask under the floor -------------------------------------------------------
-def test_search_improves_poor_mask_and_keeps_floor():
-    x0 = np.array([2.0] * 5 + [0.2, 1.4, 2.6, 3.8, 5.0])  # five equal rings: a poor half-ring mask
-    start = _objective(x0, 1.0).compute(x0, False)
-    floor = 0.9 * start.mtf_mean
-    obj = _objective(x0, floor)
-    res = run_start(obj, "0", x0, LO, HI, "LD_MMA", None, 40, 0, 1e-4, 1e-6)
-    assert res["feasible"] and res["exception"] is None and res["result"] in ("MAXEVAL_REACHED", "XTOL_REACHED",
-                                                                                 "FTOL_REACHED", "SUCCESS")
-    assert res["evaluations"] == len(obj.records) <= 40
-    assert res["lsr_smooth"] < 0.85 * start.lsr_smooth  # measured 0.096 from 0.129
-    assert res["mtf_mean"] >= floor
-    # the kept best is the lowest feasible evaluation, and the records agree with the floor
-    feas = [ev for _, _, ev in obj.records if ev.feasible]
-    assert all(ev.feasible == (ev.mtf_mean >= floor) for _, _, ev in obj.records)
-    assert obj.best.lsr_smooth == min(ev.lsr_smooth for ev in feas) == res["lsr_smooth"]
-    assert all((LO <= ev.x).all() and (ev.x <= HI).all() for _, _, ev in obj.records)
+POOR_HALFRING = {"kind": "halfring", "preset": None, "r": [2.0] * 5, "theta": [0.2, 1.4, 2.6, 3.8, 5.0],
+                 "r_bounds": [0.5, 18.0]}
 
 
-def test_derivative_free_and_global_with_polish():
-    x0 = np.array([3.0, 7.0, 1.5, 5.0, 2.0, 1.9, 1.1, 1.2, 1.2, 1.2])
-    obj = _objective(x0, 0.1)
-    res = run_start(obj, "0", x0, LO, HI, "LN_COBYLA", None, 12, 0, 1e-4, 1e-6)
-    assert res["evaluations"] == 12 and res["result"] == "MAXEVAL_REACHED"
-    assert all(ev.grad_f is None for _, _, ev in obj.records)  # no backward pass without a gradient request
-    res = run_start(obj, "1", x0, LO, HI, "GN_ISRES", "LD_MMA", 10, 6, 1e-4, 1e-6)
-    assert res["polish"]["algorithm"] == "LD_MMA" and 0 < res["polish"]["evaluations"] <= 6
-    assert res["evaluations"] == 10 + res["polish"]["evaluations"]
+# ---- (a) every family: the search improves a poor start and keeps the floors ----------------------------------
+@pytest.mark.parametrize("mask_cfg, algorithm, evals", [
+    (POOR_HALFRING, "LD_MMA", 40),
+    (POOR_HALFRING, "LN_COBYLA", 60),
+    ({"kind": "spiral", "charge": 0.5, "axicon_cycles": 1.0, "defocus_rad": 0.0}, "LN_COBYLA", 60),
+    ({"kind": "zernike", "init": "defocus", "defocus_rad": 3.0, "n_terms": 15}, "AL_LBFGS", 60),
+    ({"kind": "pixel", "init": "defocus", "defocus_rad": 3.0}, "AL_LBFGS", 60),
+    ({"kind": "spline", "init": "defocus", "defocus_rad": 3.0}, "AL_LBFGS", 60),
+], ids=["halfring-mma", "halfring-cobyla", "spiral", "zernike", "pixel", "spline"])
+def test_search_improves_a_poor_start_of_every_family_and_keeps_the_floors(mask_cfg, algorithm, evals):
+    probe, mask = _problem(mask_cfg, Limits())
+    x0 = mask.to_vector().numpy()
+    start, _ = probe.evaluate(x0, 16.0, False)
+    limits = Limits(mtf=0.9 * start.mtf_mean, energy=0.9 * start.energy)
+    problem, mask = _problem(mask_cfg, limits)
+    lo, hi = (b.numpy() for b in mask.bounds())
+    schedule = (16.0, 64.0) if algorithm == "AL_LBFGS" else (16.0,)
+    res = run_start(problem, "0", x0, (lo, hi), algorithm, None, schedule, evals, 0, 1e-4, 1e-6)
+    assert res["feasible"] and problem.evaluations == res["evaluations"] <= evals + 2 * len(schedule) * 2
+    assert res["lsr"] < 0.9 * start.lsr_sampled, (res["lsr"], start.lsr_sampled)
+    best = problem.best
+    assert best.mtf_mean >= limits.mtf * (1 - 1e-6) and best.energy >= limits.energy * (1 - 1e-6)
+    # the kept best is the lowest sampled LSR among the feasible evaluations
+    assert best.lsr_sampled == min(ev.lsr_sampled for ev in problem.records if ev.feasible) == res["lsr"]
+    x, feasible = problem.result_x()
+    assert feasible and ((lo <= x) & (x <= hi)).all()
 
 
-# ---- (b) the torch gradient fed to nlopt matches finite differences --------------------------------------------
+def test_al_lbfgs_ends_feasible_from_an_infeasible_start():
+    """The multipliers push an infeasible start (floor 20 % above its MTF) inside."""
+    cfg = {"kind": "spline", "init": "defocus", "defocus_rad": 8.0}
+    probe, mask = _problem(cfg, Limits())
+    x0 = mask.to_vector().numpy()
+    start, _ = probe.evaluate(x0, 16.0, False)
+    problem, mask = _problem(cfg, Limits(mtf=1.2 * start.mtf_mean))
+    lo, hi = (b.numpy() for b in mask.bounds())
+    res = run_start(problem, "0", x0, (lo, hi), "AL_LBFGS", None, (16.0, 32.0), 80, 0, 0, 0)
+    assert not problem.records[0].feasible  # the start is below the floor
+    assert res["feasible"] and problem.best.mtf_mean >= 1.2 * start.mtf_mean * (1 - 1e-6)
+    assert [s["lsr_p"] for s in res["stages"]] == [16.0, 32.0]
+
+
+# ---- (b) the torch gradients fed to nlopt match finite differences ---------------------------------------------
 def test_gradients_match_finite_differences():
-    x = np.array([3.1, 7.4, 1.3, 5.2, 2.2, 1.9, 0.7, 2.5, 4.0, 5.6])
-    obj = _objective(x, 0.05, torch.float64)
-    gf, gc = np.zeros(10), np.zeros(10)
-    f = obj.objective(x, gf)
-    c = obj.constraint(x, gc)
-    assert len(obj.records) == 1  # one evaluation answers both callbacks
-    assert f == pytest.approx(math.log(obj.records[0][2].lsr_smooth))
-    assert c == pytest.approx(math.log(0.05 / obj.records[0][2].mtf_mean))
-    h, fd_f, fd_c = 1e-6, np.zeros(10), np.zeros(10)
-    for i in range(10):
-        e = np.zeros(10)
-        e[i] = h
-        p, m = obj.compute(x + e, False), obj.compute(x - e, False)
-        fd_f[i], fd_c[i] = (p.f - m.f) / (2 * h), (p.c - m.c) / (2 * h)
-    np.testing.assert_allclose(gf, fd_f, rtol=1e-5, atol=1e-7 * np.abs(fd_f).max())
-    np.testing.assert_allclose(gc, fd_c, rtol=1e-5, atol=1e-7 * np.abs(fd_c).max())
-    # float32 (the default precision) agrees to ~0.1%
-    g32 = _objective(x, 0.05).compute(x, True)
-    assert np.linalg.norm(g32.grad_f - gf) <= 5e-3 * np.linalg.norm(gf)
-    assert np.linalg.norm(g32.grad_c - gc) <= 5e-3 * np.linalg.norm(gc)
+    cfg = {**POOR_HALFRING, "r": [3.1, 7.4, 1.3, 5.2, 2.2], "theta": [1.9, 0.7, 2.5, 4.0, 5.6]}
+    problem, mask = _problem(cfg, Limits(mtf=0.05, energy=0.5), torch.float64)
+    x = mask.to_vector().numpy()
+    ev, grads = problem.evaluate(x, 16.0, True)
+    assert set(grads) == {"objective", "mtf", "energy"}
+    assert ev.objective == pytest.approx(math.log(ev.lsr_smooth))
+    assert ev.constraints["mtf"] == pytest.approx(math.log(0.05 / ev.mtf_mean))
+    h = 1e-6
+    for name in ("objective", "mtf", "energy"):
+        fd = np.zeros(10)
+        for i in range(10):
+            e = np.zeros(10)
+            e[i] = h
+            a, _ = problem.evaluate(x + e, 16.0, False)
+            b, _ = problem.evaluate(x - e, 16.0, False)
+            va = a.objective if name == "objective" else a.constraints[name]
+            vb = b.objective if name == "objective" else b.constraints[name]
+            fd[i] = (va - vb) / (2 * h)
+        np.testing.assert_allclose(grads[name], fd, rtol=1e-5, atol=1e-7 * np.abs(fd).max() + 1e-12)
+    # the weighted gradient (AL_LBFGS's single backward pass) is the same combination
+    _, combined = problem.evaluate(x, 16.0, True, lambda cons: {"mtf": 2.0, "energy": 0.5})
+    np.testing.assert_allclose(combined, grads["objective"] + 2.0 * grads["mtf"] + 0.5 * grads["energy"],
+                               rtol=1e-10, atol=1e-14)
+
+
+def test_step_constraint_counts_wrapped_neighbour_steps():
+    problem, mask = _problem({"kind": "pixel", "init": "zero"}, Limits(mtf=0.01, step=1.0), torch.float64)
+    x = np.zeros(mask.vector_size)
+    ev, _ = problem.evaluate(x, 16.0, False)
+    assert ev.constraints["step"] == 0.0
+    ev, _ = problem.evaluate(x + 2 * math.pi * (np.arange(x.size) % 7), 16.0, False)  # 2 pi multiples: no step
+    assert ev.constraints["step"] == pytest.approx(0.0, abs=1e-20)
+    rng = np.random.default_rng(1)
+    ev, _ = problem.evaluate(rng.uniform(-3, 3, x.size), 16.0, False)
+    assert ev.constraints["step"] > 0 and not ev.feasible
 
 
 # ---- (c) algorithm names and other settings ------------------------------------------------------------------
 @pytest.mark.parametrize("key, value, message", [
-    ("algorithm", "LD_FOO", f"search.algorithm = 'LD_FOO': not an nlopt algorithm; allowed: {ALLOWED}"),
-    ("algorithm", "SUCCESS", f"search.algorithm = 'SUCCESS': not an nlopt algorithm; allowed: {ALLOWED}"),
+    ("algorithm", "LD_FOO", f"search.algorithm = 'LD_FOO': not an nlopt algorithm nor AL_LBFGS; allowed: {ALLOWED}"),
     ("algorithm", "LD_LBFGS", "search.algorithm = 'LD_LBFGS': nlopt's LD_LBFGS cannot handle the inequality "
-                              f"constraint mtf_mean >= floor; allowed: {ALLOWED}"),
-    ("algorithm", "GN_CRS2_LM", "search.algorithm = 'GN_CRS2_LM': nlopt's GN_CRS2_LM cannot handle the inequality "
-                                f"constraint mtf_mean >= floor; allowed: {ALLOWED}"),
+                              f"constraints; allowed: {ALLOWED}"),
     ("local_algorithm", "GN_ISRES", "search.local_algorithm = 'GN_ISRES': nlopt's GN_ISRES is a global algorithm; "
                                     "the polish needs a local one; allowed: LD_MMA, LD_CCSAQ, LD_SLSQP, LN_COBYLA"),
-    ("local_algorithm", "LN_BOBYQA", "search.local_algorithm = 'LN_BOBYQA': nlopt's LN_BOBYQA cannot handle the "
-                                     "inequality constraint mtf_mean >= floor; allowed: LD_MMA, LD_CCSAQ, LD_SLSQP, "
-                                     "LN_COBYLA"),
 ])
 def test_algorithm_names(key, value, message):
     with pytest.raises(ConfigError) as err:
@@ -130,35 +156,38 @@ def test_algorithm_names(key, value, message):
 
 @pytest.mark.parametrize("changes, pattern", [
     ({"init": "best"}, r"^search\.init = 'best': must be one of published, random, mask$"),
-    ({"mtf_floor": "paper"}, r"^search\.mtf_floor = 'paper': must be published .* or a number in \(0, 1\]"),
-    ({"r_bounds": [5, 1]}, r"^search\.r_bounds = \[5, 1\]: must be \[low, high\] with low < high"),
-    ({"r_bounds": [0, 10]}, r"^search\.r_bounds = \[0\.0, 10\.0\]: must be \[low, high\] with 0 < low"),
+    ({"mtf_floor": "paper"}, r"^search\.mtf_floor = 'paper': must be published, a number in \(0, 1\]"),
+    ({"energy_floor": 1.5}, r"^search\.energy_floor = 1\.5: must be auto, published, a fraction in \(0, 1\]"),
     ({"max_evals": 0}, r"^search\.max_evals = 0: must be an integer >= 1"),
     ({"pareto_factors": [1.0, -1]}, r"^search\.pareto_factors\[1\] = -1: must be a finite number > 0"),
-    ({"mtf_band": [0.5, 1.5]}, r"^search\.mtf_band\[1\] = 1\.5: must be a finite number >= 0 and <= 1"),
+    ({"objective": "restorability"}, r"^search\.lsr_ceiling = None: must be set \(published or a number\)"),
+    ({"mtf_floor": None}, r"^search\.mtf_floor = None: a search for the lowest LSR needs a floor"),
+    ({"lsr_p_schedule": []}, r"^search\.lsr_p_schedule = \[\]: must be auto or a list"),
+    ({"max_phase_step": 5}, r"^search\.max_phase_step = 5: must be a finite number > 0 and <= 3\.2"),
 ])
 def test_bad_settings(changes, pattern):
     with pytest.raises(ConfigError, match=pattern):
         SearchSpec(**changes)
 
 
-def test_unknown_search_key_and_defaults():
+def test_unknown_search_key_and_auto_choices():
     with pytest.raises(ConfigError, match=r"^search\.algoritm = 'LD_MMA': unknown key; allowed: algorithm, "):
         SearchSpec.from_config({"algoritm": "LD_MMA"})
-    # the YAML defaults are valid and match the dataclass's
-    s = SearchSpec.from_config(OmegaConf.to_container(_cfg().search, resolve=True))
-    assert s == SearchSpec(r_bounds=(0.5, 18.0), theta_bounds=(0.0, 6.283185307))
+    s = SearchSpec()
+    assert (s.resolved_algorithm(10), s.resolved_starts(10), s.resolved_max_evals(10)) == ("LN_COBYLA", 4, 150)
+    assert (s.resolved_algorithm(5000), s.resolved_starts(5000), s.resolved_max_evals(5000)) == ("AL_LBFGS", 1, 2400)
+    assert s.schedule(10, 16.0) == (16.0,) and s.schedule(5000, 16.0)[0] == 16.0 and s.schedule(5000, 16)[-1] == 1024
     assert SearchSpec(pareto_factors=[]).pareto_factors is None
 
 
 # ---- (d) impossible floors, and a search that finds nothing feasible -------------------------------------------
 @pytest.mark.parametrize("overrides, pattern", [
     (["search.mtf_floor=0.9"], r"^search\.mtf_floor = 0\.9: gives the MTF floor 0\.9, at or above the uncoded "
-                               r"aperture's mtf_mean 0\.6\d*, which no phase mask can reach: mtf_floor x factor must "
-                               r"be below 0\.6\d* \(the published mask's mtf_mean is 0\.0\d*\)$"),
+                               r"aperture's mtf_mean 0\.6\d*, which no phase mask can reach: the floor must be below "
+                               r"0\.6\d* \(the published mask's mtf_mean is 0\.0\d*\)$"),
     (["search.mtf_floor_factor=20"], r"^search\.mtf_floor_factor = 20(\.0)?: gives the MTF floor"),
     (["search.pareto_factors=[1.0,30]"], r"^search\.pareto_factors\[1\] = 30(\.0)?: gives the MTF floor"),
-    (["mask=freeform"], r"^mask\.kind = 'freeform': mask_search optimizes the radii and angles of a half-ring"),
+    (["mask=spiral"], r"^search\.init = 'published': a spiral mask has no published form: use search\.init=mask"),
 ])
 def test_impossible_settings_are_config_errors(tmp_path, overrides, pattern):
     with pytest.raises(ConfigError, match=pattern):
@@ -167,45 +196,71 @@ def test_impossible_settings_are_config_errors(tmp_path, overrides, pattern):
 
 
 def test_infeasible_in_practice_ends_cleanly(tmp_path, caplog):
-    cfg = _cfg("search.mtf_floor=0.6", "search.max_evals=3", "search.starts=1", "search.pareto_factors=null")
+    cfg = _cfg("search.mtf_floor=0.6", "search.max_evals=3", "search.starts=1", "search.pareto_factors=null",
+               "search.check=false")
     with caplog.at_level(logging.ERROR, logger="codesign.mask_search"):
         lsr = run_mask_search(cfg, tmp_path, torch.device("cpu"))
     assert math.isnan(lsr)
     assert any(r.levelno == logging.ERROR and "NO FEASIBLE POINT" in r.getMessage() for r in caplog.records)
     m = json.loads((tmp_path / "metrics.json").read_text())
     assert m["feasible"] is False and m["evaluations"] == 3
-    assert 0 < m["min_violation"] == pytest.approx(0.6 - m["mtf_mean"], rel=1e-6)
-    assert m["starts"][0]["feasible"] is False and m["starts"][0]["min_violation"] > 0
-    best = json.loads((tmp_path / "best_mask.json").read_text())
-    assert best["feasible"] is False
+    assert m["min_violation"] > 0 and m["starts"][0]["feasible"] is False
+    assert json.loads((tmp_path / "best_mask.json").read_text())["feasible"] is False
     for name in ("evaluations.csv", "phase.png", "mtf.png", "pareto.png"):
         assert (tmp_path / name).is_file(), name
 
 
 # ---- nlopt stops are reported, our own errors are not swallowed ------------------------------------------------
 def test_forced_stop_is_recorded_and_best_kept():
-    def stop_after_5(obj, ev):
-        if len(obj.records) == 5:
+    def stop_after_5(problem, ev):
+        if problem.evaluations == 5:
             raise nlopt.ForcedStop("enough")
 
-    x0 = np.array([3.0, 7.0, 1.5, 5.0, 2.0, 1.9, 1.1, 1.2, 1.2, 1.2])
-    obj = _objective(x0, 0.01, on_eval=stop_after_5)
-    res = run_start(obj, "0", x0, LO, HI, "LD_MMA", None, 50, 0, 1e-4, 1e-6)
-    assert res["result"] == "FORCED_STOP" and res["exception"] == "ForcedStop: enough"
+    cfg = {**POOR_HALFRING, "r": [3.0, 7.0, 1.5, 5.0, 2.0], "theta": [1.9, 1.1, 1.2, 1.2, 1.2]}
+    problem, mask = _problem(cfg, Limits(mtf=0.01), on_eval=stop_after_5)
+    lo, hi = (b.numpy() for b in mask.bounds())
+    res = run_start(problem, "0", mask.to_vector().numpy(), (lo, hi), "LD_MMA", None, (16.0,), 50, 0, 1e-4, 1e-6)
+    stage = res["stages"][0]
+    assert stage["result"] == "FORCED_STOP" and "enough" in stage["exception"]
     assert res["evaluations"] == 5 and res["feasible"]
-    assert res["lsr_smooth"] == min(ev.lsr_smooth for _, _, ev in obj.records if ev.feasible)
+    assert res["lsr"] == min(ev.lsr_sampled for ev in problem.records if ev.feasible)
 
 
 def test_evaluation_errors_propagate():
-    def broken(obj, ev):
+    def broken(problem, ev):
         raise RuntimeError("a bug in the callback")
 
-    x0 = np.array([3.0, 7.0, 1.5, 5.0, 2.0, 1.9, 1.1, 1.2, 1.2, 1.2])
+    problem, mask = _problem(POOR_HALFRING, Limits(mtf=0.01), on_eval=broken)
+    lo, hi = (b.numpy() for b in mask.bounds())
     with pytest.raises(RuntimeError, match="a bug in the callback"):
-        run_start(_objective(x0, 0.01, on_eval=broken), "0", x0, LO, HI, "LD_MMA", None, 5, 0, 1e-4, 1e-6)
+        run_start(problem, "0", mask.to_vector().numpy(), (lo, hi), "LD_MMA", None, (16.0,), 5, 0, 1e-4, 1e-6)
 
 
-# ---- (f) end to end through the CLI, and (e) mask.init=PATH from its best_mask.json -----------------------------
+# ---- (e) the loopholes: light out of the window, and a phase the grid cannot resolve ---------------------------
+def test_an_aliased_half_ring_is_caught_by_the_recheck():
+    """r_n = 1e4: the Bessel rings oscillate far below the pupil pitch; the design grid's 'LSR' is aliasing, and
+    the pupil grid twice as fine disagrees (the issue measured a '4.05e-4' with 26 % of the light in the window)."""
+    spec = OpticsSpec(pupil_pitch_m=2.0e-5, focal_n=160)
+    system = OpticalSystem(spec)
+    mask = build_mask({"kind": "halfring", "preset": None, "r": [1e4] * 5, "theta": [1.86, 1.09, 1.15, 1.21, 1.22],
+                       "r_bounds": [0.5, 1e4]}, system.grid, spec.aperture_diameter_m).freeze()
+    check = verify_design(mask, spec, BAND)
+    assert not check["agree"] and abs(check["lsr_fine_deviation"]) > 0.3  # measured -58 % (6 % of the light inside)
+    published = build_mask({"kind": "halfring"}, system.grid, spec.aperture_diameter_m).freeze()
+    assert abs(verify_design(published, spec, BAND)["lsr_fine_deviation"]) < 0.05  # measured 3.1 % at 192 across
+
+
+def test_energy_floor_keeps_the_light_in_the_window():
+    cfg = {**POOR_HALFRING, "r": [3.0, 17.0, 1.5, 15.0, 2.0], "r_bounds": [0.5, 60.0]}  # rings reach the edge
+    problem, mask = _problem(cfg, Limits(mtf=0.05, energy=0.9))
+    lo, hi = (b.numpy() for b in mask.bounds())
+    run_start(problem, "0", mask.to_vector().numpy(), (lo, hi), "LN_COBYLA", None, (16.0,), 60, 0, 1e-4, 1e-6)
+    assert problem.best is not None and problem.best.energy >= 0.9 * (1 - 1e-6)
+    assert all(ev.feasible == (ev.energy >= 0.9 * (1 - 1e-6) and ev.mtf_mean >= 0.05 * (1 - 1e-6))
+               for ev in problem.records)
+
+
+# ---- (f) end to end through the CLI, and mask.init=PATH from its best_mask.json --------------------------------
 OUTPUTS = ["evaluations.csv", "best_mask.json", "metrics.json", "phase.png", "psf_log.png", "mtf.png",
            "published_phase.png", "published_psf_log.png", "pareto.png"]
 
@@ -226,21 +281,25 @@ def test_smoke_run_writes_everything(smoke_run):
     assert not [p.name for p in run_dir.iterdir() if p.name.endswith(".tmp")]
     m = json.loads((run_dir / "metrics.json").read_text())
     for k in ("lsr", "lsr_smooth", "lsr_sampled", "mtf_mean", "mtf_min", "lsr_baseline", "mtf_mean_baseline",
-              "mtf_floor", "r_1", "r_5", "theta_1", "theta_5", "evaluations", "seconds", "evals_per_second"):
+              "lsr_limit", "lsr_over_limit", "restorability", "restorability_baseline", "window_energy", "r_1",
+              "r_5", "theta_1", "theta_5", "evaluations", "seconds", "evals_per_second"):
         assert isinstance(m[k], (int, float)) and math.isfinite(m[k]), k
     assert m["algorithm"] == "LN_COBYLA" and m["feasible"] is True and m["evaluations"] == 16  # 2 starts x 8
-    assert m["mtf_mean"] >= m["mtf_floor"] == pytest.approx(m["mtf_mean_baseline"])
-    assert m["lsr_smooth"] <= m["lsr_smooth_baseline"]  # start 0 is the published mask itself
+    assert m["mtf_mean"] >= m["limits"]["mtf"] == pytest.approx(m["mtf_mean_baseline"])
+    assert m["lsr_over_limit"] > 1 and m["lsr_limit"] < m["lsr"]
     assert [s["start"] for s in m["starts"]] == ["0", "1"] and m["starts"][0]["init"] == "published"
     assert [p["factor"] for p in m["pareto"]] == [1.0]
+    assert set(m["quantized"]) == {"2", "4", "8", "16"} and set(m["check"]) >= {"design", "fine", "whole", "agree"}
     rows = (run_dir / "evaluations.csv").read_text().splitlines()
-    assert rows[0].split(",")[:5] == ["floor_factor", "mtf_floor", "start", "eval", "r_1"] and len(rows) == 17
-    assert "best feasible" in out or "MAXEVAL_REACHED" in out
+    assert rows[0].split(",")[:4] == ["floor_factor", "mtf_floor", "start", "lsr_p"] and len(rows) == 17
+    assert rows[0].split(",")[-10:] == [f"r_{i}" for i in range(1, 6)] + [f"theta_{i}" for i in range(1, 6)]
+    assert "best design: LSR" in out
 
 
-def test_mask_init_round_trip(smoke_run, tmp_path):
+def test_mask_init_round_trip(smoke_run):
     run_dir, _ = smoke_run
     best = json.loads((run_dir / "best_mask.json").read_text())
+    assert best["optics"]["focal_n"] == 160 and best["kind"] == "halfring"
     spec = OpticsSpec(pupil_pitch_m=2.0e-5, focal_n=160)  # the smoke optics the run used
     system = OpticalSystem(spec)
     path = str(run_dir / "best_mask.json")
@@ -251,81 +310,17 @@ def test_mask_init_round_trip(smoke_run, tmp_path):
         phase = mask.phase()
         psf = system.psf(phase)
         assert system.refined_peak(phase, psf) / system.uncoded_peak == pytest.approx(best["lsr"], rel=1e-6)
-        assert float(metrics.lsr_smooth(psf, system.uncoded_peak, 16)) == pytest.approx(best["lsr_smooth"], rel=1e-6)
     free = build_mask({"kind": "freeform", "basis": "pixel", "init": path}, system.grid, spec.aperture_diameter_m)
     torch.testing.assert_close(free.phase().detach(), phase, rtol=0, atol=1e-6)
-
-
-@pytest.mark.parametrize("content, pattern", [
-    (None, r"^mask\.init = '.*missing\.json': must be null or the path of a mask record \(best_mask\.json of "
-           r"\+experiment=mask_search, learned_mask\.json of joint, mask\.json of psf\); no such file$"),
-    ("{not json", r"; cannot be read as JSON \(Expecting property name"),
-    ('{"kind": "freeform", "r": [1], "theta": [1]}', r"; the file holds kind 'freeform', not a mask family "
-                                                     r"\(halfring, pixel, spiral, zernike\)$"),
-    ('{"kind": "halfring", "r": [1, 2], "theta": [1]}', r"; its r and theta must be non-empty lists of numbers "
-                                                        r"of equal length \(got \[1, 2\] and \[1\]\)$"),
-    ('{"kind": "halfring", "r": ["a"], "theta": [1]}', r"; its r and theta must be non-empty lists of numbers"),
-])
-def test_mask_init_bad_files(tmp_path, content, pattern):
-    path = tmp_path / ("missing.json" if content is None else "best_mask.json")
-    if content is not None:
-        path.write_text(content)
-    system, _ = _system()
-    with pytest.raises(ConfigError, match=pattern):
-        build_mask({"kind": "halfring", "init": str(path)}, system.grid, 3.83e-3)
-
-
-def test_mask_init_conflicts_and_freeform_choices(tmp_path):
-    path = tmp_path / "best_mask.json"
-    path.write_text('{"kind": "halfring", "r": [1.0, 2.0], "theta": [0.5, 1.5]}')
-    system, _ = _system()
-    with pytest.raises(ConfigError, match=r"^mask\.init = .*: cannot be combined with explicit mask\.r / mask\.theta"):
-        build_mask({"kind": "halfring", "init": str(path), "r": [1.0], "theta": [1.0]}, system.grid, 3.83e-3)
-    mask = build_mask({"kind": "halfring", "preset": None, "init": str(path)}, system.grid, 3.83e-3)
-    assert mask.r.tolist() == [1.0, 2.0]
-    with pytest.raises(ConfigError, match=r"^mask\.init = 'nope': must be one of published, zero, defocus or the path "
-                                          r"of a mask record \(best_mask\.json of \+experiment=mask_search, "
-                                          r"learned_mask\.json of joint, mask\.json of psf\); no such file$"):
-        build_mask({"kind": "freeform", "init": "nope"}, system.grid, 3.83e-3)
 
 
 def test_search_starts_from_mask_init(tmp_path):
     path = tmp_path / "seed.json"
     path.write_text('{"kind": "halfring", "r": [3.0, 7.0, 1.5, 5.0, 2.0], "theta": [1.9, 1.1, 1.2, 1.2, 1.2]}')
     cfg = _cfg(f"mask.init={path}", "search.init=mask", "search.max_evals=2", "search.starts=1",
-               "search.pareto_factors=null", "search.mtf_floor=0.01")
-    assert cfg.mask.init == str(path)  # the key exists in conf/mask/halfring.yaml: no + needed
+               "search.pareto_factors=null", "search.mtf_floor=0.01", "search.check=false")
+    assert cfg.mask.init == str(path)  # the key exists in the mask=halfring node: no + needed
     run_mask_search(cfg, tmp_path / "run", torch.device("cpu"))
     first = (tmp_path / "run" / "evaluations.csv").read_text().splitlines()[1].split(",")
-    np.testing.assert_allclose([float(v) for v in first[4:14]], [3.0, 7.0, 1.5, 5.0, 2.0, 1.9, 1.1, 1.2, 1.2, 1.2],
+    np.testing.assert_allclose([float(v) for v in first[-10:]], [3.0, 7.0, 1.5, 5.0, 2.0, 1.9, 1.1, 1.2, 1.2, 1.2],
                                rtol=1e-6)
-
-
-# ---- the window-energy floor: the search may not push the PSF out of the optics window ---------------------
-def test_energy_floor_is_enforced_and_its_gradient_matches_finite_differences():
-    x = np.array([3.1, 7.4, 1.3, 5.2, 2.2, 1.9, 0.7, 2.5, 4.0, 5.6])
-    system, radial = _system(torch.float64)
-    mask = HalfRingMask(system.grid, system.spec.aperture_diameter_m, x[:5], x[5:])
-    with torch.no_grad():
-        energy0 = float(system.psf(mask.phase()).sum())
-    obj = MaskObjective(system, mask, radial, (0.0, 0.5), 16.0, 0.01, None, energy_floor=0.99 * energy0)
-    ev = obj.compute(x, True)
-    assert ev.energy == pytest.approx(energy0, rel=1e-12) and ev.energy_ok
-    assert ev.e == pytest.approx(math.log(0.99), rel=1e-9)
-    h = 1e-6
-    for i in (0, 3, 7):
-        dx = np.zeros_like(x)
-        dx[i] = h
-        fd = (obj.compute(x + dx, False).e - obj.compute(x - dx, False).e) / (2 * h)
-        assert ev.grad_e[i] == pytest.approx(fd, rel=1e-4, abs=1e-8)
-    # a floor above what the rings keep in the window: no point of a short search is feasible
-    strict = MaskObjective(system, mask, radial, (0.0, 0.5), 16.0, 0.01, None, energy_floor=min(1.0, 1.5 * energy0))
-    res = run_start(strict, "0", x, LO, HI, "LN_COBYLA", None, 10, 0, 1e-4, 1e-6)
-    assert not res["feasible"] and all(not ev.energy_ok and not ev.feasible for _, _, ev in strict.records)
-
-
-def test_energy_floor_setting_is_validated():
-    with pytest.raises(ConfigError, match=r"search.energy_floor = 1.5: must be published"):
-        SearchSpec.from_config({"energy_floor": 1.5})
-    assert SearchSpec.from_config({"energy_floor": None}).energy_floor_value(0.8) is None
-    assert SearchSpec.from_config({}).energy_floor_value(0.8) == 0.8

@@ -43,7 +43,7 @@ def stop_before_work(monkeypatch) -> None:
     monkeypatch.setattr(restoration, "run_evaluation", _work)
     monkeypatch.setattr(evaluate, "run_evaluation", _work)
     monkeypatch.setattr(joint, "_train", _work)
-    monkeypatch.setattr(search, "_search_floor", _work)
+    monkeypatch.setattr(search.MaskSearch, "run", _work)
     monkeypatch.setattr(restore, "build_camera", _camera_without_optics(restore.build_camera))
 
 

@@ -24,7 +24,8 @@ ROWS = [
     ("psf", "mask.r_bounds=5", "mask.r_bounds = 5: must be [lo, hi] with 0 < lo < hi"),
     ("psf", "mask=freeform mask.n_terms=abc", "mask.n_terms = 'abc': must be an integer >= 1 and <= 1000"),
     ("psf", "mask=freeform mask.init_convention=xyz", "mask.init_convention = 'xyz': must be one of atan, atan2"),
-    ("psf", "mtf_band=0.5", f"mtf_band = 0.5: {MTF_BAND}, beyond which the MTF is 0)"),
+    ("psf", "metrics.mtf_band=0.5", f"metrics.mtf_band = 0.5: {MTF_BAND}, beyond which the MTF is 0)"),
+    ("psf", "metrics.lsr_p=0.5", "metrics.lsr_p = 0.5: must be a finite number >= 1 and <= 1024"),
     # ---- optics: NaN / inf / wrong type / negative size / consistency -----------------------------------------
     ("psf", "optics.focal_n=nan", "optics.focal_n = nan: must be an integer >= 8 and <= 16384"),
     ("psf", "optics.aperture_diameter_m=inf",
@@ -47,9 +48,9 @@ ROWS = [
     ("psf", "logging.tensorboard=maybe", "logging.tensorboard = 'maybe': must be true or false"),
     ("psf", "+logging.foo=1", "logging.foo = 1: unknown key; allowed: log_every, tensorboard"),
     ("psf", "+foo=1", "foo = 1: unknown key for +experiment=psf; allowed: task, seed, device, threads, optics, mask, "
-     "sensor, model, data, trainer, logging, evaluate, debug, precision, mtf_band, lsr_smooth_p, timing_repeats"),
+     "sensor, model, data, trainer, metrics, logging, evaluate, debug, precision, timing_repeats"),
     ("baseline", "+checkpoint=x", "checkpoint = 'x': unknown key for +experiment=baseline; allowed: task, seed, "
-     "device, threads, optics, mask, sensor, model, data, trainer, logging, evaluate, debug"),
+     "device, threads, optics, mask, sensor, model, data, trainer, metrics, logging, evaluate, debug"),
     # ---- simulate and data ---------------------------------------------------------------------------------
     ("simulate", "simulate.alpha_l=5", "simulate.alpha_l = 5: must be a list of laser strengths >= 0"),
     ("simulate", "simulate.laser_angle_rad=5", "simulate.laser_angle_rad = 5: must be [n_u, n_v] in radians"),
@@ -88,7 +89,7 @@ ROWS = [
     ("baseline", "data.image_size=48 data.padded_size=50",  # the PSF kernel fits the padded sensor image
      "data.padded_size = 50: must be >= data.image_size + PSF kernel - 1 = 48 + 5 - 1 = 52 at this pitch, so that "
      "deconvolution does not wrap"),
-    ("joint", "codesign.mtf_band=0.5", f"codesign.mtf_band = 0.5: {MTF_BAND})"),
+    ("joint", "metrics.mtf_band=[0.5,0.2]", f"metrics.mtf_band = [0.5, 0.2]: {MTF_BAND}, beyond which the MTF is 0)"),
 ]
 
 
@@ -115,7 +116,7 @@ def test_root_key_allowlist_accepts_every_shipped_config(experiment):
     ('{"kind": "halfring", "r": [NaN], "theta": [1.0]}', "its r and theta hold NaN or Infinity (got [nan] and [1.0])"),
     ('{"kind": "halfring", "r": [1.0, 2', "cannot be read as JSON (Expecting ',' delimiter: line 1 column 34 "
                                           "(char 33))"),
-    ('[1, 2]', "the file holds kind None, not a mask family (halfring, pixel, spiral, zernike)"),
+    ('[1, 2]', "the file holds kind None, not a mask family (halfring, pixel, spiral, spline, zernike)"),
 ], ids=["unequal-rings", "nan", "truncated", "not-a-mask"])
 def test_mask_init_file_with_bad_rings(tmp_path, monkeypatch, capsys, content, message):
     path = tmp_path / "best_mask.json"

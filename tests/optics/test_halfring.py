@@ -201,7 +201,7 @@ def test_bad_halfring_prefix_and_aperture(grid32):
 
 
 @pytest.mark.parametrize("cfg,pattern", [
-    ({"kind": "vortex2"}, r"^mask\.kind = 'vortex2': must be one of halfring, pixel, spiral, zernike, freeform"),
+    ({"kind": "vortex2"}, r"^mask\.kind = 'vortex2': must be one of halfring, pixel, spiral, spline, zernike, freeform"),
     ({"kind": "halfring", "preset": "published", "colour": 1}, r"^mask\.colour = 1: unknown key for a halfring mask; allowed: "),
     ({"kind": "halfring", "preset": "published", "r": [1.0], "theta": [0.0]},
      r"^mask\.preset = 'published': cannot be combined with explicit mask\.r / mask\.theta"),

@@ -11,14 +11,16 @@ from codesign.optics import OpticalSystem, OpticsSpec
 
 W_A = 3.83e-3
 LAMBDA_F = 633e-9 * 0.11
+PAPER = {"pupil_pitch_m": 3.74e-6}  # Table 1 (optics=paper): a 1068-sample pupil grid
 
 
-def test_defaults_are_table1():
+def test_defaults_are_table1_at_the_converged_sampling():
     s = OpticsSpec()
     assert s.wavelength_m == 633e-9
     assert s.focal_length_m == 0.11
     assert s.aperture_diameter_m == 3.83e-3
-    assert s.pupil_pitch_m == 3.74e-6
+    # the pupil at 384 samples across W_a, the converged sampling (docs/optics.md); Table 1's 3.74 um is optics=paper
+    assert s.pupil_pitch_m == 9.974e-6
     assert s.focal_pitch_m == 5.4e-6
     assert s.focal_n == 640
     assert s.supergaussian_order == 50.0
@@ -30,7 +32,7 @@ def test_derived_quantities():
     assert s.lambda_f_over_d == pytest.approx(LAMBDA_F / W_A, rel=1e-15)
     assert s.samples_per_lambda_f_over_d == pytest.approx(LAMBDA_F / W_A / 5.4e-6, rel=1e-15)
     assert s.cutoff_frequency == pytest.approx(W_A / LAMBDA_F, rel=1e-15)
-    assert s.replica_period_m == pytest.approx(LAMBDA_F / 3.74e-6, rel=1e-15)
+    assert s.replica_period_m == pytest.approx(LAMBDA_F / 9.974e-6, rel=1e-15)
     assert s.focal_extent_m == pytest.approx(640 * 5.4e-6, rel=1e-15)
     # the super-Gaussian is 1e-20 at the support radius
     a = math.exp(-((2 * s.aperture_support_radius_m / W_A) ** 2) ** s.supergaussian_order)
@@ -76,25 +78,25 @@ def test_out_of_range_numbers_name_key_and_range(key, value, fragment):
 
 
 def test_pupil_n_too_small_names_key_and_minimum():
-    need = OpticsSpec().min_pupil_n
+    need = OpticsSpec(**PAPER).min_pupil_n
     assert need == 1068
     with pytest.raises(ConfigError, match=rf"optics\.pupil_n = 10: .*cannot hold the aperture.*must be >= {need}, "
                                           r"or null for automatic"):
-        OpticsSpec(pupil_n=10)
+        OpticsSpec(**PAPER, pupil_n=10)
     with pytest.raises(ConfigError, match=rf"optics\.pupil_n = {need - 2}: .*must be >= {need}"):
-        OpticsSpec(pupil_n=need - 2)
-    assert OpticsSpec(pupil_n=need).grid_n == need
-    assert OpticsSpec(pupil_n=need + 100).grid_n == need + 100
+        OpticsSpec(**PAPER, pupil_n=need - 2)
+    assert OpticsSpec(**PAPER, pupil_n=need).grid_n == need
+    assert OpticsSpec(**PAPER, pupil_n=need + 100).grid_n == need + 100
 
 
 def test_pupil_n_not_integer():
     with pytest.raises(ConfigError, match=r"optics\.pupil_n = 1100\.5: must be an integer >= 2"):
-        OpticsSpec(pupil_n=1100.5)
+        OpticsSpec(**PAPER, pupil_n=1100.5)
 
 
 def test_fft_n_smaller_than_grid():
     with pytest.raises(ConfigError, match=r"optics\.fft_n = 100: must be >= the pupil grid size 1068"):
-        OpticsSpec(fft_n=100)
+        OpticsSpec(**PAPER, fft_n=100)
 
 
 def test_aliasing_focal_pitch_names_focal_pitch():

@@ -1,7 +1,8 @@
 """Phase masks behind one interface (base.Mask), one module per family, and a builder from the ``mask`` config.
 
-Families: halfring (the paper's rings, any number), zernike, pixel (a phase per pupil sample), spiral (vortex
-axicon). ``mask=freeform`` (mask.basis=pixel|zernike) is kept as the name the pixel and Zernike families had.
+Families: halfring (the paper's rings, any number), zernike, pixel (a phase per pupil sample), spline (a smooth
+freeform surface: cubic B-spline on a control grid), spiral (vortex axicon). ``mask=freeform``
+(mask.basis=pixel|zernike) is kept as the name the pixel and Zernike families had.
 """
 from __future__ import annotations
 
@@ -12,12 +13,20 @@ from typing import Any, Mapping
 
 import torch
 
+from codesign.config.store import register
 from codesign.errors import ConfigError, require_choice
-from codesign.optics.masks.base import FAMILIES, Mask, MaskSpec, check_family_keys, quantize
+from codesign.optics.masks.base import (
+    FAMILIES,
+    Mask,
+    MaskSpec,
+    check_family_keys,
+    quantize,
+)
 from codesign.optics.masks.halfring import PUBLISHED_R, PUBLISHED_THETA, HalfRingMask
 from codesign.optics.masks.pixel import PixelPhaseMask
 from codesign.optics.masks.records import RECORD_PATH, load_record
 from codesign.optics.masks.spiral import SpiralMask
+from codesign.optics.masks.spline import SplineMask
 from codesign.optics.masks.zernike import ZernikeMask
 
 log = logging.getLogger("codesign.masks")
@@ -45,8 +54,9 @@ def _from_freeform(cfg: Mapping[str, Any], prefix: str) -> dict:
     basis = require_choice(f"{prefix}.basis", cfg.get("basis", "pixel"), ("pixel", "zernike"))
     keep = ("init", "init_convention", "levels", "defocus_rad") + (("n_terms", "max_coeff_rad") if basis == "zernike"
                                                                      else ())
-    if basis == "pixel":  # checked for either basis (pixel ignores them): a bad value is a typo whichever runs
-        ZernikeMask.Spec.from_config({k: cfg[k] for k in ("n_terms", "max_coeff_rad") if k in cfg}, prefix)
+    # every freeform key is checked for either basis (pixel ignores n_terms and max_coeff_rad): a bad value is a
+    # typo whichever basis runs
+    ZernikeMask.Spec.from_config({k: cfg[k] for k in FREEFORM_KEYS if k in cfg and k not in ("kind", "basis")}, prefix)
     return {"kind": basis, **{k: cfg[k] for k in keep if k in cfg}}
 
 
@@ -63,7 +73,8 @@ def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix:
     check_family_keys(cls, cfg, prefix)
     cls.Spec.from_config({k: v for k, v in cfg.items() if k != "kind"} | {"kind": kind}, prefix)  # levels etc.
     init = cfg.get("init")
-    named = ("published", "zero", "defocus") if kind in ("pixel", "zernike") else ()
+    fits_a_phase = ("pixel", "zernike", "spline")  # families that can start from any phase
+    named = ("published", "zero", "defocus") if kind in fits_a_phase else ()
     if init is None or init in named:
         return cls.from_config(cfg, grid, aperture_diameter_m, prefix=prefix)
     allowed = f"must be {'one of ' + ', '.join(named) + ' or ' if named else 'null or '}{RECORD_PATH}"
@@ -81,7 +92,7 @@ def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix:
             cfg = {**cfg, "n_terms": len(record["coeffs"]), "max_coeff_rad": record.get("max_coeff_rad",
                                                                                            cfg.get("max_coeff_rad"))}
         return cls.from_config(cfg, grid, aperture_diameter_m, record=record, prefix=prefix)
-    if kind not in ("pixel", "zernike"):
+    if kind not in fits_a_phase:
         raise ConfigError(f"{prefix}.init", init, f"holds a {record['kind']} mask; a {kind} mask starts only from a "
                           f"{kind} record: use mask={record['kind']} to build it as it is")
     return cls.from_config(cfg, grid, aperture_diameter_m, start_phase=record_phase(record, grid, aperture_diameter_m),
@@ -104,7 +115,8 @@ def record_phase(record: dict, grid, aperture_diameter_m: float) -> torch.Tensor
             raise ConfigError("mask.init", record.get("path", "record"), f"holds {values.numel()} pixel values, "
                               f"its grid ({src.n} x {src.n}) has {src.support.numel()} samples in the aperture")
         return interpolate_phase(src.scatter(values), src, grid).to(grid.rho)
-    mask = FAMILIES[kind].from_config({**record, "levels": record.get("levels")}, grid, aperture_diameter_m,
+    cfg = {**record, "levels": record.get("levels"), "preset": None}  # the record's own values, not a preset
+    mask = FAMILIES[kind].from_config(cfg, grid, aperture_diameter_m,
                                       **({"record": record} if kind != "halfring" else {}))
     return mask.freeze().phase().detach()
 
@@ -137,6 +149,11 @@ def published_halfring(grid, aperture_diameter_m: float, **kw: Any) -> HalfRingM
     return HalfRingMask(grid, aperture_diameter_m, PUBLISHED_R, PUBLISHED_THETA, **kw).freeze()
 
 
-__all__ = ["Mask", "MaskSpec", "HalfRingMask", "PixelPhaseMask", "ZernikeMask", "SpiralMask", "FAMILIES",
+# the config options mask=<family> (every family's Spec defaults) and mask=freeform
+for _kind in families():
+    register("mask", _kind, FAMILIES[_kind].Spec.defaults())
+register("mask", "freeform", dict(FREEFORM_DEFAULTS))
+
+__all__ = ["Mask", "MaskSpec", "HalfRingMask", "PixelPhaseMask", "ZernikeMask", "SpiralMask", "SplineMask", "FAMILIES",
            "build_mask", "families", "load_record", "published_halfring", "published_mask_config", "quantize",
            "record_phase", "PUBLISHED_R", "PUBLISHED_THETA", "RECORD_PATH"]

@@ -70,6 +70,11 @@ class Mask(torch.nn.Module):
 
     kind: ClassVar[str] = ""
     Spec: ClassVar[type[MaskSpec]] = MaskSpec
+    # what a search of this family uses by default: the floor on the PSF energy kept in the optics window, and the
+    # cap on the phase step between neighbouring pupil samples (None: no cap)
+    design_energy_floor: ClassVar[str | float] = 0.98
+    resolution_step: ClassVar[float | None] = None
+    fits_phases: ClassVar[bool] = False  # fit_phase works: any phase can start it (random starts: defocus)
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -135,6 +140,30 @@ class Mask(torch.nn.Module):
         """(lower, upper) of every parameter in ``to_vector`` layout (float64): the box a search stays in."""
         n = self.vector_size
         return torch.full((n,), -math.inf, dtype=torch.float64), torch.full((n,), math.inf, dtype=torch.float64)
+
+    def fit_phase(self, phase: torch.Tensor) -> None:
+        """Set the parameters so that the mask's phase approximates a full-grid (n, n) phase (families that can
+        represent any phase: pixel, spline, Zernike)."""
+        raise NotImplementedError(f"a {self.kind} mask cannot be fitted to an arbitrary phase")
+
+    @torch.no_grad()
+    def random_vector(self, rng) -> torch.Tensor:
+        """A random start for searches (``rng``: numpy Generator): uniform in the bounds; families that fit a phase
+        take a defocus of random strength in [25, 55] rad (a near flat-top PSF: the good starts)."""
+        if self.fits_phases:
+            radius = float(self.grid.rho.reshape(-1)[self.grid.support].max())
+            return self.phase_vector(float(rng.uniform(25.0, 55.0)) * (self.grid.rho / radius) ** 2)
+        lo, hi = self.bounds()
+        return lo + (hi - lo) * torch.from_numpy(rng.random(lo.numel()))
+
+    @torch.no_grad()
+    def phase_vector(self, phase: torch.Tensor) -> torch.Tensor:
+        """The parameter vector whose phase approximates ``phase`` (``fit_phase``), the mask left unchanged."""
+        keep = self.to_vector()
+        self.fit_phase(phase)
+        out = self.to_vector()
+        self.set_vector(keep)
+        return out
 
     def vector_names(self) -> list[str] | None:
         """A name per parameter for tables and CSV columns (None when there are too many to list)."""

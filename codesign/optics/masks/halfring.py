@@ -28,7 +28,13 @@ from typing import Any, Mapping, Sequence
 
 import torch
 
-from codesign.errors import ConfigError, require_choice, require_list, require_number, require_numbers
+from codesign.errors import (
+    ConfigError,
+    require_choice,
+    require_list,
+    require_number,
+    require_numbers,
+)
 from codesign.optics.atan2 import atan_of_ratio
 from codesign.optics.bessel import bessel_j
 from codesign.optics.grid import PupilGrid
@@ -92,6 +98,7 @@ class HalfRingMask(Mask):
 
     kind = "halfring"
     Spec = HalfRingSpec
+    design_energy_floor = "published"  # no half-ring mask keeps its light in the window (docs/codesign.md)
 
     def __init__(self, grid: PupilGrid, aperture_diameter_m: float, r: Sequence[float] = PUBLISHED_R,
                  theta: Sequence[float] = PUBLISHED_THETA, m_range: Sequence[int] = HalfRingSpec.m_range,
@@ -235,7 +242,7 @@ class HalfRingMask(Mask):
                     record: dict | None = None, prefix: str = "mask") -> "HalfRingMask":
         """Build from a validated ``mask`` mapping; ``record``: a loaded mask.init record of this family (its r,
         theta and settings win over the preset)."""
-        preset, r, theta, rings = cfg.get("preset"), cfg.get("r"), cfg.get("theta"), cfg.get("rings")
+        preset, r, theta, rings = cfg.get("preset", HalfRingSpec.preset), cfg.get("r"), cfg.get("theta"), cfg.get("rings")
         if record is not None:
             if r is not None or theta is not None:
                 raise ConfigError(f"{prefix}.init", cfg.get("init"), f"cannot be combined with explicit {prefix}.r / "

@@ -32,6 +32,11 @@ class PixelSpec(MaskSpec):
     init_convention: str = "atan2"
     defocus_rad: float = 40.0
 
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        require_choice(f"{self.prefix}.init_convention", self.init_convention, ("atan", "atan2"))
+        require_number(f"{self.prefix}.defocus_rad", self.defocus_rad, lo=-1e4, hi=1e4)
+
 
 class PixelPhaseMask(Mask):
     """A learnable phase [rad] at every support sample of the pupil grid (``values``).
@@ -42,6 +47,8 @@ class PixelPhaseMask(Mask):
 
     kind = "pixel"
     Spec = PixelSpec
+    resolution_step = 1.0  # rad: a phase per sample learns structure between samples unless its steps are capped
+    fits_phases = True
 
     def __init__(self, grid: PupilGrid, init_phase: torch.Tensor | None = None, levels: int | None = None):
         super().__init__(grid, levels)
@@ -63,6 +70,10 @@ class PixelPhaseMask(Mask):
     @torch.no_grad()
     def project(self) -> None:
         self.values.add_(math.pi).remainder_(2 * math.pi).sub_(math.pi)
+
+    @torch.no_grad()
+    def fit_phase(self, phase: torch.Tensor) -> None:
+        self.values.copy_(phase.detach().reshape(-1)[self.grid.support].to(self.values))
 
     # ---- the family interface -------------------------------------------------------------------------------------
     def bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -110,7 +121,9 @@ def start(name: str, grid: PupilGrid, aperture_diameter_m: float, cfg: Mapping[s
     if name == "defocus":
         a = require_number("mask.defocus_rad", cfg.get("defocus_rad", PixelSpec.defocus_rad), lo=-1e4, hi=1e4)
         return a * (grid.rho / (aperture_diameter_m / 2)) ** 2
-    from codesign.optics.masks.halfring import HalfRingMask  # the published preset's phase
+    from codesign.optics.masks.halfring import (
+        HalfRingMask,  # the published preset's phase
+    )
 
     conv = require_choice("mask.init_convention", cfg.get("init_convention", PixelSpec.init_convention),
                           ("atan", "atan2"))
@@ -122,7 +135,7 @@ def interpolate_phase(phase: torch.Tensor, src: PupilGrid, dst: PupilGrid) -> to
     the corners of each cell are taken within pi of its first corner). Samples of ``dst`` beyond ``src``'s support
     take the nearest support sample's phase (the aperture is ~0 there)."""
     ph = phase.detach().to(torch.float64)
-    ph = _fill_outside(ph, src)
+    ph = fill_outside(ph, src)
     n = src.n
     scale = dst.pitch / src.pitch
     pos = (torch.arange(dst.n, dtype=torch.float64, device=ph.device) - dst.n // 2) * scale + n // 2
@@ -139,7 +152,7 @@ def interpolate_phase(phase: torch.Tensor, src: PupilGrid, dst: PupilGrid) -> to
     return out.to(phase.dtype)
 
 
-def _fill_outside(ph: torch.Tensor, grid: PupilGrid) -> torch.Tensor:
+def fill_outside(ph: torch.Tensor, grid: PupilGrid) -> torch.Tensor:
     """The phase with every sample outside the support set to its nearest support sample's (along rows, then
     columns, repeatedly): interpolation near the aperture edge then never mixes in the zeros outside."""
     inside = torch.zeros(grid.n * grid.n, dtype=torch.bool, device=ph.device)

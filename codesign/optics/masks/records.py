@@ -23,6 +23,7 @@ RECORD_VALUES: dict[str, dict[str, str]] = {
     "pixel": {"values": "list", "grid_n": "number", "pitch_m": "number"},
     "zernike": {"coeffs": "list"},
     "spiral": {"charge": "number", "axicon_cycles": "number", "defocus_rad": "number"},
+    "spline": {"controls": "list", "control_pitch_m": "number", "control_half": "number"},
 }
 
 

@@ -27,6 +27,13 @@ class ZernikeSpec(MaskSpec):
     n_terms: int = 36
     max_coeff_rad: float = 50.0
 
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        p = self.prefix
+        object.__setattr__(self, "n_terms", require_number(f"{p}.n_terms", self.n_terms, lo=1, hi=1000, integer=True))
+        require_number(f"{p}.max_coeff_rad", self.max_coeff_rad, lo=0, lo_open=True)
+        require_choice(f"{p}.init_convention", self.init_convention, ("atan", "atan2"))
+
 
 def noll_to_nm(j: int) -> tuple[int, int]:
     """Noll's single index j >= 1 -> (radial degree n, signed azimuthal frequency m); m < 0 is the sine term."""
@@ -64,6 +71,7 @@ class ZernikeMask(Mask):
 
     kind = "zernike"
     Spec = ZernikeSpec
+    fits_phases = True
 
     def __init__(self, grid: PupilGrid, aperture_diameter_m: float, n_terms: int = ZernikeSpec.n_terms,
                  init_coeffs: torch.Tensor | None = None, max_coeff_rad: float = ZernikeSpec.max_coeff_rad,
@@ -104,6 +112,9 @@ class ZernikeMask(Mask):
         return {f"zernike_{j + 1}": float(v) for j, v in enumerate(self.coeffs.detach().cpu())}
 
     # ---- the family interface -------------------------------------------------------------------------------------
+    def fit_phase(self, phase: torch.Tensor) -> None:
+        self.fit(phase)
+
     def bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
         n = self.coeffs.numel()
         return (torch.full((n,), -self.max_coeff_rad, dtype=torch.float64),
