@@ -153,7 +153,7 @@ def test_config_groups_hold_the_expected_options():
     groups = _group_options()
     assert "psf" in groups["experiment"]
     assert {"freeform", "halfring", "pixel", "spline", "spiral", "zernike"} <= set(groups["mask"])
-    assert {"sgan_b", "sgan_e", "sgan_f", "wiener_unet"} <= set(groups["model"])
+    assert {"sgan_b", "sgan_e", "sgan_f"} <= set(groups["model"])
     assert {"cpu", "joint_cpu", "paper"} <= set(groups["preset"])
     assert {"default", "paper"} <= set(groups["optics"])
     assert "smoke" in groups["debug"]
