@@ -80,11 +80,14 @@ def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix:
     allowed = f"must be {'one of ' + ', '.join(named) + ' or ' if named else 'null or '}{RECORD_PATH}"
     record = load_record(init, f"{prefix}.init", allowed)
     if record["kind"] == kind:
-        for k in ("convention", "harmonic_sign", "m_range"):  # r, theta alone do not fix the phase: say so
-            as_list = lambda v: list(v) if isinstance(v, (list, tuple)) else v  # noqa: E731
+        # the record is the design: the settings that fix its phase with its values are the record's
+        as_list = lambda v: list(v) if isinstance(v, (list, tuple)) else v  # noqa: E731
+        for k in ("convention", "harmonic_sign", "m_range"):
             if k in record and k in cfg and as_list(record[k]) != as_list(cfg[k]):
-                log.warning("%s.init: %s was searched with %s=%s, this mask uses %s", prefix, init, k, record[k],
-                            cfg[k])
+                log.warning("%s.init: %s was designed with %s=%s; it keeps it (the configured %s is ignored)",
+                            prefix, init, k, record[k], cfg[k])
+            if k in record:
+                cfg[k] = record[k]
         if kind == "pixel":
             return cls.from_config(cfg, grid, aperture_diameter_m, record_phase(record, grid, aperture_diameter_m),
                                    prefix=prefix)

@@ -82,7 +82,7 @@ class SplineMask(Mask):
 
     # ---- fitting ------------------------------------------------------------------------------------------------
     @torch.no_grad()
-    def fit(self, phase: torch.Tensor, iterations: int = 200) -> None:
+    def fit(self, phase: torch.Tensor, iterations: int = 500) -> None:
         """Least-squares control values for a full-grid (n, n) phase on the aperture support: the separable
         solution pinv(B) phase pinv(B)^T of the phase extended outside (nearest inside value), refined by
         conjugate gradients on the normal equations restricted to the support."""
@@ -110,6 +110,15 @@ class SplineMask(Mask):
 
     def fit_phase(self, phase: torch.Tensor) -> None:
         self.fit(phase)
+
+    @torch.no_grad()
+    def random_vector(self, rng) -> torch.Tensor:
+        """A defocus of random strength in [25, 55] rad (exact in this family): the good starts."""
+        keep = self.to_vector()
+        self.set_defocus(float(rng.uniform(25.0, 55.0)), float(self.grid.rho.reshape(-1)[self.grid.support].max()))
+        out = self.to_vector()
+        self.set_vector(keep)
+        return out
 
     def set_defocus(self, defocus_rad: float, radius_m: float) -> None:
         """Controls of phi = defocus_rad (rho / radius)^2, exact: sum_k beta(t - k) k^2 = t^2 + 1/3, and the
