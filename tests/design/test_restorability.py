@@ -42,7 +42,7 @@ def test_wiener_mse_matches_a_monte_carlo_of_gaussian_scenes():
     n, a, noise = 64, 0.6, 2e-4
     spectrum = SceneSpectrum(2e-4, 2.2)
     kernel = torch.tensor([[0.05, 0.1, 0.05], [0.1, 0.4, 0.1], [0.05, 0.1, 0.05]], dtype=torch.float64)
-    module = Restorability(n, spectrum, noise, alpha_b=a)
+    module = Restorability(n, spectrum, noise, alpha_b=a, edge=False)  # circular scenes: no field edge
     s, h2 = module.s, module.otf(kernel)
     pad = torch.zeros(n, n, dtype=torch.float64)
     pad[:3, :3] = kernel
@@ -75,6 +75,47 @@ def test_more_blur_or_noise_lowers_it_and_the_laser_costs_the_saturated_area():
     assert float(laser.lost_fraction(sharp)) == pytest.approx(1 / 64**2, rel=1e-3)  # one pixel at 1e4 I_sat
     assert float(laser.lost_fraction(blur)) == pytest.approx(25 / 64**2, rel=1e-3)  # 25 pixels at 400 I_sat
     assert float(laser(blur)) < float(quiet(blur))
+
+
+def test_noise_variance_of_a_textured_scene_uses_its_mean_square():
+    """Half the scene at 0.2, half at 0.8 (uncoded aperture: the halves stay apart): the photo-response term
+    follows the mean of the signal's square, not the square of its mean. The variance of two captures'
+    difference / 2 is the noise alone."""
+    with initialize_config_dir(config_dir=str(REPO_ROOT / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=["+experiment=baseline", *SMOKE, "mask=pixel", "mask.init=zero"])
+    camera = build_camera(cfg, "cpu")
+    n_scene = camera.scene_size
+    scenes = torch.full((4, 1, n_scene, n_scene), 0.2)
+    scenes[..., n_scene // 2:] = 0.8
+    params = fixed_scene_params(4, alpha_l=0.0)
+    m, n = (camera.padded_size - camera.image_size) // 2, camera.image_size
+    first, second = camera(scenes, params, seed=3), camera(scenes, params, seed=4)
+    diff = (first["sensor"] - second["sensor"]).to(torch.float64)[..., m:m + n, m:m + n]
+    signal = first["irradiance"].to(torch.float64)[..., m:m + n, m:m + n] / float(params.alpha_b[0])
+    mean, square = float(signal.mean()), float(signal.square().mean())
+    assert float(diff.var()) / 2 == pytest.approx(noise_variance(camera.sensor, None, mean, square), rel=0.05)
+    assert noise_variance(camera.sensor, None, mean, square) > 1.2 * noise_variance(camera.sensor, None, mean)
+
+
+def test_edge_fraction_is_the_light_each_field_pixel_receives_from_beyond_the_field():
+    """By hand: half the light on axis, half 4 pixels to the right: a pixel in the 4 columns nearest the right
+    border gets that half from outside, L = 0.5 x 4 / 64. And for any kernel, the mean over the field of
+    (light from all pixels - light from field pixels), computed by convolving the field's indicator."""
+    module = Restorability(64, SceneSpectrum(2e-4, 2.2), 1e-5)
+    two = torch.zeros(9, 9, dtype=torch.float64)
+    two[4, 4] = two[4, 8] = 0.5
+    assert float(module.edge_fraction(two)) == pytest.approx(0.5 * 4 / 64, rel=1e-12)
+    delta = torch.zeros(9, 9, dtype=torch.float64)
+    delta[4, 4] = 1.0
+    assert float(module.edge_fraction(delta)) == 0.0
+    kernel = torch.rand(21, 21, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    kernel /= kernel.sum()
+    field = torch.nn.functional.pad(torch.ones(1, 1, 64, 64, dtype=torch.float64), (10,) * 4)
+    from_field = torch.nn.functional.conv2d(field, kernel.flip(-1, -2)[None, None])[0, 0]
+    assert float(module.edge_fraction(kernel)) == pytest.approx(float((1 - from_field).mean()), rel=1e-12)
+    # the lost share costs the scene's variance: a wide kernel scores below the same kernel on an infinite field
+    circular = Restorability(64, SceneSpectrum(2e-4, 2.2), 1e-5, edge=False)
+    assert float(module(kernel)) < float(circular(kernel))
 
 
 def test_fitted_spectrum_of_natural_scenes_falls_like_a_power_law(camera):
