@@ -23,12 +23,14 @@ def lsr_mtf_figure(points: dict[str, list[tuple[float, float]]], limit, referenc
     ys = [v for pts in points.values() for _, v in pts] + [v for _, v in references.values()]
     span = (0.5 * min(xs), 1.3 * max(xs)) if xs else (0.01, 0.1)
     limit_line(ax, limit, span)
+    markers = "os^Dvp<>h"
     for i, (name, pts) in enumerate(points.items()):
-        if pts:
+        if pts:  # distinct markers too: designs of different families can land on the same point
             arr = np.array(sorted(pts))
-            ax.plot(arr[:, 0], arr[:, 1], "o-" if len(arr) > 1 else "o", ms=4, color=f"C{i}", label=name)
-    for j, (name, (m, v)) in enumerate(references.items()):
-        ax.plot([m], [v], "*", ms=13, color=f"C{(j + 3) % 10}", label=name)
+            ax.plot(arr[:, 0], arr[:, 1], markers[i % len(markers)] + ("-" if len(arr) > 1 else ""), ms=5,
+                    color=f"C{i}", mfc="none", label=name)
+    for j, (name, (m, v)) in enumerate(references.items()):  # references in black / greys, apart from the series
+        ax.plot([m], [v], "*", ms=13, color=str(0.45 * j), label=name)
     for f in floors or ():
         ax.axvline(f, color="0.6", ls=":", lw=0.8)
     if ys:

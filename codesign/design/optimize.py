@@ -37,9 +37,10 @@ RESULTS = {nlopt.SUCCESS: "SUCCESS", nlopt.STOPVAL_REACHED: "STOPVAL_REACHED", n
            nlopt.MAXTIME_REACHED: "MAXTIME_REACHED", nlopt.FAILURE: "FAILURE", nlopt.INVALID_ARGS: "INVALID_ARGS",
            nlopt.OUT_OF_MEMORY: "OUT_OF_MEMORY", nlopt.ROUNDOFF_LIMITED: "ROUNDOFF_LIMITED",
            nlopt.FORCED_STOP: "FORCED_STOP"}
-# What nlopt's optimize() raises for its own failure codes (besides RoundoffLimited / ForcedStop).
-_NLOPT_ERRORS = (nlopt.RoundoffLimited, nlopt.ForcedStop, nlopt.invalid_argument, RuntimeError, ValueError,
-                 MemoryError)
+# What nlopt's optimize() raises for its own failure codes (besides RoundoffLimited / ForcedStop): nlopt >= 2.8 has
+# its own exception classes (nlopt.runtime_error is not a RuntimeError), older versions raise the builtin ones.
+_NLOPT_FAILURES = (getattr(nlopt, "exception", RuntimeError), RuntimeError, ValueError, MemoryError)
+_NLOPT_ERRORS = (nlopt.RoundoffLimited, nlopt.ForcedStop, nlopt.invalid_argument) + _NLOPT_FAILURES
 
 
 def check_algorithm(key: str, name, allowed: tuple[str, ...]) -> str:
@@ -131,13 +132,17 @@ def run_al_lbfgs(problem, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray, 
         if budget < 2:
             break
         weights = lambda cons: {n: max(0.0, mu[n] + rho * v) for n, v in cons.items()}  # noqa: E731
+        lowest = [math.inf, x]  # the inner run's best point: where an nlopt failure leaves the search
 
         def merit(xv, grad):
             ev, g = problem.evaluate(xv, p, grad.size > 0, weights)
             if grad.size > 0:
                 grad[:] = g
-            return ev.objective + sum((max(0.0, mu[n] + rho * v) ** 2 - mu[n] ** 2) / (2 * rho)
-                                      for n, v in ev.constraints.items())
+            value = ev.objective + sum((max(0.0, mu[n] + rho * v) ** 2 - mu[n] ** 2) / (2 * rho)
+                                       for n, v in ev.constraints.items())
+            if value < lowest[0]:
+                lowest[:] = [value, xv.copy()]
+            return value
 
         opt = nlopt.opt(nlopt.LD_LBFGS, x.size)
         opt.set_lower_bounds(lower)
@@ -148,8 +153,11 @@ def run_al_lbfgs(problem, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray, 
         opt.set_vector_storage(20)
         try:
             x = opt.optimize(x)
-        except (nlopt.RoundoffLimited, RuntimeError) as err:  # LBFGS's line search at round-off: keep the point
+        except (nlopt.RoundoffLimited,) + _NLOPT_FAILURES as err:
+            # LBFGS's line search at round-off, or nlopt's generic failure (a float32 merit's noise can break the
+            # line search's descent test): go on from the inner run's best point
             exc = f"{type(err).__name__}: {err}".rstrip(": ")
+            x = lowest[1]
         code = opt.last_optimize_result()
         ev, _ = problem.evaluate(x, p, False)
         for n, v in ev.constraints.items():

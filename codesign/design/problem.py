@@ -63,7 +63,8 @@ class Limits:
     active: tuple = field(default=())
 
     def __post_init__(self) -> None:
-        self.active = tuple(k for k in ("mtf", "energy", "restorability", "lsr", "step") if getattr(self, k) is not None)
+        self.active = tuple(k for k in ("mtf", "energy", "restorability", "lsr", "step")
+                            if getattr(self, k) is not None)
 
 
 class DesignProblem:

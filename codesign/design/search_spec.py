@@ -8,7 +8,7 @@ from codesign.design.optimize import ALGORITHMS, LOCAL, check_algorithm
 from codesign.errors import ConfigError, require_choice, require_list, require_number
 from codesign.spec_base import SpecMixin
 
-INITS = ("published", "random", "mask")
+INITS = ("auto", "published", "mask", "defocus", "random")
 OBJECTIVES = ("lsr", "restorability")
 SMALL = 20  # parameter vectors up to this size: derivative-free search and several starts by default
 DEFAULT_SCHEDULE = (16.0, 32.0, 64.0, 128.0, 256.0, 1024.0)
@@ -28,8 +28,10 @@ class SearchSpec(SpecMixin):
     """algorithm: auto (LN_COBYLA for masks of <= 20 parameters, AL_LBFGS above), AL_LBFGS (augmented Lagrangian on
     nlopt's LD_LBFGS, docs/codesign.md) or an nlopt algorithm that takes inequality constraints: LD_MMA, LD_CCSAQ,
     LD_SLSQP, LN_COBYLA, GN_ISRES, GN_AGS, GN_ORIG_DIRECT(_L) (global ones are followed by ``local_algorithm`` for
-    ``polish_max_evals``). init: start 0 = published (the published mask in this family: its r_n, theta_n; its phase
-    for the pixel, spline and Zernike families), mask (the configured mask, e.g. mask.init=PATH) or random; starts:
+    ``polish_max_evals``). init: start 0 = auto (the family's: published for half rings, mask for spirals, defocus
+    for the pixel, spline and Zernike families), published (the published mask in this family: its r_n, theta_n;
+    its phase for the pixel, spline and Zernike families), mask (the configured mask, e.g. mask.init=PATH), defocus
+    (a defocus of ``defocus_rad``, rad at the aperture's edge: a near flat-top PSF) or random; starts:
     number of starts (null: 4 for <= 20 parameters, else 1), the others random (the family's random start) from
     ``seed``; max_evals: evaluations per start (null: 150 for <= 20 parameters, else 2400); xtol_rel, ftol_rel:
     nlopt's relative stopping tolerances (0 = off).
@@ -37,8 +39,9 @@ class SearchSpec(SpecMixin):
     Constraints: mtf_floor: published (the published mask's mtf_mean on this window), a number in (0, 1], or null,
     times mtf_floor_factor; energy_floor: the PSF energy kept in the optics window, auto (the family's: the
     published mask's for half rings, whose light the window never holds, 0.98 for the others), published, a
-    fraction in (0, 1] or null; restorability_floor: expected Wiener PSNR floor [dB] or null; lsr_ceiling: smooth-LSR
-    ceiling (published = the published mask's) or null; restorability_alpha_l: the laser strength whose saturated
+    fraction in (0, 1] or null; restorability_floor: expected Wiener PSNR floor [dB] or null; lsr_ceiling: ceiling on
+    the smooth LSR (>= the peak: the design's sampled peak stays below it), published (the published mask's sampled
+    peak LSR), a number, or null; restorability_alpha_l: the laser strength whose saturated
     footprint the restorability counts (null: none); max_phase_step: cap [rad] on the phase step between
     neighbouring pupil samples, auto (the family's: 1.0 for the pixel family, none for the others) | number | null.
     lsr_p_schedule: the continuation on p (auto: 16 .. 1024 for gradient algorithms, [metrics.lsr_p] for
@@ -51,7 +54,8 @@ class SearchSpec(SpecMixin):
     algorithm: str = "auto"
     local_algorithm: str | None = "LD_MMA"
     polish_max_evals: int = 50
-    init: str = "published"
+    init: str = "auto"
+    defocus_rad: float = 40.0
     starts: int | None = None
     seed: int = 0
     max_evals: int | None = None
@@ -87,6 +91,7 @@ class SearchSpec(SpecMixin):
             if getattr(self, key) is not None:
                 put(key, require_number(f"{p}.{key}", getattr(self, key), lo=1, hi=10**9, integer=True))
         require_choice(f"{p}.init", self.init, INITS)
+        put("defocus_rad", require_number(f"{p}.defocus_rad", self.defocus_rad, lo=0, hi=1e4))
         require_choice(f"{p}.objective", self.objective, OBJECTIVES)
         for key in ("xtol_rel", "ftol_rel"):
             put(key, require_number(f"{p}.{key}", getattr(self, key), lo=0, hi=1, hi_open=True))

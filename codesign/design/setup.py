@@ -62,18 +62,29 @@ def search_limits(s, mask, base: dict, base_arr: dict, limit, lsr_p: float) -> L
     energy = mask.design_energy_floor if s.energy_floor == "auto" else s.energy_floor
     if energy == "published":
         energy = float(base_arr["psf"].sum())
-    ceiling = base["lsr_smooth"] if s.lsr_ceiling == "published" else s.lsr_ceiling
+    # the smooth LSR bounds the sampled peak from above: a design under the published mask's sampled peak is below it
+    ceiling = base["lsr_sampled"] if s.lsr_ceiling == "published" else s.lsr_ceiling
     step = mask.resolution_step if s.max_phase_step == "auto" else s.max_phase_step
     return Limits(mtf=mtf, energy=energy, restorability=s.restorability_floor, lsr=ceiling, step=step)
 
 
-def start_vector(init: str, mask, published) -> torch.Tensor | None:
-    """The parameter vector of start 0: the configured mask (mask), the published mask in this family
-    (published) or None (random)."""
+def start_init(init: str, mask) -> str:
+    """``search.init`` with auto resolved to the family's start."""
+    return mask.search_start if init == "auto" else init
+
+
+def start_vector(init: str, mask, published, defocus_rad: float = 40.0) -> torch.Tensor | None:
+    """The parameter vector of start 0 (``init`` resolved by start_init): the configured mask (mask), the published
+    mask in this family (published), a defocus of ``defocus_rad`` (defocus) or None (random)."""
     if init == "mask":
         return mask.to_vector()
     if init == "random":
         return None
+    if init == "defocus":
+        if not mask.fits_phases:
+            raise ConfigError("search.init", init, f"a {mask.kind} mask cannot take a defocus phase: use "
+                              "search.init=published, mask or random")
+        return mask.defocus_vector(defocus_rad)
     if mask.kind == "halfring":
         if published.vector_size != mask.vector_size:
             raise ConfigError("search.init", init, f"the configured mask has {mask.vector_size // 2} rings, the "

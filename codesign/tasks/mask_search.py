@@ -22,7 +22,8 @@ from codesign.design.problem import DesignProblem, Limits
 from codesign.design.records import write_record
 from codesign.design.search import MaskSearch, start_points
 from codesign.design.search_spec import SearchSpec
-from codesign.design.setup import quantized_figures, restorability_tools, search_limits, start_vector
+from codesign.design.setup import (quantized_figures, restorability_tools, search_limits, start_init,
+                                   start_vector)
 from codesign.errors import ConfigError
 from codesign.io import files as io, plots
 from codesign.io.tensorboard import open_writer, tensorboard_enabled
@@ -49,10 +50,11 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     rest = restorability_tools(cfg, system, mask, s.restorability_alpha_l)  # reported for every design
     base["restorability"] = rest.score(published)
     limits = search_limits(s, mask, base, base_arr, limit, ms.lsr_p)
-    init_x = start_vector(s.init, mask, published)
+    init = start_init(s.init, mask)
+    init_x = start_vector(init, mask, published, s.defocus_rad)
     schedule = s.schedule(n, ms.lsr_p)
     lower, upper = (b.numpy() for b in mask.bounds())
-    starts = start_points(init_x, s.init, s.resolved_starts(n), mask.random_vector, s.seed)
+    starts = start_points(init_x, init, s.resolved_starts(n), mask.random_vector, s.seed)
     radial = monitor.radial
 
     def make_problem(lim: Limits) -> DesignProblem:

@@ -101,6 +101,41 @@ def test_al_lbfgs_ends_feasible_from_an_infeasible_start():
     assert [s["lsr_p"] for s in res["stages"]] == [16.0, 32.0]
 
 
+def test_an_nlopt_failure_inside_al_lbfgs_keeps_the_inner_run_s_best_point(monkeypatch):
+    """nlopt's LD_LBFGS can end with its generic failure (nlopt.runtime_error in nlopt >= 2.8, not a RuntimeError):
+    the search goes on from the best point the inner run evaluated, and the outcome names the failure."""
+    from codesign.design import optimize
+
+    problem, mask = _problem({"kind": "spline", "init": "defocus", "defocus_rad": 8.0}, Limits())
+    x0 = mask.to_vector().numpy()
+    failure = getattr(nlopt, "runtime_error", RuntimeError)
+    real, made = nlopt.opt, []
+
+    class Failing:
+        def __init__(self, algorithm, n):
+            self.inner = real(algorithm, n)
+            made.append(self)
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+        def set_min_objective(self, f):
+            self.f = f
+
+        def optimize(self, x):
+            grad = np.zeros_like(x)
+            self.f(x, grad)
+            self.better = x - 1e-3 * grad / np.abs(grad).max()
+            self.f(self.better, np.zeros(0))
+            raise failure("nlopt failure")
+
+    monkeypatch.setattr(optimize.nlopt, "opt", Failing)
+    x, out = optimize.run_al_lbfgs(problem, x0, *(b.numpy() for b in mask.bounds()), 16.0, 10, {}, outer=1)
+    assert "nlopt failure" in out["exception"] and out["evaluations"] == 3  # two inner + the multiplier update
+    first, second = problem.records[0], problem.records[1]
+    assert second.objective < first.objective and np.array_equal(x, made[0].better)
+
+
 # ---- (b) the torch gradients fed to nlopt match finite differences ---------------------------------------------
 def test_gradients_match_finite_differences():
     cfg = {**POOR_HALFRING, "r": [3.1, 7.4, 1.3, 5.2, 2.2], "theta": [1.9, 0.7, 2.5, 4.0, 5.6]}
@@ -126,6 +161,26 @@ def test_gradients_match_finite_differences():
     _, combined = problem.evaluate(x, 16.0, True, lambda cons: {"mtf": 2.0, "energy": 0.5})
     np.testing.assert_allclose(combined, grads["objective"] + 2.0 * grads["mtf"] + 0.5 * grads["energy"],
                                rtol=1e-10, atol=1e-14)
+
+
+@pytest.mark.parametrize("kind, start", [("halfring", "published"), ("spiral", "mask"), ("zernike", "defocus"),
+                                         ("spline", "defocus"), ("pixel", "defocus")])
+def test_auto_start_is_the_family_s_and_defocus_is_a_quadratic_phase(kind, start):
+    from codesign.design.setup import start_init, start_vector
+
+    system, _ = _system(torch.float64)
+    mask = build_mask({"kind": kind}, system.grid, system.spec.aperture_diameter_m)
+    assert start_init("auto", mask) == start and start_init("random", mask) == "random"
+    if start != "defocus":
+        return
+    mask.set_vector(start_vector("defocus", mask, None, 30.0))
+    g = system.grid
+    rho = g.rho.reshape(-1)[g.support]
+    phase = mask.phase().detach().reshape(-1)[g.support]
+    want = 30.0 * (rho / rho.max()) ** 2
+    fit = phase - (phase - want).mean()  # up to piston
+    # the pixel and spline families represent it exactly (up to float rounding); Zernike to its 36 modes (exact)
+    assert float((fit - want).abs().max()) < 1e-6 * 30.0
 
 
 def test_step_constraint_counts_wrapped_neighbour_steps():
@@ -155,7 +210,7 @@ def test_algorithm_names(key, value, message):
 
 
 @pytest.mark.parametrize("changes, pattern", [
-    ({"init": "best"}, r"^search\.init = 'best': must be one of published, random, mask$"),
+    ({"init": "best"}, r"^search\.init = 'best': must be one of auto, published, mask, defocus, random$"),
     ({"mtf_floor": "paper"}, r"^search\.mtf_floor = 'paper': must be published, a number in \(0, 1\]"),
     ({"energy_floor": 1.5}, r"^search\.energy_floor = 1\.5: must be auto, published, a fraction in \(0, 1\]"),
     ({"max_evals": 0}, r"^search\.max_evals = 0: must be an integer >= 1"),
@@ -187,7 +242,10 @@ def test_unknown_search_key_and_auto_choices():
                                r"0\.6\d* \(the published mask's mtf_mean is 0\.0\d*\)$"),
     (["search.mtf_floor_factor=20"], r"^search\.mtf_floor_factor = 20(\.0)?: gives the MTF floor"),
     (["search.pareto_factors=[1.0,30]"], r"^search\.pareto_factors\[1\] = 30(\.0)?: gives the MTF floor"),
-    (["mask=spiral"], r"^search\.init = 'published': a spiral mask has no published form: use search\.init=mask"),
+    (["mask=spiral", "search.init=published"],
+     r"^search\.init = 'published': a spiral mask has no published form: use search\.init=mask"),
+    (["mask=halfring", "search.init=defocus"],
+     r"^search\.init = 'defocus': a halfring mask cannot take a defocus phase: use search\.init=published"),
 ])
 def test_impossible_settings_are_config_errors(tmp_path, overrides, pattern):
     with pytest.raises(ConfigError, match=pattern):

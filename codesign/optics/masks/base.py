@@ -75,6 +75,9 @@ class Mask(torch.nn.Module):
     design_energy_floor: ClassVar[str | float] = 0.98
     resolution_step: ClassVar[float | None] = None
     fits_phases: ClassVar[bool] = False  # fit_phase works: any phase can start it (random starts: defocus)
+    # start 0 of a search with search.init=auto: published (the published mask in this family), mask (the
+    # configured one) or defocus (a near flat-top PSF, for the families that fit any phase)
+    search_start: ClassVar[str] = "published"
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -151,10 +154,15 @@ class Mask(torch.nn.Module):
         """A random start for searches (``rng``: numpy Generator): uniform in the bounds; families that fit a phase
         take a defocus of random strength in [25, 55] rad (a near flat-top PSF: the good starts)."""
         if self.fits_phases:
-            radius = float(self.grid.rho.reshape(-1)[self.grid.support].max())
-            return self.phase_vector(float(rng.uniform(25.0, 55.0)) * (self.grid.rho / radius) ** 2)
+            return self.defocus_vector(float(rng.uniform(25.0, 55.0)))
         lo, hi = self.bounds()
         return lo + (hi - lo) * torch.from_numpy(rng.random(lo.numel()))
+
+    def defocus_vector(self, strength_rad: float) -> torch.Tensor:
+        """The parameter vector of a defocus phase, ``strength_rad`` (rho / rho_max)^2 (families that fit a
+        phase)."""
+        radius = float(self.grid.rho.reshape(-1)[self.grid.support].max())
+        return self.phase_vector(strength_rad * (self.grid.rho / radius) ** 2)
 
     @torch.no_grad()
     def phase_vector(self, phase: torch.Tensor) -> torch.Tensor:

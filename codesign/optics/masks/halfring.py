@@ -242,7 +242,8 @@ class HalfRingMask(Mask):
                     record: dict | None = None, prefix: str = "mask") -> "HalfRingMask":
         """Build from a validated ``mask`` mapping; ``record``: a loaded mask.init record of this family (its r,
         theta and settings win over the preset)."""
-        preset, r, theta, rings = cfg.get("preset", HalfRingSpec.preset), cfg.get("r"), cfg.get("theta"), cfg.get("rings")
+        preset = cfg.get("preset", HalfRingSpec.preset)
+        r, theta, rings = cfg.get("r"), cfg.get("theta"), cfg.get("rings")
         if record is not None:
             if r is not None or theta is not None:
                 raise ConfigError(f"{prefix}.init", cfg.get("init"), f"cannot be combined with explicit {prefix}.r / "

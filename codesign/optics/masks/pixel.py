@@ -49,6 +49,7 @@ class PixelPhaseMask(Mask):
     Spec = PixelSpec
     resolution_step = 1.0  # rad: a phase per sample learns structure between samples unless its steps are capped
     fits_phases = True
+    search_start = "defocus"
 
     def __init__(self, grid: PupilGrid, init_phase: torch.Tensor | None = None, levels: int | None = None):
         super().__init__(grid, levels)

@@ -46,6 +46,7 @@ class SpiralMask(Mask):
 
     kind = "spiral"
     Spec = SpiralSpec
+    search_start = "mask"  # the configured spiral: the family has no published member
 
     def __init__(self, grid: PupilGrid, aperture_diameter_m: float, charge: float = SpiralSpec.charge,
                  axicon_cycles: float = SpiralSpec.axicon_cycles, defocus_rad: float = SpiralSpec.defocus_rad,

@@ -59,6 +59,10 @@ class SplineMask(Mask):
     kind = "spline"
     Spec = SplineSpec
     fits_phases = True
+    search_start = "defocus"
+    # rad: at 2 samples per control pitch the surface can still turn faster than the grid samples it (a 2400-eval
+    # search found steps up to pi and an LSR 6 % higher on a grid twice as fine); the cap keeps it resolved
+    resolution_step = 1.0
 
     def __init__(self, grid: PupilGrid, control_pitch_m: float, half: int, controls: torch.Tensor | None = None,
                  levels: int | None = None, prefix: str = "mask"):
@@ -112,10 +116,10 @@ class SplineMask(Mask):
         self.fit(phase)
 
     @torch.no_grad()
-    def random_vector(self, rng) -> torch.Tensor:
-        """A defocus of random strength in [25, 55] rad (exact in this family): the good starts."""
+    def defocus_vector(self, strength_rad: float) -> torch.Tensor:
+        """Exact in this family (set_defocus), where the base class fits the phase."""
         keep = self.to_vector()
-        self.set_defocus(float(rng.uniform(25.0, 55.0)), float(self.grid.rho.reshape(-1)[self.grid.support].max()))
+        self.set_defocus(strength_rad, float(self.grid.rho.reshape(-1)[self.grid.support].max()))
         out = self.to_vector()
         self.set_vector(keep)
         return out

@@ -72,6 +72,7 @@ class ZernikeMask(Mask):
     kind = "zernike"
     Spec = ZernikeSpec
     fits_phases = True
+    search_start = "defocus"
 
     def __init__(self, grid: PupilGrid, aperture_diameter_m: float, n_terms: int = ZernikeSpec.n_terms,
                  init_coeffs: torch.Tensor | None = None, max_coeff_rad: float = ZernikeSpec.max_coeff_rad,
