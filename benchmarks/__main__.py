@@ -4,9 +4,13 @@
     python -m benchmarks --scale full         # full scale (longer sweeps, bigger grids, longer trainings)
     python -m benchmarks --only psf,mask      # a subset (docs/benchmarks.md is then left alone)
 
-Each benchmark prints its tables and writes JSON + PNG into benchmarks/results/<scale>/; a complete run rewrites
-docs/benchmarks.md (quick) or docs/benchmarks_full.md (full) from what it measured (machine, threads, torch version and date included). Benchmarks are
-measurements, not tests: nothing here asserts a time.
+Each benchmark is a module benchmarks/bench_<name>.py (a name in BENCHMARKS) with ``run(scale, out) -> Report``;
+``python -m benchmarks.bench_<name> [--scale S]`` runs one alone. Each prints its tables and writes JSON + PNG into
+benchmarks/results/<scale>/; a complete run rewrites docs/benchmarks.md (quick) or docs/benchmarks_full.md (full)
+from what it measured (machine, threads, torch version and date included). Shared helpers live in
+benchmarks/common.py; benchmarks/ holds no other modules. The JSON files directly under benchmarks/results/ are
+earlier measurements that docs/ quotes, kept as they were. Benchmarks are measurements, not tests: nothing here
+asserts a time.
 """
 from __future__ import annotations
 
@@ -19,7 +23,8 @@ from pathlib import Path
 
 from benchmarks.common import RESULTS, SCALES, Report, machine, write_json
 
-BENCHMARKS = ("psf", "mask", "sensor", "restoration", "scaling", "accuracy")
+BENCHMARKS = ("psf", "optics", "mask", "sensor", "restoration", "joint", "train_options", "scaling", "accuracy",
+              "design")
 DOCS_DIR = Path(__file__).resolve().parent.parent / "docs"
 
 

@@ -95,8 +95,9 @@ def report(rows: list[dict], out: Path) -> Report:
     tables = [r for r in rows if r["strategy"].startswith("table") and r["dtype"] == d["dtype"]
               and r["samples"] == d["samples"]]
     faster = [r for r in tables if r["seconds_forward_backward"] < d["seconds_forward_backward"]]
-    note = (f"Default `mask.strategy: exact` (float32, {d['samples']} across): {1e3 * d['seconds_forward_backward']:.1f}"
-            f" ms forward+backward against {1e3 * direct['seconds_forward_backward']:.1f} ms for `direct` "
+    note = (f"Default `mask.strategy: exact` (float32, {d['samples']} across): "
+            f"{1e3 * d['seconds_forward_backward']:.1f} ms forward+backward against "
+            f"{1e3 * direct['seconds_forward_backward']:.1f} ms for `direct` "
             f"({direct['seconds_forward_backward'] / d['seconds_forward_backward']:.0f}x), with the same phase error "
             f"(max {d['phase_max_error_rad']:.1e} rad, RMS {d['phase_rms_error_rad']:.1e} rad: float32 rounding, "
             "largest where Q0 ~ 0 and atan2 is ill-conditioned; the float64 row shows the strategy itself is exact). "

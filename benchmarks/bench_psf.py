@@ -1,18 +1,28 @@
 """PSF: pupil grid x propagator (MFT, FFT) x precision (float32, float64) -> time, peak memory, error.
 
-Every configuration runs in its own process (benchmarks.optics_worker) for a clean peak-memory reading. Errors are
-against a float64 MFT at a sampling where the LSR has converged (docs/optics.md: within 0.21% from 1024 to 2048
-samples across the aperture): relative error of the LSR (refined continuous peak) and of mtf_mean, and the relative
-L1 error of the PSF on the 640 x 640 sensor-pitch window.
+Every configuration runs in its own process (``python -m benchmarks.bench_psf worker ...``, see ``worker``) for a
+clean peak-memory reading. Errors are against a float64 MFT at a sampling where the LSR has converged
+(docs/optics.md: within 0.21% from 1024 to 2048 samples across the aperture): relative error of the LSR (refined
+continuous peak) and of mtf_mean, and the relative L1 error of the PSF on the 640 x 640 sensor-pitch window.
 
-    python -m benchmarks.bench_psf --scale quick
+This entry also covers the former ``python -m benchmarks.optics speed`` (docs/optics.md Sec. 6): the default (MFT,
+float32, 384 samples across) against the paper's path (1024 across, 4096-point FFT resampled to the sensor pitch,
+full scale) and the MFT sweep over the sampling, with the peak resident memory of each process (``peak_rss_mb``,
+``baseline_rss_mb`` in psf.json) and the LSR error against the converged float64 value.
+
+    python -m benchmarks --only psf [--scale full]
 """
 from __future__ import annotations
 
+import argparse
+import json
 import tempfile
 from pathlib import Path
 
-from benchmarks.common import Report, fit_exponent, markdown_table, run_isolated, time_error_plot, write_json
+import torch
+
+from benchmarks.common import (Report, fit_exponent, markdown_table, peak_cuda_mib, peak_rss_mb, run_isolated,
+                               time_error_plot, write_json)
 
 GRIDS = {"quick": [192, 256, 384, 512, 768], "full": [192, 256, 320, 384, 512, 768, 1024, 1536]}
 REFERENCE = {"quick": 1024, "full": 2048}
@@ -23,8 +33,65 @@ FFT_MAX = {"quick": 512, "full": 768}
 DEFAULT = ("mft", "float32", 384)  # conf/optics/default.yaml: auto resolves to the MFT at this sampling
 
 
+def worker(argv: list[str] | None = None) -> dict:
+    """One isolated PSF timing; prints (and returns) a JSON line with forward/backward seconds, LSR, MTF, PSF error,
+    peak memory.
+
+        python -m benchmarks.bench_psf worker --samples 384 [--propagator mft|fft] [--fft-n 4096]
+            [--dtype float32] [--save PSF.pt] [--reference PSF.pt]
+
+    Run in a fresh process per configuration, so that the peak resident memory (CPU) or peak allocated memory
+    (CUDA) is this configuration's own. ``--reference`` gives the relative L1 error of the PSF against a saved
+    (float64) PSF on the same focal window; ``--save`` writes this PSF (float64) for later runs to compare with.
+    """
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.bench_psf worker")
+    ap.add_argument("--samples", type=float, required=True, help="pupil samples across the aperture")
+    ap.add_argument("--propagator", default="mft", choices=["mft", "fft"])
+    ap.add_argument("--fft-n", type=int, default=None)
+    ap.add_argument("--dtype", default="float32", choices=["float32", "float64"])
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--focal-n", type=int, default=640)
+    ap.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
+    ap.add_argument("--save", default=None)
+    ap.add_argument("--reference", default=None)
+    a = ap.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    from codesign.design.merit import evaluate_mask, time_forward_backward
+    from codesign.optics import OpticalSystem, OpticsSpec
+    from codesign.optics.masks import HalfRingMask
+
+    dev = torch.device("cuda" if a.device == "auto" and torch.cuda.is_available() else
+                       ("cpu" if a.device == "auto" else a.device))
+    rss0 = peak_rss_mb()
+    spec = OpticsSpec.with_samples_across(a.samples, propagator=a.propagator, fft_n=a.fft_n, focal_n=a.focal_n)
+    dtype = torch.float32 if a.dtype == "float32" else torch.float64
+    system = OpticalSystem(spec, dtype=dtype, device=dev)
+    mask = HalfRingMask(system.grid, spec.aperture_diameter_m)
+    peak_cuda_mib(dev, reset=True)
+    fwd, bwd = time_forward_backward(system, mask, 16.0, a.repeats)
+    peak_gpu = peak_cuda_mib(dev)
+    values, arrays = evaluate_mask(system, mask, (0.0, 0.5), 16.0)
+    psf = arrays["psf"].detach().to("cpu", torch.float64)
+    err = None
+    if a.reference:
+        ref = torch.load(a.reference)
+        err = float((psf - ref).abs().sum() / ref.abs().sum())
+    if a.save:
+        torch.save(psf, a.save)
+    result = {
+        "samples": a.samples, "grid_n": spec.grid_n, "propagator": system.method,
+        "fft_n": getattr(system.propagator, "fft_n", None), "dtype": a.dtype, "threads": a.threads,
+        "device": str(dev), "seconds_forward": fwd, "seconds_backward": bwd, "seconds_total": fwd + bwd,
+        "lsr": values["lsr"], "lsr_smooth": values["lsr_smooth"], "mtf_mean": values["mtf_mean"],
+        "psf_rel_l1": err, "peak_rss_mb": peak_rss_mb(), "baseline_rss_mb": rss0, "peak_gpu_mb": peak_gpu,
+    }
+    print(json.dumps(result))
+    return result
+
+
 def _worker(threads: int, samples: float, propagator: str, dtype: str, repeats: int, extra: list[str]) -> dict:
-    return run_isolated("benchmarks.optics_worker", [
+    return run_isolated("benchmarks.bench_psf", ["worker",
         "--samples", str(samples), "--propagator", propagator, "--dtype", dtype, "--repeats", str(repeats),
         "--threads", str(threads), *extra])
 
@@ -44,8 +111,9 @@ def measure(scale: str, threads: int) -> dict:
         for s, p, d in configs:
             extra = ["--reference", ref_path] + (["--fft-n", "4096"] if p == "fft4096" else [])
             r = _worker(threads, s, "fft" if p == "fft4096" else p, d, reps, extra)
-            r.update(label=p, lsr_error=abs(r["lsr"] / ref["lsr"] - 1), mtf_error=abs(r["mtf_mean"] / ref["mtf_mean"] - 1),
-                     memory_mb=r["peak_gpu_mb"] if r["peak_gpu_mb"] is not None else r["peak_rss_mb"] - r["baseline_rss_mb"],
+            memory = r["peak_gpu_mb"] if r["peak_gpu_mb"] is not None else r["peak_rss_mb"] - r["baseline_rss_mb"]
+            r.update(label=p, lsr_error=abs(r["lsr"] / ref["lsr"] - 1),
+                     mtf_error=abs(r["mtf_mean"] / ref["mtf_mean"] - 1), memory_mb=memory,
                      default=(p, d, s) == DEFAULT)
             rows.append(r)
             print(f"  {s:5d} {p:7s} {d}: fwd {r['seconds_forward']:.4f} s, fwd+bwd {r['seconds_total']:.4f} s, "
@@ -97,6 +165,13 @@ def report(data: dict, out: Path) -> Report:
         "(MFT float32, fitted from 256 samples up), so a study of the far PSF (energy in the window, "
         "sidelobes) should use `optics.pupil_pitch_m` for 768+ samples across or `optics=paper`.",
     ]
+    paper = next((r for r in rows if r["label"] == "fft4096"), None)
+    if paper is not None:  # full scale: the speed target of docs/optics.md Sec. 6
+        notes.append(
+            f"The paper's path (1024 samples across, 4096-point FFT resampled bilinearly to the sensor pitch, "
+            f"float32) takes {paper['seconds_total']:.3f} s forward+backward (LSR error {paper['lsr_error']:.2%}, "
+            f"{paper['memory_mb']:.0f} MiB): the default is {paper['seconds_total'] / d['seconds_total']:.1f}x "
+            f"faster at LSR error {d['lsr_error']:.2%}.")
     return Report("psf", "PSF: pupil grid x propagator x precision", [table], figs, notes)
 
 
@@ -113,6 +188,11 @@ def run(scale: str, out: Path) -> Report:
 
 
 if __name__ == "__main__":
-    from benchmarks.__main__ import standalone
+    import sys
 
-    standalone(run)
+    if sys.argv[1:2] == ["worker"]:
+        worker(sys.argv[2:])
+    else:
+        from benchmarks.__main__ import standalone
+
+        standalone(run)

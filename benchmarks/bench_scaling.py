@@ -19,8 +19,8 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import (Report, cuda_sync, fit_exponent, machine, markdown_table, peak_cuda_mib, timeit,
-                               write_json)
+from benchmarks.common import (Report, cuda_sync, fit_exponent, machine, markdown_table, peak_cuda_mib,
+                               published_sensor, timeit, write_json)
 
 SWEEPS = {
     "quick": dict(samples=[192, 256, 384, 512, 768], images=[64, 96, 128, 192, 256, 384],
@@ -77,9 +77,7 @@ def psf_sweep(s: dict, dev) -> list[dict]:
 
 
 def _simulator(image: int, dev):
-    from benchmarks.sensor import _setup
-
-    sim, state, key, _, _ = _setup(device=dev, image_size=image, padded_size=3 * image // 2)
+    sim, state, key, _, _ = published_sensor(device=dev, image_size=image, padded_size=3 * image // 2)
     return sim, state, key
 
 

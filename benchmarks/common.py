@@ -1,4 +1,7 @@
-"""Shared helpers: machine description, subprocess isolation for peak memory, atomic result writing."""
+"""Shared helpers of the suite's entries (benchmarks/bench_*.py): machine description, subprocess isolation for peak
+memory, atomic result writing, tables and plots, timing, and the setups several entries build (Hydra configs,
+the default camera with the published mask, a co-design trainer). Everything here is public: an entry imports
+nothing private from another module."""
 from __future__ import annotations
 
 import datetime
@@ -10,10 +13,12 @@ import subprocess
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 
 RESULTS = Path(__file__).resolve().parent / "results"
+CONF = Path(__file__).resolve().parent.parent / "conf"
 
 
 def machine() -> dict:
@@ -37,19 +42,11 @@ def peak_rss_mb() -> float:
 
 def run_isolated(module: str, args: list[str]) -> dict:
     """Run ``python -m module args`` in a fresh process (clean peak-memory reading); it prints one JSON line."""
-    out = subprocess.run([sys.executable, "-m", module, *args], capture_output=True, text=True, check=True,
+    out = subprocess.run([sys.executable, "-m", module, *args], capture_output=True, text=True,
                          cwd=Path(__file__).resolve().parent.parent)
+    if out.returncode != 0:
+        raise RuntimeError(f"python -m {module} {' '.join(args)} failed ({out.returncode}):\n{out.stderr[-4000:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])
-
-
-def write_result(name: str, data: dict) -> Path:
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    path = RESULTS / f"{name}.json"
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
-    os.replace(tmp, path)
-    return path
-
 
 
 # ---- the suite interface (python -m benchmarks) ------------------------------------------------------------
@@ -157,3 +154,78 @@ def fit_exponent(xs: list[float], ys: list[float]) -> float:
     lx, ly = [math.log(x) for x in xs], [math.log(y) for y in ys]
     mx, my = sum(lx) / len(lx), sum(ly) / len(ly)
     return sum((a - mx) * (b - my) for a, b in zip(lx, ly)) / sum((a - mx) ** 2 for a in lx)
+
+
+def device() -> torch.device:
+    """CUDA when present, else the CPU: where every entry measures."""
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+# ---- setups shared by several entries ---------------------------------------------------------------------------
+def compose(overrides: list[str]):
+    """The project's Hydra config (conf/config.yaml) with command-line style ``overrides``."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return hydra_compose("config", overrides=list(overrides))
+
+
+class SensorSetup(NamedTuple):
+    """The default optics (conf/optics: 384 samples across, MFT) with the published half-ring mask frozen."""
+
+    sim: object  # SensorSimulator
+    state: object  # PSFState of the published mask
+    key: tuple  # its cache key (mask_key=): kernels cached as in training
+    mask: object  # the HalfRingMask
+    system: object  # the OpticalSystem
+
+
+def published_sensor(path: str = "direct", downsample: str = "area", device=None, dtype=torch.float32,
+                     **sensor_kw) -> SensorSetup:
+    """Simulator, PSF state, cache key, mask and system of the published mask on the default optics; ``sensor_kw``
+    are further SensorSpec fields (image_size, padded_size, ...); ``dtype``: of the optics (PSF)."""
+    from codesign.optics import OpticalSystem, OpticsSpec
+    from codesign.optics.masks import published_halfring
+    from codesign.sensor.simulator import SensorSimulator, mask_state_key, psf_state
+    from codesign.sensor.spec import SensorSpec
+
+    optics = OpticsSpec(pupil_pitch_m=3.83e-3 / 384)
+    system = OpticalSystem(optics, dtype=dtype, device=device)
+    mask = published_halfring(system.grid, optics.aperture_diameter_m)
+    with torch.no_grad():
+        state = psf_state(system, mask.phase())
+    sim = SensorSimulator(SensorSpec(path=path, downsample=downsample, **sensor_kw), optics)
+    return SensorSetup(sim, state, mask_state_key(mask), mask, system)
+
+
+def builtin_scenes(batch: int, size: int, names: list[str] | None = None) -> torch.Tensor:
+    """``batch`` built-in scenes (cycling through ``names``, default all of them) cropped to ``size``."""
+    from codesign.data.scenes import build_scene_source
+
+    src = build_scene_source({"scenes": "builtin"})
+    names = names or src.split_names("all")
+    return src.fixed_batch([names[i % len(names)] for i in range(batch)], size)
+
+
+def joint_trainer(overrides: list[str], dev: torch.device, run_dir: Path, **options):
+    """A co-design trainer of ``+experiment=joint`` plus ``overrides``, the mask trainable from the first step
+    (codesign.warmup_fraction 0), no LSR bound in force (lsr_max 1), no validation, checkpoints or images;
+    ``options``: further TrainerSpec fields (amp, channels_last, compile). Seed 0, weights initialised as in a run."""
+    from codesign.config.runtime import to_container
+    from codesign.design.lsr_constraint import CodesignSpec
+    from codesign.train.data import SimulatedData
+    from codesign.train.joint_trainer import JointTrainer
+    from codesign.train.setup import build_model
+    from codesign.train.spec import TrainerSpec
+    from codesign.train.trainer import init_weights
+
+    cfg = compose(["+experiment=joint", *overrides])
+    torch.manual_seed(0)
+    model = build_model(cfg)
+    init_weights(model)
+    data = SimulatedData(cfg, dev, 0)
+    spec = TrainerSpec.from_config(to_container(cfg.trainer)).replace(
+        steps=10**6, val_every=0, checkpoint_every=0, image_every=0, **options)
+    cs = CodesignSpec.from_config({**(to_container(cfg.get("codesign")) or {}), "warmup_fraction": 0.0})
+    return JointTrainer(model, data, spec, run_dir, dev, {}, None, 0, cs, 1.0)
