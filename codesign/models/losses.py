@@ -54,9 +54,10 @@ def gradient_penalty(critic: Callable, real: torch.Tensor, fake: torch.Tensor, c
     """WGAN-GP (Gulrajani 2017): mean over samples of (||grad_x~ D(x~)||_2 - 1)^2, without lambda_GP.
 
     x~ = eps * real + (1 - eps) * fake with eps ~ U(0, 1) per sample (``generator`` for reproducible draws; it must
-    live on the device of ``real``; or ``eps`` given, shape (B,)). With ``cond`` the critic sees torch.cat([cond, x~], 1) and the gradient is
-    taken w.r.t. x~ only. real, fake and cond are detached: the penalty trains the critic only. A critic returning
-    (output, features) is accepted. The critic value of a sample is the mean of its output map (PatchGAN patch
+    live on the device of ``real``; or ``eps`` given, shape (B,)). With ``cond`` the critic sees
+    torch.cat([cond, x~], 1) and the gradient is taken w.r.t. x~ only. real, fake and cond are detached: the penalty
+    trains the critic only. A critic returning (output, features) is accepted.
+    The critic value of a sample is the mean of its output map (PatchGAN patch
     scores), the reduction critic_loss uses, so the Lipschitz constraint is on the function whose expectation the
     WGAN loss estimates (summing the patch map instead would ask each patch for 1/num_patches). Per-sample
     gradients assume the critic mixes no samples (no batch norm), as WGAN-GP requires anyway. create_graph=True,

@@ -277,7 +277,8 @@ class EvaluateSpec(SpecMixin):
         for i, a in enumerate(lasers):
             a = require_number(f"evaluate.laser_strengths[{i}]", a, lo=0)
             if laser_preset_name(float(a)) not in PRESETS or PRESETS[laser_preset_name(float(a))]["alpha_l"] != a:
-                raise ConfigError(f"evaluate.laser_strengths[{i}]", a, f"must be one of the paper's strengths {allowed}")
+                raise ConfigError(f"evaluate.laser_strengths[{i}]", a,
+                                  f"must be one of the paper's strengths {allowed}")
         put("laser_strengths", tuple(float(a) for a in lasers))
         stages = require_list("evaluate.stages", self.stages,
                               f"must be a list of robustness stages from {', '.join(ROBUSTNESS_STAGES)} (or [])")
