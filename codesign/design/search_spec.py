@@ -43,7 +43,8 @@ class SearchSpec(SpecMixin):
     the smooth LSR (>= the peak: the design's sampled peak stays below it), published (the published mask's sampled
     peak LSR), a number, or null; restorability_alpha_l: the laser strength whose saturated
     footprint the restorability counts (null: none); max_phase_step: cap [rad] on the phase step between
-    neighbouring pupil samples, auto (the family's: 1.0 for the pixel family, none for the others) | number | null.
+    neighbouring pupil samples, auto (the family's: 1.0 for the pixel and spline families, none for the others),
+    a number or null.
     lsr_p_schedule: the continuation on p (auto: 16 .. 1024 for gradient algorithms, [metrics.lsr_p] for
     derivative-free ones) or a list. pareto_factors: floor factors of the Pareto sweep (null or [] = off);
     pareto_starts / pareto_max_evals (null: max_evals / 2): per factor. check: re-check the best design on a pupil

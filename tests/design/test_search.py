@@ -195,6 +195,22 @@ def test_step_constraint_counts_wrapped_neighbour_steps():
     assert ev.constraints["step"] > 0 and not ev.feasible
 
 
+
+def test_spline_steps_are_capped_so_the_grid_resolves_the_surface():
+    from codesign.design.setup import start_vector
+    from codesign.optics.masks.spline import SplineMask
+
+    assert SplineMask.resolution_step == 1.0  # what search.max_phase_step=auto applies to this family
+    problem, mask = _problem({"kind": "spline", "init": "zero"}, Limits(mtf=0.01, step=SplineMask.resolution_step),
+                             torch.float64)
+    ev, _ = problem.evaluate(start_vector("defocus", mask, None, 5.0).numpy(), 16.0, False)  # <= 10 rad / radius
+    assert ev.constraints["step"] == 0.0
+    k = torch.arange(2 * mask.half + 1)
+    # +-15 rad alternating controls: the cubic spline smooths them to +-15 / 9 rad at the controls, 0 between
+    checker = 15.0 * (-1.0) ** (k[:, None] + k[None, :])
+    ev, _ = problem.evaluate(checker.reshape(-1).numpy(), 16.0, False)
+    assert ev.constraints["step"] > 0 and not ev.feasible
+
 # ---- (c) algorithm names and other settings ------------------------------------------------------------------
 @pytest.mark.parametrize("key, value, message", [
     ("algorithm", "LD_FOO", f"search.algorithm = 'LD_FOO': not an nlopt algorithm nor AL_LBFGS; allowed: {ALLOWED}"),
