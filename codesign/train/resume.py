@@ -85,8 +85,9 @@ def load_trained(path, device: torch.device, key: str = "checkpoint"):
     except ConfigError as err:
         raise ConfigError(key, str(path), f"its stored configuration is not valid in this version of codesign: "
                           f"{err}") from None
-    what = (f"its weights do not fit the model its configuration describes (model.variant={model.spec.variant}, "
-            f"model.size={model.spec.size})")
+    facts = model.summary()  # the restorer interface's, so any plug-in network is named (not SGAN's spec only)
+    what = (f"its weights do not fit the model its configuration describes (model.kind={model.kind}, "
+            f"variant={facts['variant']}, size={facts['size']})")
     load_module_state(model, state["model"], key, path, what)
     generators = model.generators()
     if state.get("ema"):

@@ -106,8 +106,8 @@ def test_stored_configuration_this_version_refuses(trained, tmp_path):
 
 
 @pytest.mark.parametrize("key,value,message", [
-    ("variant", "sgan_f", r"\(model.variant=sgan_f, model.size=tiny\): \d+ tensor\(s\) missing \(e.g. 'g1\."),
-    ("size", "cpu", r"\(model.variant=sgan_b, model.size=cpu\): \d+ tensor\(s\) missing .*; \d+ of another shape "
+    ("variant", "sgan_f", r"\(model.kind=sgan, variant=sgan_f, size=tiny\): \d+ tensor\(s\) missing \(e.g. 'g1\."),
+    ("size", "cpu", r"\(model.kind=sgan, variant=sgan_b, size=cpu\): \d+ tensor\(s\) missing .*; \d+ of another shape "
                     r"\(e.g. '.*': \[4, .*\] in the file, \[16, .*\] here\)"),
 ], ids=["variant", "size"])
 def test_weights_of_another_model_variant_or_size(trained, tmp_path, key, value, message):
@@ -116,6 +116,22 @@ def test_weights_of_another_model_variant_or_size(trained, tmp_path, key, value,
     path = _save(tmp_path, state)
     with pytest.raises(ConfigError, match=_err(path, "its weights do not fit the model its configuration describes "
                                                      + message + ".*" + re.escape(FOREIGN) + "$")):
+        load_trained(path, CPU)
+
+
+def test_a_plug_in_restorer_s_checkpoint_loads_and_its_misfit_is_named(tmp_path):
+    """evaluate / restore read any restorer's checkpoint through the interface (not SGAN's spec fields)."""
+    cfg = tiny_cfg("model=wiener_unet", "model.size=tiny")
+    torch.manual_seed(0)
+    model = build_model(cfg)
+    state = {"model": model.state_dict(), "step": 4, "config": OmegaConf.to_container(cfg, resolve=True)}
+    loaded, generators, _, _ = load_trained(_save(tmp_path, state), CPU)
+    assert loaded.kind == "wiener_unet" and len(generators) == len(model.generators())
+    assert all(torch.equal(a, b) for a, b in zip(loaded.state_dict().values(), model.state_dict().values()))
+    state["config"]["model"]["size"] = "cpu"
+    path = _save(tmp_path, state, "cpu.pt")
+    with pytest.raises(ConfigError, match=_err(path, "its weights do not fit the model its configuration describes "
+                                                     r"\(model.kind=wiener_unet, variant=wiener_unet, size=cpu\): ")):
         load_trained(path, CPU)
 
 
