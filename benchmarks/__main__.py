@@ -16,12 +16,13 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import os
 import sys
 import time
 from pathlib import Path
 
-from benchmarks.common import RESULTS, SCALES, Report, machine, write_json
+from benchmarks.common import RESULTS, SCALES, Report, machine, write_json, write_text
 
 BENCHMARKS = ("psf", "optics", "mask", "sensor", "restoration", "joint", "train_options", "scaling", "accuracy",
               "design")
@@ -90,14 +91,18 @@ def render_docs(reports: list[Report], info: dict, scale: str, seconds: dict, ou
         + ", ".join(f"{k} {v:.0f} s" for k, v in seconds.items()) + ").",
         "",
     ]
-    for rep in reports:
-        lines += [f"## {rep.title}", ""]
-        for note in rep.notes:
-            lines += [note, ""]
-        for table in rep.tables:
-            lines += [table, ""]
-        for fig in rep.figures:
-            lines += [f"![{fig.stem}]({rel}/{fig.name})", ""]
+    return "\n".join(lines + [render_section(rep, rel) for rep in reports])
+
+
+def render_section(rep: Report, figures_rel: str) -> str:
+    """One benchmark's markdown section (figures linked relative to ``figures_rel``)."""
+    lines = [f"## {rep.title}", ""]
+    for note in rep.notes:
+        lines += [note, ""]
+    for table in rep.tables:
+        lines += [table, ""]
+    for fig in rep.figures:
+        lines += [f"![{fig.stem}]({figures_rel}/{fig.name})", ""]
     return "\n".join(lines)
 
 
@@ -115,16 +120,22 @@ def main(argv=None) -> None:
         t0 = time.perf_counter()
         reports.append(importlib.import_module(f"benchmarks.bench_{name}").run(a.scale, out))
         seconds[name] = time.perf_counter() - t0
+        # each section also on its own, so a partial run (--only) keeps its tables
+        write_text(out / f"{name}.md", render_section(reports[-1], "."))
         print(f"[{i}/{len(a.names)}] {name}: {seconds[name]:.0f} s", flush=True)
-    write_json(out / "suite.json", {"machine": info, "scale": a.scale, "seconds": seconds})
+    suite = out / "suite.json"
+    if a.names != list(BENCHMARKS) and suite.is_file():  # a partial run updates its entries, keeps the others'
+        earlier = json.loads(suite.read_text())
+        write_json(suite, {**earlier, "seconds": {**earlier.get("seconds", {}), **seconds},
+                           "machines": {**earlier.get("machines", {}), **{k: info for k in seconds}}})
+    else:
+        write_json(suite, {"machine": info, "scale": a.scale, "seconds": seconds})
     if a.no_docs or a.names != list(BENCHMARKS):
         print(f"\ndone in {sum(seconds.values()) / 60:.1f} min; {docs_path(a.scale).name} left alone "
               f"({'--no-docs' if a.no_docs else 'only part of the suite ran'})")
         return
     docs = docs_path(a.scale)
-    tmp = docs.with_name(docs.name + ".tmp")
-    tmp.write_text(render_docs(reports, info, a.scale, seconds, out))
-    os.replace(tmp, docs)
+    write_text(docs, render_docs(reports, info, a.scale, seconds, out))
     print(f"\ndone in {sum(seconds.values()) / 60:.1f} min; wrote {docs}")
 
 

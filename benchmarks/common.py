@@ -138,13 +138,18 @@ def peak_cuda_mib(dev, reset: bool = False) -> float | None:
     return torch.cuda.max_memory_allocated() / 2**20
 
 
-def write_json(path: Path, data: dict) -> Path:
-    """Atomic JSON write (temp file, then rename)."""
+def write_text(path: Path, text: str) -> Path:
+    """Atomic text write (temp file, then rename)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
+    tmp.write_text(text)
     os.replace(tmp, path)
     return path
+
+
+def write_json(path: Path, data: dict) -> Path:
+    """Atomic JSON write."""
+    return write_text(path, json.dumps(data, indent=2) + "\n")
 
 
 def fit_exponent(xs: list[float], ys: list[float]) -> float:

@@ -6,9 +6,8 @@ AL_LBFGS (the high-dimensional default): for each p of the schedule, a few outer
 with LD_LBFGS (one forward and one backward pass per evaluation: the gradient of L is that of
 f + sum_i relu(mu_i + rho c_i) c_i), then mu_i <- relu(mu_i + rho c_i), and rho x4 when the worst violation did not
 shrink 4x. A smooth LSR at small p sees the whole PSF, at large p only its highest peaks: starting at p = 16 and
-ending near the true maximum lets the early stages shape the PSF and the late ones flatten its top. Measured on
-the 127k-variable pixel family (docs/codesign.md), it reaches in minutes what Adam reaches never, and nlopt's own
-AUGLAG (same inner solver) stopped far from the constraints at its default settings.
+ending near the true maximum lets the early stages shape the PSF and the late ones flatten its top. What it reaches
+on every family, and in what time, is measured in docs/codesign.md Sec. 5 (benchmarks: design).
 """
 from __future__ import annotations
 

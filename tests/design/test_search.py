@@ -247,6 +247,8 @@ def test_unknown_search_key_and_auto_choices():
     s = SearchSpec()
     assert (s.resolved_algorithm(10), s.resolved_starts(10), s.resolved_max_evals(10)) == ("LN_COBYLA", 4, 150)
     assert (s.resolved_algorithm(5000), s.resolved_starts(5000), s.resolved_max_evals(5000)) == ("AL_LBFGS", 1, 2400)
+    # 36 Zernike terms: derivative-free, one long start
+    assert (s.resolved_algorithm(36), s.resolved_starts(36), s.resolved_max_evals(36)) == ("LN_COBYLA", 1, 2400)
     assert s.schedule(10, 16.0) == (16.0,) and s.schedule(5000, 16.0)[0] == 16.0 and s.schedule(5000, 16)[-1] == 1024
     assert SearchSpec(pareto_factors=[]).pareto_factors is None
 
