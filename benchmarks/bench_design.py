@@ -5,11 +5,12 @@ optics (384 samples across the aperture, 640-pixel window): the best LSR at the 
 (factor 1.0, the family's energy floor), its ratio to the limit, its restorability, the same after 8-level
 quantization, and the re-check on a pupil grid twice as fine with a window twice as wide; then the floor sweep
 (Pareto front) of each; then the half rings on a 1280 window, and the spline on a 1280 window that holds its whole
-PSF (512 samples across the aperture, the floor the published mask's mtf_mean there). Then restorability validated: over 18 masks of every family spanning the LSR range, the
-predicted PSNR against the PSNR of tuned Wiener filters measured on simulated captures of held-out photographs
-(../shared/data/scenes when present, else the built-in scenes; Spearman rank correlation). Then the
-restorability objective: the best design at an LSR ceiling of the published LSR and of 1e-3, measured the same
-way. Every search's outputs stay in results/<scale>/design/<run>/.
+PSF (512 samples across the aperture, the floor the published mask's mtf_mean there). Then restorability
+validated: over 19 masks of every family spanning the LSR range, the predicted PSNR against the PSNR of tuned
+Wiener filters measured on simulated captures of held-out photographs (../shared/data/scenes when present, else
+the built-in scenes; Spearman rank correlation). Then the restorability objective: the best design at an LSR
+ceiling of the published LSR and of 1e-3, measured the same way. Every search's outputs stay in
+results/<scale>/design/<run>/.
 
     python -m benchmarks --only design [--scale full]
 """
