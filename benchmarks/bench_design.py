@@ -156,18 +156,17 @@ def _validation_masks(results: dict, out: Path):
 
 def _camera(mask_cfg: dict, vector=None):
     """A frozen camera of the default optics and sensor with this mask."""
-    from codesign.camera import Camera, sensor_spec
-    from codesign.optics import OpticalSystem, OpticsSpec
-    from codesign.optics.masks import build_mask
-    from codesign.sensor.simulator import SensorSimulator
+    from omegaconf import OmegaConf
 
-    cfg = _cfg([])
-    spec = OpticsSpec.from_config(dict(cfg.optics))
-    system = OpticalSystem(spec)
-    mask = build_mask(mask_cfg, system.grid, spec.aperture_diameter_m)
+    from codesign.camera import build_camera
+
+    cfg = OmegaConf.create(OmegaConf.to_container(_cfg([]), resolve=True))  # unstructured: any family's keys
+    cfg.mask = mask_cfg
+    camera = build_camera(cfg, torch.device("cpu"))
     if vector is not None:
-        mask.set_vector(vector)
-    return Camera(system, mask.freeze(), SensorSimulator(sensor_spec(cfg), spec))
+        camera.mask.set_vector(vector)
+        camera.invalidate()
+    return camera
 
 
 class WienerReference:
@@ -185,8 +184,9 @@ class WienerReference:
         from codesign.train.evaluation import remove_black_level, replicate_pad
 
         n = camera.image_size
-        out = camera(batch, fixed_scene_params(batch.shape[0], alpha_l=0.0), seed=seed)
-        out["read_noise_mean_e"] = torch.full((batch.shape[0],), 390.0)
+        params = fixed_scene_params(batch.shape[0], alpha_l=0.0)
+        out = camera(batch, params, seed=seed)
+        out["read_noise_mean_e"] = params.read_noise_mean_e  # the black level, as the training data carries it
         y = replicate_pad(remove_black_level(out, camera.sensor.full_well_e), n).to(torch.float64)
         return y, field_of_view(out["scene"], n).to(torch.float64)
 

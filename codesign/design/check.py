@@ -20,7 +20,7 @@ import math
 
 import torch
 
-from codesign.optics import OpticalSystem, RadialMTF
+from codesign.optics import OpticalSystem, RadialMTF, metrics
 from codesign.optics.propagation import mft_matrix
 from codesign.optics.grid import axis_coords
 
@@ -60,8 +60,6 @@ def evaluate_on(spec, mask, band, dtype=torch.float32, design_spec=None) -> dict
            "window_energy": float(psf.sum()), "pupil_n": spec.grid_n, "focal_n": spec.focal_n}
     if design_spec is None or design_spec.focal_n == spec.focal_n:
         radial = RadialMTF(spec, device=psf.device)
-        from codesign.optics import metrics
-
         out["mtf_mean"] = float(radial.summary(radial(metrics.mtf(psf)), band)[0])
     else:
         out["mtf_mean"] = mtf_at_design_bins(psf, design_spec, spec, band)

@@ -77,11 +77,16 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     return out["lsr"] if out["feasible"] else float("nan")
 
 
-def _measure(monitor, limit, rest, mask) -> tuple[dict, dict]:
-    values, arrays = monitor.measure(mask, refine=True)
+def _add_limit(values: dict, arrays: dict, limit) -> None:
+    """Window energy, the limit at this mtf_mean and energy, and the LSR's ratio to it, into ``values``."""
     values["window_energy"] = float(arrays["psf"].sum())
     values["lsr_limit"] = limit.lsr_limit(values["mtf_mean"], values["window_energy"])
     values["lsr_over_limit"] = values["lsr"] / values["lsr_limit"]
+
+
+def _measure(monitor, limit, rest, mask) -> tuple[dict, dict]:
+    values, arrays = monitor.measure(mask, refine=True)
+    _add_limit(values, arrays, limit)
     values["restorability"] = rest.score(mask)
     return values, arrays
 
@@ -107,9 +112,7 @@ def _outputs(run_dir: Path, s: SearchSpec, ms, system, mask, published, base, ba
         raise ConfigError("search", s.objective, "no evaluation finished with finite figures: nothing to report")
     mask.set_vector(torch.from_numpy(x))
     values, arrays = _measure(monitor, limit, rest, mask)
-    base.update(window_energy=float(base_arr["psf"].sum()),
-                lsr_limit=limit.lsr_limit(base["mtf_mean"], float(base_arr["psf"].sum())))
-    base["lsr_over_limit"] = base["lsr"] / base["lsr_limit"]
+    _add_limit(base, base_arr, limit)
     if not feasible:
         log.error("NO FEASIBLE POINT in %d evaluations: the outputs describe the point closest to the constraints "
                   "(violation %.3g)", main.problem.evaluations, main.problem.least.violation)
@@ -142,7 +145,7 @@ def _outputs(run_dir: Path, s: SearchSpec, ms, system, mask, published, base, ba
         "focal_n": spec.focal_n, "focal_pitch_m": spec.focal_pitch_m, "propagator": system.method,
         "precision": s.precision, "device": str(device), "threads": torch.get_num_threads()}
     io.write_json(run_dir / "metrics.json", metrics)
-    _figures(run_dir, system, mask, published, (values, arrays), (base, base_arr), limit, ms, search, front)
+    _figures(run_dir, system, mask, (values, arrays), (base, base_arr), limit, ms, monitor.radial, search, front)
     log.info("best %s: LSR %.4g (published %.4g, %.2fx the limit %.4g), mtf_mean %.4g, window energy %.4f, "
              "restorability %.2f dB (published %.2f)%s; %d evaluations in %.0f s (%.2f/s); wrote %s",
              "design" if feasible else "INFEASIBLE point", values["lsr"], base["lsr"], values["lsr_over_limit"],
@@ -167,21 +170,21 @@ def _write_evaluations(path: Path, sweeps, mask) -> None:
     io.atomic_write_bytes(path, lambda f: f.write(buf.getvalue().encode()))
 
 
-def _figures(run_dir: Path, system, mask, published, best, baseline, limit, ms, search, front) -> None:
+def _figures(run_dir: Path, system, mask, best, baseline, limit, ms, radial, search, front) -> None:
     (values, arrays), (base, base_arr) = best, baseline
     spec = system.spec
     ap = system.grid.aperture.cpu().numpy()
     np_ = lambda t: t.detach().cpu().numpy()  # noqa: E731
     with torch.no_grad():
         psf0 = system.uncoded_psf()
-        rad0 = MaskMonitor(system, None, ms.mtf_band, ms.lsr_p).radial(metrics.mtf(psf0))
+        rad0 = radial(metrics.mtf(psf0))
     for name, v, arr, who in (("", values, arrays, f"best {mask.kind}"), ("published_", base, base_arr, "published")):
         io.save_figure(run_dir / f"{name}phase.png", plots.phase_figure(np_(arr["phase"]), ap, spec.pupil_pitch_m,
                                                                        f"{who} mask: pupil phase"))
         io.save_figure(run_dir / f"{name}psf_log.png", plots.psf_figure(
             np_(arr["psf"]), np_(psf0), spec.focal_pitch_m, f"{who} mask: LSR = {v['lsr']:.3g}, "
             f"mtf_mean = {v['mtf_mean']:.3g}"))
-    freqs = np_(MaskMonitor(system, None, ms.mtf_band, ms.lsr_p).radial.freqs)
+    freqs = np_(radial.freqs)
     io.save_figure(run_dir / "mtf.png", plots.mtf_figure(
         freqs, {"best mask": np_(arrays["mtf_radial"]), "published mask": np_(base_arr["mtf_radial"]),
                 "uncoded": np_(rad0), "analytic circular pupil": circular_mtf(torch.from_numpy(freqs)).numpy()},
