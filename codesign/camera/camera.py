@@ -105,7 +105,7 @@ class Camera(torch.nn.Module):
     def optics_of(self, phase: torch.Tensor, key: tuple | None = None) -> OpticsOutputs:
         """PSF state, network-pitch kernel and padded-grid OTF of a pupil phase; all carry the phase's graph.
         ``key``: the cache key of a frozen mask's values (the simulator then keeps the kernels for its images)."""
-        state = psf_state(self.system, phase)
+        state = psf_state(self.system, phase, self.mask.plate_cell_m)
         kernel = self.simulator.kernel(state, key=key)
         return OpticsOutputs(state, kernel, otf_from_kernel(kernel, self.padded_size).to(self.device), key)
 

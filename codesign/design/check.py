@@ -5,8 +5,9 @@ An optimizer finds every loophole of a simulation: light pushed beyond the focal
 LSR and MTF) and a phase that the pupil grid under-samples (its aliased PSF is not the physical one). So every
 reported design is evaluated three ways:
   design   the search's own optics (pupil grid, window)
-  fine     a pupil grid with half the pitch (the mask sampled there by its family: analytic families evaluate
-           their formula, the pixel family interpolates its surface), on the design window
+  fine     a pupil grid with 1 / ``fine_factor`` of the pitch (the mask sampled there by its family: analytic
+           families evaluate their formula, fine_factor 2; the pixel family's plate cells split into 3 x 3
+           samples), on the design window
   whole    the fine grid on a window twice as wide (its window energy says how much of the PSF it holds). Not the
            design grid: the far field of a sampled pupil repeats with period lambda f / pitch, so light a mask sends
            beyond the design grid's period folds back into a wide window on that grid and looks like it stayed
@@ -54,9 +55,9 @@ def evaluate_on(spec, mask, band, dtype=torch.float32, design_spec=None) -> dict
     sampled = mask.on_grid(system.grid, spec.aperture_diameter_m) if system.grid.n != mask.grid.n or \
         not math.isclose(system.grid.pitch, mask.grid.pitch, rel_tol=1e-12) else mask
     phase = sampled.phase().to(dtype)
-    psf = system.psf(phase)
+    psf = system.psf(phase, sampled.plate_cell_m)
     h0 = system.uncoded_peak
-    out = {"lsr": system.refined_peak(phase, psf) / h0, "lsr_sampled": float(psf.max()) / h0,
+    out = {"lsr": system.refined_peak(phase, psf, cell_m=sampled.plate_cell_m) / h0, "lsr_sampled": float(psf.max()) / h0,
            "window_energy": float(psf.sum()), "pupil_n": spec.grid_n, "focal_n": spec.focal_n}
     if design_spec is None or design_spec.focal_n == spec.focal_n:
         radial = RadialMTF(spec, device=psf.device)
@@ -69,7 +70,7 @@ def evaluate_on(spec, mask, band, dtype=torch.float32, design_spec=None) -> dict
 def verify_design(mask, spec, band, tolerance: float = 0.02, dtype=torch.float32, wide_factor: int = 2) -> dict:
     """The design, fine and whole evaluations of ``mask`` (designed on ``spec``) and whether they agree."""
     design = evaluate_on(spec, mask, band, dtype)
-    fine_spec = spec.replace(pupil_pitch_m=spec.pupil_pitch_m / 2, pupil_n=None)
+    fine_spec = spec.replace(pupil_pitch_m=spec.pupil_pitch_m / mask.fine_factor, pupil_n=None)
     fine = evaluate_on(fine_spec, mask, band, dtype)
     whole_spec = fine_spec.replace(focal_n=wide_window(fine_spec, wide_factor))
     whole = evaluate_on(whole_spec, mask, band, dtype, design_spec=spec)
@@ -77,4 +78,5 @@ def verify_design(mask, spec, band, tolerance: float = 0.02, dtype=torch.float32
            for k in ("lsr", "mtf_mean")}
     worst = max(abs(v) for v in dev.values())
     return {"design": design, "fine": fine, "whole": whole, **dev, "max_deviation": worst,
+            "fine_factor": mask.fine_factor,
             "agree": worst <= tolerance, "tolerance": tolerance}

@@ -114,7 +114,7 @@ class LSRConstraint:
 
     @torch.no_grad()
     def measure(self, mask) -> float:
-        return float(self.smooth_lsr(self.system.psf(mask.phase())))
+        return float(self.smooth_lsr(self.system.mask_psf(mask)))
 
     def penalty(self, lsr: torch.Tensor) -> torch.Tensor:
         excess = torch.relu(lsr / self.lsr_max - (1.0 - self.spec.margin))

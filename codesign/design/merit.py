@@ -53,7 +53,7 @@ def mask_figures_of_merit(system, mask, radial: RadialMTF, band: tuple[float, fl
     arrays: phase (n, n), psf (m, m), mtf2d (m, m, DC centred), mtf_radial (n_bins,).
     """
     phase = mask.phase()
-    psf = system.psf(phase)
+    psf = system.psf(phase, mask.plate_cell_m)
     h0 = system.uncoded_peak
     sampled = float(metrics.lsr_sampled(psf, h0))
     smooth = float(metrics.lsr_smooth(psf, h0, p))
@@ -63,7 +63,7 @@ def mask_figures_of_merit(system, mask, radial: RadialMTF, band: tuple[float, fl
     out = {"lsr_sampled": sampled, "lsr_smooth": smooth, "mtf_mean": float(mean), "mtf_min": float(mn),
            "bsr": float(psf.sum()) / system.uncoded_energy}
     if refine:
-        out["lsr"] = system.refined_peak(phase, psf) / h0
+        out["lsr"] = system.refined_peak(phase, psf, cell_m=mask.plate_cell_m) / h0
         out["lsr_smooth_gap"] = smooth / out["lsr"] - 1
     else:
         out["lsr_smooth_gap"] = smooth / sampled - 1
@@ -78,7 +78,7 @@ def time_forward_backward(system: OpticalSystem, mask, p: float, repeats: int) -
         sync = torch.cuda.synchronize if system.grid.rho.is_cuda else (lambda: None)
         sync()
         t0 = time.perf_counter()
-        loss = metrics.lsr_smooth(system.psf(mask.phase()), system.uncoded_peak, p)
+        loss = metrics.lsr_smooth(system.mask_psf(mask), system.uncoded_peak, p)
         sync()
         t1 = time.perf_counter()
         if loss.requires_grad:

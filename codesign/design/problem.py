@@ -103,7 +103,7 @@ class DesignProblem:
     # ---- one evaluation -------------------------------------------------------------------------------------------
     def _figures(self, p: float) -> dict[str, torch.Tensor]:
         phase = self.mask.phase()
-        psf = self.system.psf(phase)
+        psf = self.system.psf(phase, self.mask.plate_cell_m)
         h = psf.to(torch.float64)
         out = {"lsr_smooth": metrics.lsr_smooth(h, self.system.uncoded_peak, p),
                "lsr_sampled": h.detach().max() / self.system.uncoded_peak,

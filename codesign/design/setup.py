@@ -29,7 +29,7 @@ class RestorabilityTools:
     def score(self, mask) -> float:
         """Expected Wiener PSNR [dB] of ``mask`` on the search's optics."""
         system = self.camera.system
-        kernel = self.camera.simulator.kernel(psf_state_of(system, system.psf(mask.phase())))
+        kernel = self.camera.simulator.kernel(psf_state_of(system, system.mask_psf(mask)))
         return float(self.module(kernel))
 
 

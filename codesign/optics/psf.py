@@ -3,6 +3,11 @@
 Normalization: ``psf[k]`` is the fraction of the total transmitted energy that falls on focal pixel k (the
 irradiance at the pixel centre times the pixel area), so the PSF sums to 1 over the whole focal plane and to
 ``psf_energy_in_window`` over the window. Coded and uncoded PSFs thus have equal energy, as the LSR needs.
+
+A pixelated plate (a phase constant over square cells of width c, the pixel family) is exact on a grid of one
+sample per cell: its transmission is sum_j t_j rect((x - x_j) / c), whose far field is the sampled pupil's DFT
+times sinc(c x / (lambda f)) sinc(c y / (lambda f)). ``psf(phase, cell_m=c)`` applies that envelope: no aliasing,
+and the light the plate sends to high angles is attenuated there as it is in the lab.
 """
 from __future__ import annotations
 
@@ -59,6 +64,7 @@ class OpticalSystem(torch.nn.Module):
         scale = (spec.pupil_pitch_m * spec.focal_pitch_m / spec.lambda_f) ** 2
         self.uncoded_peak = float(a.sum() ** 2 * scale / (a**2).sum())
         self._uncoded_energy = None
+        self._envelopes: dict[float, torch.Tensor] = {}
 
     @property
     def uncoded_energy(self) -> float:
@@ -76,9 +82,30 @@ class OpticalSystem(torch.nn.Module):
         """Complex pupil field for a (..., n, n) phase [rad]."""
         return pupil_field(self.grid.aperture, phase)
 
-    def psf(self, phase: torch.Tensor) -> torch.Tensor:
-        """Unit-energy coded PSF (..., m, m) on the focal window for a (..., n, n) phase [rad]."""
-        return self.propagator.intensity(self.field(phase))
+    def psf(self, phase: torch.Tensor, cell_m: float | None = None) -> torch.Tensor:
+        """Unit-energy coded PSF (..., m, m) on the focal window for a (..., n, n) phase [rad]; ``cell_m``: the
+        phase is a plate of square cells of this width (one per pupil sample), None: point samples of a smooth
+        surface."""
+        psf = self.propagator.intensity(self.field(phase))
+        return psf if cell_m is None else psf * self.cell_envelope(cell_m).to(psf)
+
+    def mask_psf(self, mask) -> torch.Tensor:
+        """``psf`` of a mask's phase, with its plate cell (``mask.plate_cell_m``)."""
+        return self.psf(mask.phase(), mask.plate_cell_m)
+
+    def cell_envelope(self, cell_m: float, coords: torch.Tensor | None = None) -> torch.Tensor:
+        """sinc^2(c x / (lambda f)) sinc^2(c y / (lambda f)) at the window's samples (m, m), float64; or, with
+        ``coords`` (k,), the 1-D factor at those focal coordinates [m]."""
+        if not (isinstance(cell_m, (int, float)) and math.isfinite(cell_m) and cell_m > 0):
+            raise ValueError(f"a plate cell must be a positive width in m, got {cell_m!r}")
+        if coords is not None:
+            return torch.sinc(coords.to(torch.float64) * (cell_m / self.spec.lambda_f)) ** 2
+        key = float(cell_m)
+        if key not in self._envelopes:
+            s = self.cell_envelope(key, axis_coords(self.spec.focal_n, self.spec.focal_pitch_m,
+                                                    device=self.grid.rho.device))
+            self._envelopes[key] = s[:, None] * s[None, :]
+        return self._envelopes[key]
 
     def uncoded_psf(self) -> torch.Tensor:
         """The uncoded PSF h0 computed through the same propagator (zero phase), (m, m)."""
@@ -86,12 +113,12 @@ class OpticalSystem(torch.nn.Module):
 
     @torch.no_grad()
     def refined_peak(self, phase: torch.Tensor, psf: torch.Tensor, candidates: int = 8,
-                     oversample: int = 8) -> float:
+                     oversample: int = 8, cell_m: float | None = None) -> float:
         """Peak of the continuous PSF (per-pixel units), refined between samples around the top local maxima.
 
         The sampled PSF can miss its maximum by up to a fraction of a sample; evaluating the field with a small
         MFT at pitch dx / oversample over +-1 sample around each of the ``candidates`` highest local maxima
-        gives the continuous peak (the physical irradiance peak that damages a sensor).
+        gives the continuous peak (the physical irradiance peak that damages a sensor). ``cell_m``: as in ``psf``.
         """
         s = self.spec
         p = psf.detach().reshape(s.focal_n, s.focal_n)
@@ -110,5 +137,9 @@ class OpticalSystem(torch.nn.Module):
             yc = (iy - s.focal_n // 2 + off) * s.focal_pitch_m
             xc = (ix - s.focal_n // 2 + off) * s.focal_pitch_m
             e = mft(field, mft_matrix(yc, pupil, s.lambda_f, cdtype), mft_matrix(xc, pupil, s.lambda_f, cdtype))
-            best = max(best, float((e.abs() ** 2).max()) * scale)
+            irradiance = e.abs() ** 2
+            if cell_m is not None:
+                irradiance = irradiance * (self.cell_envelope(cell_m, yc)[:, None]
+                                           * self.cell_envelope(cell_m, xc)[None, :]).to(irradiance)
+            best = max(best, float(irradiance.max()) * scale)
         return best

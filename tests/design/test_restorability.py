@@ -82,7 +82,7 @@ def test_noise_variance_of_a_textured_scene_uses_its_mean_square():
     follows the mean of the signal's square, not the square of its mean. The variance of two captures'
     difference / 2 is the noise alone."""
     with initialize_config_dir(config_dir=str(REPO_ROOT / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=["+experiment=baseline", *SMOKE, "mask=pixel", "mask.init=zero"])
+        cfg = compose("config", overrides=["+experiment=baseline", *SMOKE, "mask=zernike", "mask.init=zero"])
     camera = build_camera(cfg, "cpu")
     n_scene = camera.scene_size
     scenes = torch.full((4, 1, n_scene, n_scene), 0.2)

@@ -326,6 +326,28 @@ def test_an_aliased_half_ring_is_caught_by_the_recheck():
     assert abs(verify_design(published, spec, BAND)["lsr_fine_deviation"]) < 0.05  # measured 3.1 % at 192 across
 
 
+def test_a_rough_pixel_plate_passes_the_recheck_and_a_smooth_reading_would_not():
+    """Phase steps up to pi between cells: as a plate of cells (sinc envelope) the design grid's figures are the
+    plate's, and the grid three times as fine agrees; the same samples read as point samples (no envelope) give
+    another LSR, which the plate model no longer lets a search exploit."""
+    from codesign.design.merit import mask_figures_of_merit
+    from codesign.optics import RadialMTF
+
+    spec = OpticsSpec.with_samples_across(64, focal_n=128)
+    system = OpticalSystem(spec, dtype=torch.float64)
+    mask = build_mask({"kind": "pixel", "init": "defocus", "defocus_rad": 30.0}, system.grid,
+                      spec.aperture_diameter_m)
+    rng = torch.Generator().manual_seed(0)
+    mask.set_vector(mask.to_vector() + torch.rand(mask.vector_size, generator=rng, dtype=torch.float64) * math.pi)
+    mask.freeze()
+    check = verify_design(mask, spec, BAND, dtype=torch.float64)
+    assert check["fine_factor"] == 3 and check["fine"]["pupil_n"] > 2.5 * system.grid.n
+    assert abs(check["lsr_fine_deviation"]) < 0.02 and abs(check["mtf_mean_fine_deviation"]) < 0.02
+    plate, _ = mask_figures_of_merit(system, mask, RadialMTF(spec), BAND, 16.0)
+    bare = float(system.psf(mask.phase()).max()) / system.uncoded_peak
+    assert abs(bare / plate["lsr_sampled"] - 1) > 0.01  # the envelope matters for such a plate (measured 1.8 %)
+
+
 def test_energy_floor_keeps_the_light_in_the_window():
     cfg = {**POOR_HALFRING, "r": [3.0, 17.0, 1.5, 15.0, 2.0], "r_bounds": [0.5, 60.0]}  # rings reach the edge
     problem, mask = _problem(cfg, Limits(mtf=0.05, energy=0.9))

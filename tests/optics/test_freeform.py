@@ -93,12 +93,12 @@ def test_gradcheck_pixel_phase_to_smooth_lsr(tiny_system64):
 
     def lsr(values):
         phase = torch.func.functional_call(mask, {"values": values}, ())
-        return metrics.lsr_smooth(system.psf(phase), h0, p=16.0)
+        return metrics.lsr_smooth(system.psf(phase, mask.plate_cell_m), h0, p=16.0)
 
     values = mask.values.detach().clone().requires_grad_(True)
     assert torch.autograd.gradcheck(lsr, (values,), eps=1e-6, atol=1e-8, rtol=1e-4)
     # the module path gives the same gradient
-    loss = metrics.lsr_smooth(system.psf(mask.phase()), h0, p=16.0)
+    loss = metrics.lsr_smooth(system.mask_psf(mask), h0, p=16.0)
     loss.backward()
     (g_ref,) = torch.autograd.grad(lsr(values), values)
     torch.testing.assert_close(mask.values.grad, g_ref, rtol=1e-12, atol=1e-15)

@@ -103,15 +103,47 @@ def test_a_family_that_cannot_fit_refuses_another_familys_record(system, tmp_pat
         build_mask({"kind": "spiral", "init": str(tmp_path / "hr.json")}, system.grid, W_A)
 
 
-def test_a_pixel_record_moves_to_another_grid(system, tmp_path):
-    mask = build_mask(CONFIGS["pixel"], system.grid, W_A)
+def test_a_pixel_record_moves_to_another_grid_as_the_same_plate(system, tmp_path):
+    """On a grid 3x as fine every cell of the plate splits into 3 x 3 samples of its phase."""
+    mask = _perturbed(system, "pixel")
     write_record(tmp_path / "p.json", mask, system.spec)
-    fine = OpticalSystem(system.spec.replace(pupil_pitch_m=system.spec.pupil_pitch_m / 2, pupil_n=None),
+    fine = OpticalSystem(system.spec.replace(pupil_pitch_m=system.spec.pupil_pitch_m / 3, pupil_n=None),
                          dtype=torch.float64)
     moved = build_mask({"kind": "pixel", "init": str(tmp_path / "p.json")}, fine.grid, W_A)
-    ref = 6.0 * (fine.grid.rho / (W_A / 2)) ** 2  # the defocus surface the samples came from
-    inside = fine.grid.aperture > 0.5
-    assert float((moved.phase().detach() - ref)[inside].abs().max()) < 0.05  # bilinear on a smooth surface
+    n, nf = system.grid.n, fine.grid.n
+    coarse = mask.phase().detach()
+    cells = (torch.arange(nf) - nf // 2 + 1) // 3 + n // 2  # fine sample i lies in cell round((i - nf // 2) / 3)
+    inside = (fine.grid.aperture > 0.5) & (cells[:, None] >= 0) & (cells[None, :] < n)
+    expected = coarse[cells.clamp(0, n - 1)][:, cells.clamp(0, n - 1)]
+    assert bool(inside.any())
+    torch.testing.assert_close(moved.phase().detach()[inside], expected[inside], rtol=0, atol=1e-6)
+    assert moved.plate_cell_m == pytest.approx(fine.grid.pitch)
+
+
+def test_a_plate_psf_is_exact_on_its_design_grid(system):
+    """The cell envelope makes the one-sample-per-cell PSF the plate's exact far field: the same plate (field and
+    amplitude cell by cell) on grids 3x and 5x as fine gives the same PSF to rounding, on a window as wide as the
+    design grid's replica period (where the envelope weighs most)."""
+    mask = _perturbed(system, "pixel")
+    field = system.field(mask.phase().detach())
+    field[[0, -1], :] = 0  # any plate will do: empty border cells let the fine grids clamp to them
+    field[:, [0, -1]] = 0
+    period = system.spec.replica_period_m
+    m = int(period / system.spec.focal_pitch_m) // 2 * 2
+    psfs = []
+    for k in (1, 3, 5):
+        spec = system.spec.replace(pupil_pitch_m=system.spec.pupil_pitch_m / k, pupil_n=system.grid.n * k,
+                                   focal_n=m, propagator="mft")
+        sysk = OpticalSystem(spec, dtype=torch.float64)
+        idx = ((torch.arange(spec.pupil_n) - spec.pupil_n // 2 + k // 2) // k + system.grid.n // 2).clamp(
+            0, system.grid.n - 1)
+        fk = field[idx][:, idx]  # the same plate: each cell's field on its k x k samples
+        psfs.append(sysk.propagator.intensity(fk) * sysk.cell_envelope(sysk.grid.pitch))
+    for other in psfs[1:]:
+        torch.testing.assert_close(other, psfs[0], rtol=1e-9, atol=1e-14 * float(psfs[0].max()))
+    # without the envelope the coarse grid's PSF repeats with the replica period: not the plate's
+    bare = OpticalSystem(system.spec.replace(focal_n=m, propagator="mft"), dtype=torch.float64)
+    assert float((bare.propagator.intensity(field) - psfs[1]).abs().max()) > 1e-3 * float(psfs[1].max())
 
 
 def test_quantize_levels_and_straight_through_gradient():

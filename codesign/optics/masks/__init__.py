@@ -103,11 +103,11 @@ def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix:
 
 
 def record_phase(record: dict, grid, aperture_diameter_m: float) -> torch.Tensor:
-    """The (n, n) phase of a loaded record's mask on ``grid`` (a pixel record designed on another grid is
-    interpolated from it)."""
+    """The (n, n) phase of a loaded record's mask on ``grid`` (a pixel record designed on another grid: its plate
+    sampled there, cell by cell)."""
     kind = record["kind"]
     if kind == "pixel":
-        from codesign.optics.masks.pixel import interpolate_phase
+        from codesign.optics.masks.pixel import resample_plate
 
         values = torch.tensor(record["values"], dtype=torch.float64)
         if int(record["grid_n"]) == grid.n and abs(float(record["pitch_m"]) / grid.pitch - 1) < 1e-9 and \
@@ -117,7 +117,7 @@ def record_phase(record: dict, grid, aperture_diameter_m: float) -> torch.Tensor
         if values.numel() != src.support.numel():
             raise ConfigError("mask.init", record.get("path", "record"), f"holds {values.numel()} pixel values, "
                               f"its grid ({src.n} x {src.n}) has {src.support.numel()} samples in the aperture")
-        return interpolate_phase(src.scatter(values), src, grid).to(grid.rho)
+        return resample_plate(src.scatter(values), src, grid).to(grid.rho)
     cfg = {**record, "levels": record.get("levels"), "preset": None}  # the record's own values, not a preset
     mask = FAMILIES[kind].from_config(cfg, grid, aperture_diameter_m,
                                       **({"record": record} if kind != "halfring" else {}))

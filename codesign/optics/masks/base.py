@@ -78,6 +78,8 @@ class Mask(torch.nn.Module):
     # start 0 of a search with search.init=auto: published (the published mask in this family), mask (the
     # configured one) or defocus (a near flat-top PSF, for the families that fit any phase)
     search_start: ClassVar[str] = "published"
+    # the design check's finer pupil grid: pitch / fine_factor (2; the pixel family's cells split exactly into 3 x 3)
+    fine_factor: ClassVar[int] = 2
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -91,6 +93,12 @@ class Mask(torch.nn.Module):
                                                                   integer=True)
 
     # ---- the phase ------------------------------------------------------------------------------------------------
+    @property
+    def plate_cell_m(self) -> float | None:
+        """Width [m] of the square cells over which the phase is constant (a pixelated plate: its PSF takes the
+        cells' sinc envelope, OpticalSystem.psf), or None: the pupil samples are point samples of a smooth surface."""
+        return None
+
     def support_phase(self) -> torch.Tensor:  # pragma: no cover - abstract
         raise NotImplementedError
 

@@ -1,10 +1,12 @@
-"""The per-pixel (freeform) phase: a learnable phase at every pupil sample inside the aperture.
+"""The per-pixel (freeform) phase: a pixelated plate, one square cell of constant phase per pupil sample.
 
-Physically a continuous phase surface through the sample values: on another pupil grid (a finer one, to check that
-the design grid resolves it) the phase is interpolated bilinearly, with each neighbour's phase taken within pi of
-its cell's first corner, so that 2 pi wraps (which leave the field exp(i phi) unchanged) interpolate correctly.
-A design whose neighbouring samples differ by more than pi is not resolved by its grid: the finer-grid check then
-disagrees, and ``max_step`` reports it.
+A plate of cells is what a lithographic multi-level plate or a phase SLM is, and it is exact on its design grid:
+the far field of sum_j A_j exp(i phi_j) rect((x - x_j) / c) is the sampled pupil's DFT times the cell's sinc
+envelope, which the PSF applies (``plate_cell_m``, OpticalSystem.psf). Nothing is aliased, whatever the steps
+between cells. On another pupil grid each sample takes the phase of the cell it falls in (``resample_plate``):
+exact on a grid whose pitch is the cell width over an odd integer (centred like the design grid, each cell then
+holds k x k samples), so the design check evaluates the same plate on a grid three times as fine, where only the
+aperture's edge is sampled differently.
 """
 from __future__ import annotations
 
@@ -47,8 +49,8 @@ class PixelPhaseMask(Mask):
 
     kind = "pixel"
     Spec = PixelSpec
-    resolution_step = 1.0  # rad: a phase per sample learns structure between samples unless its steps are capped
     fits_phases = True
+    fine_factor = 3  # cells split exactly into 3 x 3 samples of a centred grid (2 x 2 would cut samples in half)
     search_start = "defocus"
 
     def __init__(self, grid: PupilGrid, init_phase: torch.Tensor | None = None, levels: int | None = None):
@@ -64,6 +66,10 @@ class PixelPhaseMask(Mask):
         if not bool(torch.isfinite(values).all()):
             raise ValueError("mask.init phase holds NaN or Inf inside the aperture")
         self.values = torch.nn.Parameter(values.clone())
+
+    @property
+    def plate_cell_m(self) -> float:
+        return self.grid.pitch
 
     def support_phase(self) -> torch.Tensor:
         return self.values
@@ -89,8 +95,8 @@ class PixelPhaseMask(Mask):
         return {"grid_n": self.grid.n, "pitch_m": self.grid.pitch}
 
     def max_step(self) -> float:
-        """Largest phase difference [rad] between horizontally or vertically neighbouring support samples, each
-        taken modulo 2 pi into [0, pi]: above ~pi / 2 the grid under-samples the surface."""
+        """Largest phase difference [rad] between horizontally or vertically neighbouring cells, each taken modulo
+        2 pi into [0, pi] (a plate is exact with any steps; this says how rough it is)."""
         phase = self.phase().detach().to(torch.float64)
         inside = self.grid.aperture > 0
         worst = 0.0
@@ -102,7 +108,7 @@ class PixelPhaseMask(Mask):
         return worst
 
     def on_grid(self, grid: PupilGrid, aperture_diameter_m: float) -> "PixelPhaseMask":
-        return PixelPhaseMask(grid, interpolate_phase(self.phase().detach(), self.grid, grid),
+        return PixelPhaseMask(grid, resample_plate(self.phase().detach(), self.grid, grid),
                               levels=self.levels).freeze()
 
     @classmethod
@@ -131,26 +137,15 @@ def start(name: str, grid: PupilGrid, aperture_diameter_m: float, cfg: Mapping[s
     return HalfRingMask(grid, aperture_diameter_m, convention=conv).freeze().phase().detach()
 
 
-def interpolate_phase(phase: torch.Tensor, src: PupilGrid, dst: PupilGrid) -> torch.Tensor:
-    """A phase sampled on grid ``src`` (n, n), bilinearly interpolated at the samples of grid ``dst`` (wrap-aware:
-    the corners of each cell are taken within pi of its first corner). Samples of ``dst`` beyond ``src``'s support
-    take the nearest support sample's phase (the aperture is ~0 there)."""
-    ph = phase.detach().to(torch.float64)
-    ph = fill_outside(ph, src)
-    n = src.n
-    scale = dst.pitch / src.pitch
-    pos = (torch.arange(dst.n, dtype=torch.float64, device=ph.device) - dst.n // 2) * scale + n // 2
-    pos = pos.clamp(0, n - 1)
-    i0 = pos.floor().clamp(max=n - 2).long()
-    f = pos - i0
-    a = ph[i0][:, i0]
-    wrap = lambda x: torch.remainder(x + math.pi, 2 * math.pi) - math.pi  # noqa: E731
-    b = a + wrap(ph[i0][:, i0 + 1] - a)
-    c = a + wrap(ph[i0 + 1][:, i0] - a)
-    d = a + wrap(ph[i0 + 1][:, i0 + 1] - a)
-    fy, fx = f[:, None], f[None, :]
-    out = a * (1 - fy) * (1 - fx) + b * (1 - fy) * fx + c * fy * (1 - fx) + d * fy * fx
-    return out.to(phase.dtype)
+def resample_plate(phase: torch.Tensor, src: PupilGrid, dst: PupilGrid) -> torch.Tensor:
+    """The phase of the plate whose cells are grid ``src``'s samples (n, n), at the samples of grid ``dst``: each
+    takes the phase of the cell it lies in (nearest sample; both grids centred on the axis). Samples of ``dst``
+    beyond ``src``'s support take the nearest support cell's phase (the aperture is ~0 there)."""
+    ph = fill_outside(phase.detach().to(torch.float64), src)
+    pos = (torch.arange(dst.n, dtype=torch.float64, device=ph.device) - dst.n // 2) * (dst.pitch / src.pitch)
+    # floor(x + 1/2) with a relative nudge: a sample on a cell's edge (even refinements) goes one way, always
+    idx = (torch.floor(pos + 0.5 + 1e-9) + src.n // 2).clamp(0, src.n - 1).long()
+    return ph[idx][:, idx].to(phase.dtype)
 
 
 def fill_outside(ph: torch.Tensor, grid: PupilGrid) -> torch.Tensor:
