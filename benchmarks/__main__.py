@@ -25,7 +25,7 @@ from pathlib import Path
 from benchmarks.common import RESULTS, SCALES, Report, machine, write_json, write_text
 
 BENCHMARKS = ("psf", "optics", "mask", "sensor", "restoration", "joint", "train_options", "scaling", "accuracy",
-              "design")
+              "design", "peers")
 DOCS_DIR = Path(__file__).resolve().parent.parent / "docs"
 
 

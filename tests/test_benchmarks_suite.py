@@ -103,3 +103,16 @@ def test_docs_rendering_holds_machine_tables_figures_and_paths(tmp_path):
     assert "![psf_lsr_error](../benchmarks/results/quick/psf_lsr_error.png)" in text
     assert docs_path("quick").name == "benchmarks.md" and docs_path("full").name == "benchmarks_full.md"
     assert isinstance(docs_path("full"), Path)
+
+
+def test_peers_section_skips_a_missing_peer_with_a_line_saying_so():
+    from benchmarks import bench_peers
+
+    assert bench_peers._import_peer("no_such_peer_library") is None
+    row = {"samples": 384, "grid_n": 402, "threads": 1, "dtype": "float32", "library": "codesign (czt)",
+           "forward_s": 0.01, "lsr_sampled": 0.00856, "max_rel_psf_diff": 0.0, "codesign_forward_backward_s": 0.03}
+    data = {"threads": {"1": {"rows": [row], "versions": {"torch": "2", "numpy": "2", "hcipy": None, "prysm": None,
+                                                          "poppy": None}}}}
+    rep = bench_peers.report(data)
+    assert 'Not installed, skipped: hcipy, prysm, poppy (pip install -e ".[peers]")' in rep.notes[0]
+    assert "| 384 | 1 | float32 | codesign (czt) | 10.0 | 1.00 |" in rep.tables[0]

@@ -28,10 +28,11 @@ def _miller_limit(n_max: int) -> float:
     return max(_X_ASYMPTOTIC_MIN, float(n_max + 2))
 
 
-def _series(x: torch.Tensor, n_max: int) -> torch.Tensor:
-    """Power series, valid (to rounding) for 0 <= x < 1. Returns (..., n_max+1)."""
-    orders = torch.arange(n_max + 1, dtype=x.dtype, device=x.device)
-    half = (x / 2).unsqueeze(-1)
+def _series(x: torch.Tensor, n_max: int, out: torch.Tensor, rows: dict[int, int]) -> None:
+    """Power series, valid (to rounding) for 0 <= x < 1: J_n into ``out[rows[n]]`` for every n in ``rows``."""
+    wanted = sorted(rows)
+    orders = torch.tensor(wanted, dtype=x.dtype, device=x.device)[:, None]
+    half = (x / 2)[None, :]
     lead = torch.pow(half, orders) / torch.exp(torch.lgamma(orders + 1))  # (x/2)^n / n!, pow(0, 0) = 1
     q = -(half**2)
     term = torch.ones_like(lead)
@@ -39,11 +40,12 @@ def _series(x: torch.Tensor, n_max: int) -> torch.Tensor:
     for k in range(1, 14):  # (1/4)^13 / 13! ~ 1e-18: converged for x < 1
         term = term * q / (k * (orders + k))
         total = total + term
-    return lead * total
+    out[[rows[n] for n in wanted]] = lead * total
 
 
-def _miller(x: torch.Tensor, n_max: int) -> torch.Tensor:
-    """Miller's normalized backward recurrence, for 1 <= x <= _miller_limit(n_max). Returns (..., n_max+1)."""
+def _miller(x: torch.Tensor, n_max: int, out: torch.Tensor, rows: dict[int, int]) -> None:
+    """Miller's normalized backward recurrence, for 1 <= x <= _miller_limit(n_max): J_n into ``out[rows[n]]``.
+    In place: two buffers swap roles, so the ~90 steps allocate nothing."""
     x_hi = _miller_limit(n_max)
     # Start order: above both n_max and x, plus a margin that grows like x^(1/3) (width of the turning region).
     start = int(math.ceil(max(n_max, x_hi) + 30 + 6 * x_hi ** (1 / 3)))
@@ -51,28 +53,33 @@ def _miller(x: torch.Tensor, n_max: int) -> torch.Tensor:
     j_next = torch.zeros_like(x)
     j_cur = torch.full_like(x, 1e-280)
     norm = torch.zeros_like(x)
-    out = [None] * (n_max + 1)
     inv_x = 1.0 / x
+    stored: list[int] = []
+    tmp = torch.empty_like(x)
     for k in range(start, 0, -1):
-        j_prev = (2 * k) * inv_x * j_cur - j_next  # J_{k-1}
-        j_next, j_cur = j_cur, j_prev
+        # J_{k-1} = (2k / x) J_k - J_{k+1} into J_{k+1}'s buffer, rounded as ((2k) inv_x) J_k - J_{k+1} (the
+        # library's values stay the same to the last bit)
+        torch.mul(inv_x, 2 * k, out=tmp).mul_(j_cur)
+        torch.sub(tmp, j_next, out=j_next)
+        j_next, j_cur = j_cur, j_next
         order = k - 1
         if order % 2 == 0 and order > 0:
-            norm = norm + 2 * j_cur
-        if order <= n_max:
-            out[order] = j_cur
+            norm.add_(j_cur, alpha=2)
+        if order in rows:
+            out[rows[order]].copy_(j_cur)
+            stored.append(rows[order])
         # Keep magnitudes in range: for x >= 1 and start <= ~200 growth is below 1e250, but rescale anyway
         # whenever values get large so that no configuration can overflow.
         if k % 16 == 0:
             big = torch.abs(j_cur) > 1e200
             if bool(big.any()):
                 scale = torch.where(big, 1e-200, 1.0)
-                j_cur, j_next, norm = j_cur * scale, j_next * scale, norm * scale
-                for i in range(order, n_max + 1):
-                    if out[i] is not None:
-                        out[i] = out[i] * scale
-    norm = norm + j_cur  # + J_0
-    return torch.stack(out, dim=-1) / norm.unsqueeze(-1)
+                j_cur.mul_(scale), j_next.mul_(scale), norm.mul_(scale)
+                for i in stored:
+                    out[i].mul_(scale)
+    norm.add_(j_cur)  # + J_0
+    for i in rows.values():
+        out[i].div_(norm)
 
 
 def _hankel_j0_j1(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -95,14 +102,46 @@ def _hankel_j0_j1(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return res[0], res[1]
 
 
-def _forward(x: torch.Tensor, n_max: int) -> torch.Tensor:
-    """Hankel J_0, J_1 then forward recurrence; valid for x >= _miller_limit(n_max). Returns (..., n_max+1)."""
-    j0, j1 = _hankel_j0_j1(x)
-    out = [j0, j1]
+def _forward(x: torch.Tensor, n_max: int, out: torch.Tensor, rows: dict[int, int]) -> None:
+    """Hankel J_0, J_1 then forward recurrence, valid for x >= _miller_limit(n_max): J_n into ``out[rows[n]]``."""
+    prev, cur = _hankel_j0_j1(x)
     inv_x = 1.0 / x
+    for n, j in ((0, prev), (1, cur)):
+        if n in rows:
+            out[rows[n]].copy_(j)
+    tmp = torch.empty_like(x)
     for n in range(1, n_max):
-        out.append((2 * n) * inv_x * out[n] - out[n - 1])
-    return torch.stack(out[: n_max + 1], dim=-1)
+        torch.mul(inv_x, 2 * n, out=tmp).mul_(cur)
+        torch.sub(tmp, prev, out=prev)  # J_{n+1} = (2n / x) J_n - J_{n-1}, in J_{n-1}'s buffer
+        prev, cur = cur, prev
+        if n + 1 in rows:
+            out[rows[n + 1]].copy_(cur)
+
+
+def bessel_rows(x: torch.Tensor, orders) -> torch.Tensor:
+    """J_n(x) for each n of ``orders`` (distinct, >= 0), without autograd, in float64: shape (len(orders),
+    x.numel()), row i is J_{orders[i]} at the flattened x (rows contiguous: the recurrences write whole rows)."""
+    orders = [int(n) for n in orders]
+    n_max = max(max(orders), 1)
+    rows = {n: i for i, n in enumerate(orders)}
+    xd = x.detach().to(torch.float64).reshape(-1)
+    out = torch.empty(len(orders), xd.numel(), dtype=torch.float64, device=xd.device)
+    x_hi = _miller_limit(n_max)
+    for fn, mask in (
+        (_series, xd < _X_SERIES),
+        (_miller, (xd >= _X_SERIES) & (xd < x_hi)),
+        (_forward, xd >= x_hi),
+    ):
+        idx = torch.nonzero(mask).squeeze(-1)
+        if idx.numel() == 0:
+            continue
+        if idx.numel() == xd.numel():  # one regime: fill the table itself
+            fn(xd, n_max, out, rows)
+        else:
+            part = torch.empty(len(orders), idx.numel(), dtype=torch.float64, device=xd.device)
+            fn(xd[idx], n_max, part, rows)
+            out[:, idx] = part
+    return out
 
 
 def bessel_j_table(x: torch.Tensor, n_max: int) -> torch.Tensor:
@@ -112,41 +151,54 @@ def bessel_j_table(x: torch.Tensor, n_max: int) -> torch.Tensor:
         x: real tensor, any shape, values >= 0 (dimensionless argument).
         n_max: highest order, >= 1.
     Returns:
-        float64 tensor of shape (*x.shape, n_max + 1).
+        float64 tensor of shape (*x.shape, n_max + 1) (a view of the order-major table).
     """
-    xd = x.detach().to(torch.float64).reshape(-1)
-    out = torch.empty(xd.numel(), n_max + 1, dtype=torch.float64, device=xd.device)
-    x_hi = _miller_limit(n_max)
-    for kind, mask in (
-        ("series", xd < _X_SERIES),
-        ("miller", (xd >= _X_SERIES) & (xd < x_hi)),
-        ("forward", xd >= x_hi),
-    ):
-        idx = torch.nonzero(mask).squeeze(-1)
-        if idx.numel() == 0:
-            continue
-        xs = xd[idx]
-        vals = {"series": _series, "miller": _miller, "forward": _forward}[kind](xs, n_max)
-        out[idx] = vals
-    return out.reshape(*x.shape, n_max + 1)
+    return bessel_rows(x, range(n_max + 1)).T.reshape(*x.shape, n_max + 1)
 
 
-class _BesselJ(torch.autograd.Function):
+class _BesselOrders(torch.autograd.Function):
+    """J_n(x) for the orders asked, order-major (K, *x.shape); saved for the gradient: the rows n +- 1 only."""
+
     @staticmethod
-    def forward(ctx, x: torch.Tensor, n_max: int) -> torch.Tensor:
-        table = bessel_j_table(x, n_max + 1)  # one extra order for the derivative
+    def forward(ctx, x: torch.Tensor, orders: tuple[int, ...]) -> torch.Tensor:
+        need = sorted({1 if n == 0 else m for n in orders for m in ((n - 1, n + 1) if n else (1,))} | set(orders))
+        table = bessel_rows(x, need)
+        at = {n: i for i, n in enumerate(need)}
         ctx.save_for_backward(table)
-        return table[..., : n_max + 1].to(x.dtype)
+        ctx.at, ctx.orders, ctx.shape = at, orders, x.shape
+        return table[[at[n] for n in orders]].to(x.dtype).reshape(len(orders), *x.shape)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_out: torch.Tensor):
+        """grad_x = sum_n g_n J_n', J_0' = -J_1, J_n' = (J_{n-1} - J_{n+1}) / 2: one pass over the saved rows."""
         (table,) = ctx.saved_tensors
-        deriv = torch.empty_like(table[..., :-1])
-        deriv[..., 0] = -table[..., 1]
-        deriv[..., 1:] = 0.5 * (table[..., :-2] - table[..., 2:])
-        grad_x = (grad_out.to(torch.float64) * deriv).sum(-1).to(grad_out.dtype)
-        return grad_x, None
+        g = grad_out.reshape(len(ctx.orders), -1).to(torch.float64)
+        grad_x = torch.zeros(table.shape[1], dtype=torch.float64, device=table.device)
+        for i, n in enumerate(ctx.orders):
+            if n == 0:
+                grad_x.addcmul_(g[i], table[ctx.at[1]], value=-1.0)
+            else:
+                grad_x.addcmul_(g[i], table[ctx.at[n - 1]] - table[ctx.at[n + 1]], value=0.5)
+        return grad_x.reshape(ctx.shape).to(grad_out.dtype), None
+
+
+def bessel_orders(x: torch.Tensor, orders) -> torch.Tensor:
+    """Differentiable J_n(x) for each order n of ``orders`` (distinct integers in [0, 200]), order-major: shape
+    (len(orders), *x.shape). What a caller that needs a few orders of a large x should use: only those rows (and
+    the neighbours their gradient needs) are stored. Accuracy and checks as ``bessel_j``."""
+    orders = tuple(int(n) for n in orders)
+    if not orders or len(set(orders)) != len(orders) or min(orders) < 0 or max(orders) > 200:
+        raise ValueError(f"bessel_orders: orders must be distinct integers in [0, 200], got {orders!r}")
+    _check_x(x)
+    return _BesselOrders.apply(x, orders)
+
+
+def _check_x(x: torch.Tensor) -> None:
+    if not torch.is_floating_point(x):
+        raise ValueError(f"bessel_j: x must be a real floating tensor (float32/float64), got {x.dtype}")
+    if x.numel() and not bool((x >= 0).all()):
+        raise ValueError("bessel_j: x must be >= 0 and not NaN (got a negative or NaN value)")
 
 
 def bessel_j(x: torch.Tensor, n_max: int) -> torch.Tensor:
@@ -167,6 +219,5 @@ def bessel_j(x: torch.Tensor, n_max: int) -> torch.Tensor:
         raise ValueError(f"bessel_j: x must be a real floating tensor (float32/float64), got {x.dtype}")
     if isinstance(n_max, bool) or not isinstance(n_max, int) or not 1 <= n_max <= 200:
         raise ValueError(f"bessel_j: n_max must be an integer in [1, 200], got {n_max!r}")
-    if x.numel() and not bool((x >= 0).all()):
-        raise ValueError("bessel_j: x must be >= 0 and not NaN (got a negative or NaN value)")
-    return _BesselJ.apply(x, n_max)
+    _check_x(x)
+    return _BesselOrders.apply(x, tuple(range(n_max + 1))).movedim(0, -1)

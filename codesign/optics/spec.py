@@ -13,7 +13,7 @@ from codesign.config.store import register, spec_node
 from codesign.errors import ConfigError, require_choice, require_number
 from codesign.spec_base import SpecMixin
 
-PROPAGATORS = ("auto", "mft", "fft")
+PROPAGATORS = ("auto", "mft", "czt", "fft")
 
 # The super-Gaussian aperture exp(-(4 rho^2 / W_a^2)^P) is below 1e-20 beyond this radius (in units of W_a / 2)
 # for P = 50; fields beyond it are set to exactly zero, and the grid must hold it.
@@ -35,8 +35,9 @@ class OpticsSpec(SpecMixin):
         pupil_n: pupil grid size in samples; None = the smallest even grid that holds the aperture.
         focal_pitch_m: focal-plane sample pitch [m], the sensor pitch (Table 1: 5.4 um).
         focal_n: focal window size in samples (centred on the axis).
-        propagator: "mft" (matrix Fourier transform onto the window), "fft" (zero-padded FFT, resampled onto the
-            window if its native pitch differs), or "auto" (the cheaper exact one, by a flop estimate).
+        propagator: "mft" (matrix Fourier transform onto the window), "czt" (chirp-z transform onto the same
+            window: the same sums by FFT convolutions), "fft" (zero-padded FFT, resampled onto the window if its
+            native pitch differs), or "auto" (the cheapest exact one by modelled cost, propagation.modelled_costs).
         fft_n: FFT size for the "fft" propagator (paper: 4096); None = the exact size when one exists, else the
             smallest fast size giving a native pitch <= focal_pitch / 2 (bilinear resampling then stays accurate).
     """

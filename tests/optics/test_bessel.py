@@ -6,7 +6,7 @@ import pytest
 import torch
 from scipy import special
 
-from codesign.optics.bessel import bessel_j
+from codesign.optics.bessel import bessel_j, bessel_orders
 
 N_MAX = 60
 
@@ -144,3 +144,28 @@ def test_bessel_accepts_n_max_200():
     j = bessel_j(x, 200)
     ref = _reference(x.numpy(), 200)
     assert np.abs(j.numpy() - ref).max() <= 1e-10
+
+
+def test_bessel_orders_equal_bessel_j_rows_bit_for_bit_and_their_gradients():
+    """The orders the half-ring phase uses (0 and odd 3..35), order-major, at arguments in all three regimes."""
+    orders = [0] + list(range(3, 36, 2))
+    x = torch.linspace(0.0, 300.0, 3000, dtype=torch.float64).reshape(3, 1000).requires_grad_(True)
+    got = bessel_orders(x, orders)
+    full = bessel_j(x, 35)
+    assert got.shape == (len(orders), 3, 1000)
+    assert torch.equal(got, full[..., orders].movedim(-1, 0))
+    w = torch.rand(len(orders), 3, 1000, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    (g1,) = torch.autograd.grad((got * w).sum(), x)
+    (g2,) = torch.autograd.grad((full[..., orders].movedim(-1, 0) * w).sum(), x)
+    torch.testing.assert_close(g1, g2, rtol=1e-12, atol=1e-15)
+    ref = np.stack([special.jv(n, x.detach().numpy()) for n in orders])
+    np.testing.assert_allclose(got.detach().numpy(), ref, rtol=0, atol=1e-10)
+
+
+def test_bessel_orders_gradcheck_and_input_checks():
+    x = torch.tensor([0.3, 2.0, 17.0, 40.0, 120.0], dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t: bessel_orders(t, (0, 5, 2)), (x,), eps=1e-6, atol=1e-9)
+    with pytest.raises(ValueError, match=r"orders must be distinct integers in \[0, 200\], got \(1, 1\)"):
+        bessel_orders(x, (1, 1))
+    with pytest.raises(ValueError, match=r"x must be >= 0 and not NaN"):
+        bessel_orders(torch.tensor([-1.0]), (0,))

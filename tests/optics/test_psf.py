@@ -9,7 +9,12 @@ import torch
 from codesign.optics import OpticalSystem, OpticsSpec, RadialMTF, airy_psf, circular_mtf, metrics
 from codesign.optics.grid import axis_coords
 from codesign.optics.masks import published_halfring
-from codesign.optics.propagation import choose_propagator, exact_fft_size, next_fast_len
+from codesign.optics.propagation import (
+    choose_propagator,
+    exact_fft_size,
+    modelled_costs,
+    next_fast_len,
+)
 
 S = 64  # pupil samples across the aperture for the small systems here
 
@@ -176,13 +181,67 @@ def test_next_fast_len_and_exact_fft_size():
     assert [next_fast_len(n) for n in (1, 2, 11, 13, 17, 97, 1068, 4096)] == [1, 2, 12, 14, 18, 98, 1080, 4096]
     spec = _native_spec(focal_n=64, fft_n=192)
     assert exact_fft_size(spec) == 192
-    assert choose_propagator(spec) == "fft"  # by flop estimate: 192-point FFT 2.8e6 < 70 -> 64 MFT 4.8e6
+    assert set(modelled_costs(spec)) == {"mft", "czt", "fft"}  # the FFT competes only where it is exact
+    assert set(modelled_costs(OpticsSpec.with_samples_across(S, focal_n=64))) == {"mft", "czt"}
     assert choose_propagator(spec.replace(propagator="mft")) == "mft"
-    assert choose_propagator(OpticsSpec.with_samples_across(S, focal_n=64)) == "mft"
+    for s in (spec, OpticsSpec.with_samples_across(S, focal_n=64), OpticsSpec(),
+              OpticsSpec.with_samples_across(1024, focal_n=640)):
+        costs = modelled_costs(s)
+        assert choose_propagator(s) == min(costs, key=costs.get)
+    # the chirp-z's cost grows like (n + m) L log L, the MFT's like n m (n + m): chirp-z wins at the paper's pupil
+    assert choose_propagator(OpticsSpec.with_samples_across(1024, focal_n=640)) == "czt"
+
+
+# ---- chirp-z -------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("samples,focal_n", [(S, 64), (S, 37), (40, 120), (33, 16)])
+def test_czt_equals_mft_to_float64_rounding(samples, focal_n):
+    """Odd and even grids and windows, windows wider and narrower than the pupil grid."""
+    spec = OpticsSpec.with_samples_across(samples, focal_n=focal_n)
+    mft = OpticalSystem(spec, dtype=torch.float64, method="mft")
+    czt = OpticalSystem(spec, dtype=torch.float64, method="czt")
+    for name, phase in _phases(mft).items():
+        a, b = mft.psf(phase), czt.psf(phase)
+        assert float((a - b).abs().max() / a.abs().max()) <= 1e-12, name  # measured ~4e-15
+        assert float(b.sum()) == pytest.approx(float(a.sum()), rel=1e-12)
+
+
+def test_czt_equals_fft_on_the_same_window_and_is_batched():
+    spec = _native_spec(focal_n=64, fft_n=192)
+    fft = OpticalSystem(spec, dtype=torch.float64, method="fft")
+    czt = OpticalSystem(spec, dtype=torch.float64, method="czt")
+    phases = torch.stack(list(_phases(fft).values()))
+    a, b = fft.psf(phases), czt.psf(phases)
+    assert b.shape == (3, 64, 64)
+    assert float((a - b).abs().max() / a.abs().max()) <= 1e-12
+    for i in range(3):
+        torch.testing.assert_close(czt.psf(phases[i]), b[i], rtol=1e-13, atol=1e-18)
+
+
+def test_czt_in_float32_matches_the_float64_mft():
+    spec = OpticsSpec.with_samples_across(96, focal_n=160)
+    ref = OpticalSystem(spec, dtype=torch.float64, method="mft")
+    czt = OpticalSystem(spec, dtype=torch.float32, method="czt")
+    phase = _phases(ref)["halfring"]
+    a, b = ref.psf(phase), czt.psf(phase.float()).double()
+    assert float((a - b).abs().max() / a.max()) <= 2e-5
+    assert float(b.max()) / ref.uncoded_peak == pytest.approx(float(a.max()) / ref.uncoded_peak, rel=1e-4)
+
+
+def test_czt_gradcheck():
+    spec = OpticsSpec.with_samples_across(12, focal_n=20)
+    czt = OpticalSystem(spec, dtype=torch.float64, method="czt")
+    g = torch.Generator().manual_seed(5)
+    phase = torch.rand(czt.grid.n, czt.grid.n, generator=g, dtype=torch.float64, requires_grad=True)
+    weights = torch.rand(20, 20, generator=g, dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda ph: (czt.psf(ph) * weights).sum(), (phase,), eps=1e-6, atol=1e-9)
+    mft = OpticalSystem(spec, dtype=torch.float64, method="mft")
+    (g_czt,) = torch.autograd.grad((czt.psf(phase) * weights).sum(), phase)
+    (g_mft,) = torch.autograd.grad((mft.psf(phase) * weights).sum(), phase)
+    torch.testing.assert_close(g_czt, g_mft, rtol=1e-10, atol=1e-14)
 
 
 # ---- LSR of the uncoded PSF ---------------------------------------------------------------------------------
-@pytest.mark.parametrize("method", ["mft", "fft"])
+@pytest.mark.parametrize("method", ["mft", "czt", "fft"])
 def test_zero_phase_has_unit_lsr(method):
     spec = _native_spec(focal_n=64, fft_n=192) if method == "fft" else OpticsSpec.with_samples_across(S, focal_n=64)
     system = OpticalSystem(spec, dtype=torch.float64, method=method)

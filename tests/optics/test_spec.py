@@ -124,7 +124,7 @@ def test_window_wider_than_replica_period_names_pupil_pitch():
 
 @pytest.mark.parametrize("name", ["bogus", "MFT", "", None, "direct"])
 def test_bad_propagator_name(name):
-    with pytest.raises(ConfigError, match=r"optics\.propagator = .*: must be one of auto, mft, fft"):
+    with pytest.raises(ConfigError, match=r"optics\.propagator = .*: must be one of auto, mft, czt, fft"):
         OpticsSpec(propagator=name)
 
 

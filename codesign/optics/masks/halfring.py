@@ -17,7 +17,7 @@ Fast evaluation: sin(m_o (Phi - theta_n)) = sin(m_o Phi) cos(m_o theta_n) - cos(
     A_m = sum_n a_{m,n} cos(m_o theta_n) J_{m_o}(x_n),  B_m = sum_n a_{m,n} sin(m_o theta_n) J_{m_o}(x_n):
 Bessel functions are needed only as radial profiles, and the angular harmonics sin/cos(m_o Phi) are fixed per grid.
 Strategies: ``exact`` evaluates the profiles at the grid's distinct radii (exact, ~17x fewer points than pixels
-for large grids); ``table`` on a uniform radial table of ``table_size`` points with linear interpolation;
+for large grids) and the angular sums on one eighth of the grid (``OctantSums``); ``table`` on a uniform radial table of ``table_size`` points with linear interpolation;
 ``direct`` evaluates every Bessel function at every pixel (the reference, for tests and benchmarks).
 """
 from __future__ import annotations
@@ -36,7 +36,7 @@ from codesign.errors import (
     require_numbers,
 )
 from codesign.optics.atan2 import atan_of_ratio
-from codesign.optics.bessel import bessel_j
+from codesign.optics.bessel import bessel_orders
 from codesign.optics.grid import PupilGrid
 from codesign.optics.masks.base import Mask, MaskSpec
 
@@ -71,6 +71,52 @@ class HalfRingSpec(MaskSpec):
     strategy: str = "exact"
     table_size: int = 4096
     r_bounds: tuple = (0.5, 100.0)
+
+
+class OctantSums:
+    """The angular sums of a centred square grid on one octant, 0 <= Phi_r <= pi / 4 (Phi_r = atan2(min, max) of
+    |u|, |v|), and every support sample's Im from its octant's four sums, exactly.
+
+    For odd orders m_o = 2m + 1 the eight images of Phi_r under the grid's symmetries only flip the signs of
+    sin / cos(m_o Phi) or swap them (with (-1)^m): with P = sum_m sin(m_o Phi_r) A_m, Q = sum_m cos(m_o Phi_r) B_m,
+    P' = sum_m (-1)^m cos(m_o Phi_r) A_m and Q' = sum_m (-1)^m sin(m_o Phi_r) B_m,
+        |u| <= |v|: Im = s_u P - s_v Q,     |u| > |v|: Im = s_u P' - s_v Q',    s_u = sign(u), s_v = sign(v)
+    (a zero coordinate counts as positive; where it matters both formulas agree). Four sums over 1/8 of the samples
+    replace two over all of them: 4x fewer multiply-adds, and the radial profiles are gathered 8x less."""
+
+    def __init__(self, grid: PupilGrid, orders: torch.Tensor):
+        dtype, device = grid.rho.dtype, grid.rho.device
+        k = torch.arange(grid.n, device=device) - grid.n // 2
+        iv = k[:, None].expand(grid.n, grid.n).reshape(-1)[grid.support]  # rows: v
+        iu = k[None, :].expand(grid.n, grid.n).reshape(-1)[grid.support]  # columns: u
+        lo, hi = torch.minimum(iu.abs(), iv.abs()), torch.maximum(iu.abs(), iv.abs())
+        reps, rep_of = torch.unique(hi * (grid.n + 1) + lo, return_inverse=True)
+        r_hi, r_lo = reps // (grid.n + 1), reps % (grid.n + 1)
+        phi_r = torch.atan2(r_lo.to(torch.float64), r_hi.to(torch.float64))
+        arg = orders.to(torch.float64)[:, None] * phi_r[None, :]
+        alt = torch.where((orders // 2) % 2 == 0, 1.0, -1.0).to(torch.float64)[:, None]  # (-1)^m
+        sin, cos = torch.sin(arg), torch.cos(arg)
+        # rows: the tables of P, -Q, P', -Q' (M, R each), applied to [A; A; -B; -B]-style profiles below
+        self.tables = torch.stack([sin, cos, alt * cos, alt * sin]).to(dtype)
+        # each sample's radius index through its representative (same radius), and where its two terms come from
+        first = torch.zeros(reps.numel(), dtype=torch.long, device=device)
+        first.scatter_(0, rep_of, torch.arange(rep_of.numel(), device=device))
+        self.rep_radius = grid.radius_index[first]
+        swapped = iu.abs() > iv.abs()
+        n_rep = reps.numel()
+        self.index_x = rep_of + n_rep * (2 * swapped)  # P or P'
+        self.index_y = rep_of + n_rep * (1 + 2 * swapped)  # -Q or -Q'
+        self.sign_x = torch.where(iu >= 0, 1.0, -1.0).to(dtype)
+        self.sign_y = torch.where(iv >= 0, 1.0, -1.0).to(dtype)
+
+    def im(self, prof: torch.Tensor) -> torch.Tensor:
+        """Im at the support samples from the radial profiles [A_m; -B_m] (2M, U) at the grid's distinct radii."""
+        m = self.tables.shape[1]
+        g = prof[:, self.rep_radius]  # (2M, R)
+        a, nb = g[:m], g[m:]
+        sums = torch.stack([(a * self.tables[0]).sum(0), (nb * self.tables[1]).sum(0),
+                            (a * self.tables[2]).sum(0), (nb * self.tables[3]).sum(0)]).reshape(-1)
+        return self.sign_x * sums[self.index_x] + self.sign_y * sums[self.index_y]
 
 
 def plain_rings(n: int) -> tuple[list[float], list[float]]:
@@ -138,10 +184,12 @@ class HalfRingMask(Mask):
         rho_s = grid.rho.reshape(-1)[grid.support]
         self._angle_s = grid.angle.reshape(-1)[grid.support]
         self._harmonics = None
-        if 2 * len(self.orders) * rho_s.numel() * rho_s.element_size() <= _HARMONIC_CACHE_BYTES:
+        if self.strategy != "exact" and \
+                2 * len(self.orders) * rho_s.numel() * rho_s.element_size() <= _HARMONIC_CACHE_BYTES:
             self._harmonics = self._angular(self._angle_s)
         if self.strategy == "exact":
             self._radii = grid.radii
+            self._octants = OctantSums(grid, self.orders)
         elif self.strategy == "table":
             r_max = float(grid.radii[-1]) if grid.radii.numel() else 0.0
             self._radii = torch.linspace(0, r_max, self.table_size, dtype=dtype, device=device)
@@ -161,26 +209,25 @@ class HalfRingMask(Mask):
     def radial_profiles(self, radii: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Q0(xi) of shape (U,) and [A_m; -B_m](xi) of shape (2M, U) at the radii xi [m]."""
         x = (2 * math.pi / self.aperture_diameter_m) * self.r[:, None] * radii[None, :]  # (R, U)
-        j = bessel_j(x, self.n_max)  # (R, U, n_max+1)
-        q0 = (self.r[:, None] * j[..., 0]).sum(0)
-        jm = j[..., self.orders]  # (R, U, M)
+        j = bessel_orders(x, [0] + self.orders.tolist())  # (1 + M, R, U): only the orders used
+        q0 = (self.r[:, None] * j[0]).sum(0)
+        jm = j[1:]  # (M, R, U)
         mo = self.orders.to(x.dtype)
         a = 4 * self.r[:, None] / (mo[None, :] * math.pi)  # (R, M)
         if self.harmonic_sign == "fourier":
             a = a * torch.where((self.orders // 2) % 2 == 0, 1.0, -1.0).to(a)  # (-1)^m, m = (m_o - 1) / 2
         ang = mo[None, :] * self.theta[:, None]
         ca, sa = a * torch.cos(ang), a * torch.sin(ang)
-        prof_a = torch.einsum("rm,rum->mu", ca, jm)
-        prof_b = torch.einsum("rm,rum->mu", sa, jm)
+        prof_a = torch.einsum("rm,mru->mu", ca, jm)
+        prof_b = torch.einsum("rm,mru->mu", sa, jm)
         return q0, torch.cat([prof_a, -prof_b], 0)
 
     def field_parts(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Real part Q0 and imaginary part Im of the synthesized pupil field at the support samples, (S,) each."""
         q0, prof = self.radial_profiles(self._radii)
         if self.strategy == "exact":
-            idx = self.grid.radius_index
-            q0_s, prof_s = q0[idx], prof[:, idx]
-        elif self.strategy == "table":
+            return q0[self.grid.radius_index], self._octants.im(prof)
+        if self.strategy == "table":
             i0, f = self._lerp_index, self._lerp_frac
             q0_s = torch.lerp(q0[i0], q0[i0 + 1], f)
             prof_s = torch.lerp(prof[:, i0], prof[:, i0 + 1], f)
