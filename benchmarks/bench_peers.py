@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import statistics
 import sys
@@ -65,7 +64,7 @@ def _import_peer(name: str):
         return None
 
 
-def _propagators(spec, np_field_of, dtype_name: str) -> dict:
+def _propagators(spec, dtype_name: str) -> dict:
     """name -> (fn(field) -> intensity ndarray / tensor, input field builder) for every available library."""
     import numpy as np
     import torch
@@ -148,7 +147,7 @@ def worker(argv: list[str] | None = None) -> dict:
         phase = published_halfring(ref.grid, spec.aperture_diameter_m).phase().detach()
         fields = {"coded": ref.field(phase), "uncoded": ref.field(torch.zeros_like(phase))}
         for dtype_name in DTYPES:
-            props = _propagators(spec, None, dtype_name)
+            props = _propagators(spec, dtype_name)
             inputs = {}
             for label, (fn, kind, cdt) in props.items():
                 if kind == "torch":
