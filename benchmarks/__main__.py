@@ -1,6 +1,6 @@
 """The benchmark suite: run time against error for every stage, one command.
 
-    python -m benchmarks                      # quick scale (< 10 min on 2 CPU cores), all benchmarks
+    python -m benchmarks                      # quick scale (~13 min on 2 CPU cores), all benchmarks
     python -m benchmarks --scale full         # full scale (longer sweeps, bigger grids, longer trainings)
     python -m benchmarks --only psf,mask      # a subset (docs/benchmarks.md is then left alone)
 
