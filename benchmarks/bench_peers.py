@@ -83,6 +83,11 @@ def _propagators(spec, dtype_name: str) -> dict:
         out[label] = (lambda f, p=prop: p.intensity(f), "torch")
     hcipy = _import_peer("hcipy")
     if hcipy is not None:
+        # hcipy runs scipy.fft on every core it finds (hcipy._math.fft._CPU_COUNT), whatever OMP_NUM_THREADS says:
+        # held to this cell's thread count, as every other library is
+        import hcipy._math.fft as hcipy_fft
+
+        hcipy_fft._CPU_COUNT = torch.get_num_threads()
         pupil = hcipy.make_uniform_grid([n, n], [n * spec.pupil_pitch_m] * 2, has_center=True)
         focal = hcipy.make_uniform_grid([m, m], [m * spec.focal_pitch_m] * 2, has_center=True)
         prop = hcipy.FraunhoferPropagator(pupil, focal, focal_length=spec.focal_length_m)
@@ -227,7 +232,19 @@ def report(data: dict) -> Report:
         "codesign's forward + backward to the phase against a peer's finite-difference gradient over the 10 "
         "half-ring parameters (11 forward propagations, phase evaluations not counted). Versions: "
         + ", ".join(f"{k} {v}" for k, v in versions.items() if v) + "."
-        + (f" Not installed, skipped: {', '.join(missing)} (pip install -e \".[peers]\")." if missing else ""))
+        + (f" Not installed, skipped: {', '.join(missing)} (pip install -e \".[peers]\")." if missing else "")
+        + " hcipy's FFTs are held to the cell's thread count (it uses every core otherwise).")
+    cells = sorted({(r["samples"], r["threads"], r["dtype"]) for r in rows})
+    won = []
+    for cell in cells:
+        here = [r for r in rows if (r["samples"], r["threads"], r["dtype"]) == cell]
+        best = min(here, key=lambda r: r["forward_s"])
+        won.append(best["library"].startswith("codesign"))
+        if not won[-1]:
+            rep.notes.append(f"{cell[0]} across, {cell[1]} thread(s), {cell[2]}: {best['library']} is the fastest "
+                             f"({1e3 * best['forward_s']:.1f} ms against codesign's "
+                             f"{1e3 * min(r['forward_s'] for r in here if r['library'].startswith('codesign')):.1f}).")
+    rep.notes.insert(1, f"codesign is the fastest in {sum(won)} of {len(cells)} cells.")
     table = []
     for r in rows:
         base = next(b for b in rows if b["samples"] == r["samples"] and b["threads"] == r["threads"]
