@@ -147,8 +147,9 @@ def data_config(cfg: Mapping | Any) -> DataConfig:
         if not isinstance(folder, (str, Path)) or not str(folder).strip():
             raise ConfigError("data.folder", folder, "must be the path of an image folder when data.scenes=folder")
         folder = Path(str(folder)).expanduser()
-    elif folder is not None and not isinstance(folder, (str, Path)):
-        raise ConfigError("data.folder", folder, "must be a path or null")
+    elif folder is not None:  # a folder the built-in source would silently ignore
+        raise ConfigError("data.folder", folder, "is only read with data.scenes=folder (data.scenes is builtin): "
+                          "add data.scenes=folder to train on this folder, or leave data.folder null")
     image_size = require_number("data.image_size", cfg.get("image_size", d.image_size), lo=1, integer=True)
     padded = cfg.get("padded_size", d.padded_size)
     padded_size = require_number("data.padded_size", padded, lo=1, integer=True)

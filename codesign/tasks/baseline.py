@@ -52,7 +52,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         return None
     first, last = (history[0], history[-1]) if history else ({}, {})
     metrics = {**common, **distributed_metrics(trainer), "steps": trainer.step, "seconds": seconds,
-               "skipped_updates": trainer.skipped, "vgg_loss": model.loss_status,
+               "skipped_updates": trainer.skipped, "undone_updates": trainer.rollbacks, "vgg_loss": model.loss_status,
                "loss_first": first, "loss_last": last, **trainer.last_val,
                "checkpoint": str(run_dir / CHECKPOINT_NAME)}
     metrics.update(run_evaluation(ev, model, trainer.restoring_modules(), data, run_dir, seed))

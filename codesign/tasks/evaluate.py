@@ -24,8 +24,9 @@ def merged_eval_config(cfg: DictConfig, ckpt_cfg: DictConfig, typed: frozenset[s
     (``typed``: e.g. data.scenes, data.folder) and this run's ``evaluate`` block. Untyped data keys keep the
     checkpoint's values, so the test split is the one held out during training."""
     merged = OmegaConf.create(OmegaConf.to_container(ckpt_cfg, resolve=True))
+    source_typed = bool({"data", "data.scenes", "data.folder"} & typed)  # scenes and folder go together
     for key in ("scenes", "folder", "test_fraction", "split_seed", "cache_mb"):
-        if f"data.{key}" in typed or "data" in typed:
+        if f"data.{key}" in typed or "data" in typed or (key in ("scenes", "folder") and source_typed):
             merged.data[key] = cfg.data.get(key)
     merged.evaluate = cfg.get("evaluate")
     return merged

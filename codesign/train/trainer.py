@@ -8,7 +8,8 @@ Step order (one generator update), after one forward pass of the generators:
      restorer's generator terms (for the SGAN: adversarial + Charbonnier L1 + MDF + VGG + FFT).
 Adam (betas of Sec. 6.2), weights and biases in separate groups (2e-4 / 4e-4), the Sec. 6.2 step schedule,
 optional gradient clipping and generator EMA. A non-finite loss or gradient skips the update (counted, and
-reported at the next logging step).
+reported at the next logging step); an update that leaves a weight non-finite all the same (finite gradients and a
+huge step) is undone: weights and Adam moments back to their values before it (counted as a rollback).
 
 No host-device synchronization inside a step: losses stay on the device until a logging step reads them, and a
 skipped update is decided on the device (Adam's fused kernel takes a ``found_inf`` flag, the protocol of
@@ -105,6 +106,41 @@ def as_float32(x):
     return x
 
 
+def snapshot_optimizer(opt: torch.optim.Optimizer) -> list[tuple[torch.Tensor, torch.Tensor | None]]:
+    """(tensor, copy) of every parameter of ``opt`` and of its state tensors (Adam's moments and step) before a
+    step; a state the step is about to create (the first step) is recorded with None: its value before is 0."""
+    out = []
+    for group in opt.param_groups:
+        for p in group["params"]:
+            out.append((p, p.detach().clone()))
+            for v in opt.state.get(p, {}).values():
+                if torch.is_tensor(v):
+                    out.append((v, v.clone()))
+    return out
+
+
+@torch.no_grad()
+def restore_if_not_finite(opt: torch.optim.Optimizer, before: list) -> torch.Tensor:
+    """Undo the step just taken if it left any parameter non-finite: parameters and state tensors back to
+    ``before`` (states created by the step back to 0, Adam's initial state). Decided on the device, without a
+    host sync (on the CPU, where a sync costs nothing, a good step skips the restore). Returns the 0-dim bool:
+    undone."""
+    params = [p for group in opt.param_groups for p in group["params"]]
+    if not params:
+        return torch.zeros((), dtype=torch.bool)
+    bad = torch.stack([~torch.isfinite(p).all() for p in params]).any()
+    if bad.device.type == "cpu" and not bool(bad):  # no device to keep waiting on the CPU: decide here
+        return bad
+    known = {id(t) for t, _ in before}
+    for t, old in before:
+        t.copy_(torch.where(bad, old, t))
+    for p in params:
+        for v in opt.state.get(p, {}).values():
+            if torch.is_tensor(v) and id(v) not in known:
+                v.copy_(torch.where(bad, torch.zeros_like(v), v))
+    return bad
+
+
 def adam(groups: list[dict], betas, device: torch.device) -> torch.optim.Adam:
     """Adam with the fused kernel: one launch per step, and it honours the ``found_inf`` flag of a skipped update."""
     return torch.optim.Adam(groups, betas=betas, fused=device.type in ("cuda", "cpu"))
@@ -143,6 +179,8 @@ class RestorationTrainer(TrainContext):
         self.step = 0
         self._skips = torch.zeros(2, dtype=torch.long, device=device)  # updates skipped: non-finite loss, gradient
         self._skips_reported = [0, 0]
+        self._rollbacks = torch.zeros((), dtype=torch.long, device=device)  # updates undone: non-finite weights
+        self._rollbacks_reported = 0
         self.replica_diff = 0.0  # largest weight difference between ranks found by the last check
         self.first_terms: dict = {}  # loss terms of the first and the last step of this process's run
         self.last_terms: dict = {}
@@ -248,6 +286,7 @@ class RestorationTrainer(TrainContext):
                 bad_grad = bad_grad | ~torch.isfinite(p.grad).all()
         skip = bad_loss | bad_grad
         self._skips += torch.stack([bad_loss, bad_grad & ~bad_loss]).long()
+        before = snapshot_optimizer(opt)
         if opt.defaults.get("fused"):
             opt.found_inf = skip.to(torch.float32)  # torch.optim's fused-step protocol (torch.amp.GradScaler's)
             try:
@@ -256,7 +295,9 @@ class RestorationTrainer(TrainContext):
                 del opt.found_inf
         elif not bool(skip):  # a device without the fused kernel decides on the host
             opt.step()
-        applied = ~skip
+        undone = restore_if_not_finite(opt, before)
+        self._rollbacks += undone.long()
+        applied = ~skip & ~undone
         self.after_update(opt, applied)
         return applied
 
@@ -268,6 +309,16 @@ class RestorationTrainer(TrainContext):
             log.warning("step %d: %d update(s) skipped since the last report (%d non-finite loss, %d non-finite "
                         "gradient)", self.step, sum(new), new[0], new[1])
         self._skips_reported = counts
+        rollbacks = int(self._rollbacks)
+        if rollbacks > self._rollbacks_reported:
+            log.warning("step %d: %d update(s) left non-finite weights and were undone since the last report "
+                        "(weights and Adam moments restored)", self.step, rollbacks - self._rollbacks_reported)
+        self._rollbacks_reported = rollbacks
+
+    @property
+    def rollbacks(self) -> int:
+        """Updates undone because they left a weight non-finite (reads the device counter: a host sync)."""
+        return int(self._rollbacks)
 
     # ---- loop -----------------------------------------------------------------------------------------------
     def train_step(self) -> dict:

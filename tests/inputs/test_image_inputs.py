@@ -133,6 +133,15 @@ def _folder_error(folder) -> str:
     return str(info.value)
 
 
+def test_a_folder_without_the_folder_source_is_refused_not_ignored(tmp_path):
+    """data.folder=DIR alone used to train on the built-in scenes without a word."""
+    _png16(tmp_path / "one.png")
+    with pytest.raises(ConfigError) as info:
+        build_scene_source({"scenes": "builtin", "folder": str(tmp_path)})
+    assert str(info.value) == (f"data.folder = '{tmp_path}': is only read with data.scenes=folder (data.scenes is "
+                               f"builtin): add data.scenes=folder to train on this folder, or leave data.folder null")
+
+
 def test_scene_folder_that_does_not_exist_or_is_a_file(tmp_path):
     assert _folder_error(tmp_path / "nope") == (f"data.folder = '{tmp_path / 'nope'}': must be an existing folder "
                                                 f"of PNG/JPEG/TIFF images")

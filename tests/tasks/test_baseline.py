@@ -112,3 +112,21 @@ def test_evaluate_without_checkpoint_is_a_config_error(tmp_path):
     assert proc.returncode == 2
     assert "codesign: configuration error: checkpoint = None: give the trained model" in proc.stderr
     assert not (tmp_path / "e").exists()
+
+
+def test_evaluate_takes_the_scene_source_from_the_command_line_as_one():
+    """Typing data.scenes=builtin for a checkpoint trained on a folder must not keep that folder (it would be
+    refused: a folder is only read with data.scenes=folder); typing only data.folder keeps the checkpoint's
+    scenes key, so the folder needs data.scenes=folder, as in every experiment."""
+    from omegaconf import OmegaConf
+
+    from codesign.tasks.evaluate import merged_eval_config
+
+    ckpt = OmegaConf.create({"data": {"scenes": "folder", "folder": "/trained/on", "test_fraction": 0.2,
+                                      "split_seed": 0, "cache_mb": 1.0}})
+    cli = OmegaConf.create({"data": {"scenes": "builtin", "folder": None, "test_fraction": 0.5, "split_seed": 3,
+                                     "cache_mb": 2.0}, "evaluate": {}})
+    merged = merged_eval_config(cli, ckpt, frozenset({"data.scenes"}))
+    assert (merged.data.scenes, merged.data.folder, merged.data.test_fraction) == ("builtin", None, 0.2)
+    untouched = merged_eval_config(cli, ckpt, frozenset())
+    assert (untouched.data.scenes, untouched.data.folder) == ("folder", "/trained/on")

@@ -96,6 +96,28 @@ def test_non_finite_loss_skips_update_on_the_device_and_reports_it_at_logging(tm
     assert bool(tr._apply(tr.opt_g, finite, tr.model.generators())) and not _same(p0, _params(tr.model.generators()))
 
 
+def test_an_update_that_leaves_weights_non_finite_is_undone_with_the_adam_moments(tmp_path, caplog):
+    """Finite loss and gradients, but a step so large the weights overflow to inf (a huge learning rate): the
+    weights and Adam's moments go back to their values before the step, on the device, and it is reported."""
+    tr = tiny_trainer(tmp_path)
+    finite = sum(p.sum() for p in tr.model.g1.parameters())
+    assert bool(tr._apply(tr.opt_g, finite, tr.model.generators()))  # one good step: Adam has its moments
+    p0 = _params(tr.model.generators())
+    m0 = {k: v.clone() for st in tr.opt_g.state.values() for k, v in st.items() if k == "exp_avg"}
+    states0 = [{k: v.clone() for k, v in st.items()} for st in tr.opt_g.state.values()]
+    for group in tr.opt_g.param_groups:
+        group["lr"] = 1e39  # times an Adam step of ~1: beyond float32's 3.4e38
+    loss = sum(p.sum() for p in tr.model.g1.parameters())
+    applied = tr._apply(tr.opt_g, loss, tr.model.generators())
+    assert m0 and not bool(applied) and tr.rollbacks == 1 and tr.skipped == 0
+    assert _same(p0, _params(tr.model.generators()))
+    for before, st in zip(states0, tr.opt_g.state.values()):
+        assert all(torch.equal(before[k], st[k]) for k in before)
+    with caplog.at_level("WARNING", logger="codesign.train"):
+        tr.report_skips()
+    assert "1 update(s) left non-finite weights and were undone since the last report" in caplog.text
+
+
 def test_twenty_steps_lower_the_reconstruction_loss(tmp_path):
     tr = tiny_trainer(tmp_path, steps=20)  # the full SGAN-B objective, Sec. 6.2 learning rates
     val = tr.data.validation_batch(4)
