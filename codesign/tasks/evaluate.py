@@ -32,13 +32,27 @@ def merged_eval_config(cfg: DictConfig, ckpt_cfg: DictConfig, typed: frozenset[s
     return merged
 
 
+def refuse_other_model(cfg: DictConfig, ckpt_cfg: DictConfig, typed: frozenset[str], facts: dict, path) -> None:
+    """evaluate runs the checkpoint's own model: a model= / model.* typed on the command line that describes
+    another one is refused (it used to be recorded in the run's config while the checkpoint's model ran)."""
+    if not any(k == "model" or k.startswith("model.") for k in typed):
+        return
+    asked = OmegaConf.to_container(cfg.model, resolve=True) if cfg.get("model") is not None else None
+    if asked != OmegaConf.to_container(ckpt_cfg.model, resolve=True):
+        raise ConfigError("model", asked, f"evaluate runs the model of checkpoint {path} (model.kind="
+                          f"{facts.get('kind', ckpt_cfg.model.get('kind'))}, variant={facts.get('variant')}, size="
+                          f"{facts.get('size')}): leave model and model.* off the command line")
+
+
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     path = cfg.get("checkpoint")
     if not path:
         raise ConfigError("checkpoint", path, "give the trained model: +experiment=evaluate checkpoint=PATH")
     ev = eval_settings(cfg)
     model, generators, ckpt_cfg, state = load_trained(path, device)
-    merged = merged_eval_config(cfg, ckpt_cfg, explicit_keys())
+    typed = explicit_keys()
+    refuse_other_model(cfg, ckpt_cfg, typed, {"kind": model.kind, **model.summary()}, path)
+    merged = merged_eval_config(cfg, ckpt_cfg, typed)
     seed = check_seed(cfg)
     data = SimulatedData(merged, device, seed)
     apply_checkpoint_mask(data.camera.mask, state, path)

@@ -130,3 +130,22 @@ def test_evaluate_takes_the_scene_source_from_the_command_line_as_one():
     assert (merged.data.scenes, merged.data.folder, merged.data.test_fraction) == ("builtin", None, 0.2)
     untouched = merged_eval_config(cli, ckpt, frozenset())
     assert (untouched.data.scenes, untouched.data.folder) == ("folder", "/trained/on")
+
+
+def test_evaluate_refuses_a_model_other_than_the_checkpoints():
+    from omegaconf import OmegaConf
+
+    from codesign.errors import ConfigError
+    from codesign.tasks.evaluate import refuse_other_model
+
+    ckpt = OmegaConf.create({"model": {"kind": "sgan", "variant": "B", "size": "cpu"}})
+    same = OmegaConf.create({"model": {"kind": "sgan", "variant": "B", "size": "cpu"}})
+    other = OmegaConf.create({"model": {"kind": "sgan", "variant": "F", "size": "cpu"}})
+    facts = {"kind": "sgan", "variant": "B", "size": "cpu"}
+    refuse_other_model(other, ckpt, frozenset({"checkpoint"}), facts, "c.pt")  # not typed: the checkpoint's runs
+    refuse_other_model(same, ckpt, frozenset({"model"}), facts, "c.pt")  # typed but the same model
+    with pytest.raises(ConfigError) as info:
+        refuse_other_model(other, ckpt, frozenset({"model"}), facts, "c.pt")
+    assert str(info.value) == ("model = {'kind': 'sgan', 'variant': 'F', 'size': 'cpu'}: evaluate runs the model of "
+                               "checkpoint c.pt (model.kind=sgan, variant=B, size=cpu): leave model and model.* off "
+                               "the command line")
