@@ -150,9 +150,11 @@ def data_config(cfg: Mapping | Any) -> DataConfig:
     elif folder is not None:  # a folder the built-in source would silently ignore
         raise ConfigError("data.folder", folder, "is only read with data.scenes=folder (data.scenes is builtin): "
                           "add data.scenes=folder to train on this folder, or leave data.folder null")
-    image_size = require_number("data.image_size", cfg.get("image_size", d.image_size), lo=1, integer=True)
+    # the sensor model's bounds (SensorSpec), checked here under the keys the user types
+    image_size = require_number("data.image_size", cfg.get("image_size", d.image_size), lo=8, hi=65536,
+                                integer=True)
     padded = cfg.get("padded_size", d.padded_size)
-    padded_size = require_number("data.padded_size", padded, lo=1, integer=True)
+    padded_size = require_number("data.padded_size", padded, lo=8, hi=65536, integer=True)
     if padded_size < image_size:
         raise ConfigError("data.padded_size", padded, f"must be an integer >= data.image_size ({image_size})")
     flips = cfg.get("flips", d.flips)

@@ -65,6 +65,8 @@ ROWS = [
      "image_size, padded_size, params, scenes, split_seed, test_fraction"),
     ("simulate", "data.image_size=4096 data.padded_size=4096", "data.image_size = 4096: must be <= "
      "sensor.resolution (2532): the sensor is binned to the network resolution, never upsampled"),
+    ("simulate", "data.padded_size=100000",  # named as typed (it was sensor.padded_size, a key nobody typed)
+     "data.padded_size = 100000: must be an integer >= 8 and <= 65536"),
     ("simulate", "+sensor.image_size=64",
      "sensor.image_size = 64: unknown key: the network resolution is data.image_size"),
     # ---- model, losses, evaluation, geometry (baseline) ----------------------------------------------------
