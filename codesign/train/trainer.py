@@ -123,14 +123,12 @@ def snapshot_optimizer(opt: torch.optim.Optimizer) -> list[tuple[torch.Tensor, t
 def restore_if_not_finite(opt: torch.optim.Optimizer, before: list) -> torch.Tensor:
     """Undo the step just taken if it left any parameter non-finite: parameters and state tensors back to
     ``before`` (states created by the step back to 0, Adam's initial state). Decided on the device, without a
-    host sync (on the CPU, where a sync costs nothing, a good step skips the restore). Returns the 0-dim bool:
-    undone."""
+    host sync (the step's other checks read no device value either, tests/train/test_train_options.py). Returns
+    the 0-dim bool: undone."""
     params = [p for group in opt.param_groups for p in group["params"]]
     if not params:
         return torch.zeros((), dtype=torch.bool)
     bad = torch.stack([~torch.isfinite(p).all() for p in params]).any()
-    if bad.device.type == "cpu" and not bool(bad):  # no device to keep waiting on the CPU: decide here
-        return bad
     known = {id(t) for t, _ in before}
     for t, old in before:
         t.copy_(torch.where(bad, old, t))
