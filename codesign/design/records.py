@@ -14,7 +14,14 @@ def optics_record(spec) -> dict:
 
 
 def design_record(mask, spec, figures: dict | None = None) -> dict:
-    """``mask.record()`` plus ``optics`` (the spec it was evaluated on) and the scalar figures of merit."""
+    """``mask.record()`` plus ``optics`` (the spec it was evaluated on) and the scalar figures of merit (names from
+    FIGURE_KEYS: what mask.init reads back accepts exactly those)."""
+    from codesign.optics.masks.records import FIGURE_KEYS
+
+    other = sorted(set(figures or {}) - set(FIGURE_KEYS))
+    if other:  # a writer's new figure must be registered, or the record it writes would be refused when read
+        raise ValueError(f"design_record: figure(s) {', '.join(other)} not in FIGURE_KEYS "
+                         f"(codesign/optics/masks/records.py)")
     scalars = {k: v for k, v in (figures or {}).items() if isinstance(v, (int, float, str, bool)) or v is None}
     return {**mask.record(), "optics": optics_record(spec), **scalars}
 

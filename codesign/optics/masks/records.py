@@ -27,6 +27,29 @@ RECORD_VALUES: dict[str, dict[str, str]] = {
 }
 
 
+# the family settings a record holds besides its values (Mask.settings()), and the figures of merit the writers add
+# (codesign/design/records.py refuses to write any other): with the family Spec's keys, all a record may hold
+RECORD_SETTINGS: dict[str, tuple[str, ...]] = {
+    "halfring": ("convention", "harmonic_sign", "m_range", "r_bounds"),
+    "zernike": ("n_terms", "max_coeff_rad"),
+    "spiral": ("charge_bounds", "axicon_bounds", "defocus_bounds"),
+    "pixel": (),
+    "spline": (),
+}
+FIGURE_KEYS = ("lsr", "lsr_smooth", "lsr_sampled", "mtf_mean", "window_energy", "lsr_limit", "lsr_over_limit",
+               "restorability", "feasible", "check_agree")
+
+
+def record_keys(kind: str) -> set[str]:
+    """Every key a record of family ``kind`` may hold."""
+    from dataclasses import fields
+
+    from codesign.optics.masks.base import FAMILIES  # registered by the package by the time records are read
+
+    spec = {f.name for f in fields(FAMILIES[kind].Spec)} - {"prefix", "init"} if kind in FAMILIES else set()
+    return {"kind", "levels", "optics", *RECORD_VALUES[kind], *RECORD_SETTINGS[kind], *FIGURE_KEYS} | spec
+
+
 def _number(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
@@ -46,6 +69,10 @@ def load_record(path: Any, key: str, allowed: str) -> dict:
     if kind not in RECORD_VALUES:
         raise ConfigError(key, path, f"{allowed}; the file holds kind {kind!r}, not a mask family "
                           f"({', '.join(sorted(RECORD_VALUES))})")
+    unknown = sorted(set(data) - record_keys(kind))
+    if unknown:
+        raise ConfigError(key, path, f"{allowed}; its key(s) {', '.join(unknown)} are not keys of a {kind} record "
+                          f"(allowed: {', '.join(sorted(record_keys(kind)))})")
     bad = [name for name, what in RECORD_VALUES[kind].items()
            if not (what == "number" and _number(data.get(name))
                    or what == "list" and isinstance(data.get(name), list) and data[name]
