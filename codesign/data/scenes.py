@@ -5,6 +5,7 @@ its device): random crops with random flips for training, centre crops for evalu
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -13,7 +14,7 @@ import torch
 
 from codesign.config.store import register, spec_node
 from codesign.data.builtin import builtin_scene_names
-from codesign.data.images import UnreadableImage
+from codesign.data.images import SceneLoadWarning, UnreadableImage
 from codesign.data.paramconfig import ParamConfig, param_config
 from codesign.data.source import SceneSource
 from codesign.errors import ConfigError, require_choice, require_number, unknown_keys
@@ -42,7 +43,13 @@ class SceneSampler:
             raise TypeError(f"generator must be a CPU torch.Generator, got {generator!r}")
         self.generator, self.flips = generator, bool(flips)
         self.last_names: list[str] = []
-        self._pool()  # fail now, not at the first batch, when the split is empty
+        pool = self._pool()  # fail now, not at the first batch, when the split is empty
+        small = source.smaller_than(self.split, self.crop_size)
+        if small:  # upscaling blurs them: said once, with the count, not silently
+            name, (h, w) = min(small, key=lambda item: min(item[1]))
+            warnings.warn(f"{source.key}: {len(small)} of {len(pool)} scene(s) of the '{self.split}' split are "
+                          f"smaller than the {self.crop_size}-pixel crop (the smallest: {name}, {h} x {w}); they "
+                          f"are upscaled (antialiased bicubic), which blurs them", SceneLoadWarning, stacklevel=2)
 
     def _pool(self) -> list[str]:
         pool = self.source.split_names(self.split)

@@ -44,6 +44,7 @@ class SceneEntry:
     name: str
     path: Path | None  # None for procedural scenes
     procedural: bool = False
+    size: tuple[int, int] | None = None  # (H, W) from the file's header (folders), None when not probed
 
 
 def split_scene_names(names: Sequence[str], test_fraction: float, seed: int) -> tuple[list[str], list[str]]:
@@ -118,11 +119,11 @@ class SceneSource:
         entries = []
         for p in files:
             try:
-                probe_image(p)
+                size = probe_image(p)
             except UnreadableImage:
                 bad.append(p.relative_to(folder).as_posix())
                 continue
-            entries.append(SceneEntry(p.relative_to(folder).as_posix(), p))
+            entries.append(SceneEntry(p.relative_to(folder).as_posix(), p, size=tuple(size)))
         if bad:
             shown = ", ".join(bad[:_WARN_NAMES]) + (", ..." if len(bad) > _WARN_NAMES else "")
             warnings.warn(f"data.folder: skipped {len(bad)} unreadable image file(s) under {folder}: {shown}",
@@ -152,6 +153,12 @@ class SceneSource:
 
     def __len__(self) -> int:
         return len(self.entries)
+
+    def smaller_than(self, split: str, size: int) -> list[tuple[str, tuple[int, int]]]:
+        """(name, (H, W)) of the probed scenes of ``split`` whose shorter side is below ``size`` (upscaled when
+        cropped at that size)."""
+        return [(n, self.entries[n].size) for n in self.split_names(split)
+                if self.entries[n].size is not None and min(self.entries[n].size) < size]
 
     def split_names(self, split: str) -> list[str]:
         """Names of the scenes of ``split`` ('train', 'test' or 'all'), files that failed to decode removed."""

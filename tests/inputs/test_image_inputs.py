@@ -166,3 +166,25 @@ def test_corrupt_scene_files_are_skipped_with_a_warning_naming_them(tmp_path):
     with pytest.warns(SceneLoadWarning, match=r"data.folder: skipped 1 unreadable image file\(s\) under .*: bad.png"):
         src = build_scene_source({"scenes": "folder", "folder": str(tmp_path)})
     assert sorted(src.names) == ["good.png", "good2.png"]
+
+
+def test_scenes_smaller_than_the_crop_are_counted_in_one_warning(tmp_path):
+    """A 1 x 1 and a 40 x 40 image among larger ones used to be upscaled to the crop without a word."""
+    from codesign.data.scenes import build_scene_sampler
+
+    _png16(tmp_path / "tiny.png", shape=(1, 1))
+    _png16(tmp_path / "small.png", shape=(40, 40))
+    for i in range(3):
+        _png16(tmp_path / f"big{i}.png", shape=(80, 96))
+    cfg = {"scenes": "folder", "folder": str(tmp_path), "image_size": 64, "padded_size": 64, "batch_size": 2}
+    with pytest.warns(SceneLoadWarning) as caught:
+        sampler = build_scene_sampler(cfg, "all", torch.Generator().manual_seed(0))
+    messages = [str(w.message) for w in caught if issubclass(w.category, SceneLoadWarning)]
+    assert messages == ["data.folder: 2 of 5 scene(s) of the 'all' split are smaller than the 64-pixel crop (the "
+                        "smallest: tiny.png, 1 x 1); they are upscaled (antialiased bicubic), which blurs them"]
+    assert sampler.sample().shape == (2, 1, 64, 64)
+    for name in ("tiny.png", "small.png"):
+        (tmp_path / name).unlink()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SceneLoadWarning)  # no small scene: no warning
+        build_scene_sampler(cfg, "all", torch.Generator())
