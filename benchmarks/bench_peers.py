@@ -5,8 +5,9 @@ the 640 x 640 window at the 5.4 um sensor pitch, lambda f of Table 1, at 384 and
 float32 and float64, 1 and 2 threads. Each thread count runs in its own process (``worker``), whose BLAS / OpenMP
 thread pools are set before numpy loads; inside it the libraries take turns on the same field, in blocks of a few
 calls (one call at a time let the previous library's spinning BLAS threads slow the next: codesign's chirp-z
-measured 69 ms instead of 14), three rounds, the median of every timed call. Each library's intensity is normalized by its own propagation of the aperture alone (the
-uncoded peak), so the sampled LSR and the PSF compare directly with codesign's.
+measured 69 ms instead of 14), three rounds, the median of every timed call. Each library's intensity is
+normalized by its own propagation of the aperture alone (the uncoded peak), so the sampled LSR and the PSF compare
+directly with codesign's.
 
 Peers (optional: ``pip install -e ".[peers]"``; a peer that does not import is skipped with a line saying so):
   hcipy   FraunhoferPropagator onto the window (its own choice of transform: MFT, FFT or zoom FFT)

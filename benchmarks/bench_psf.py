@@ -154,10 +154,10 @@ def report(data: dict, out: Path) -> Report:
         f"{d['seconds_total']:.3f} s forward+backward, LSR error {d['lsr_error']:.2%}, mtf_mean error "
         f"{d['mtf_error']:.2%}, PSF L1 error {d['psf_rel_l1']:.2%}; float64 at the same sampling changes the LSR "
         f"error by {abs(d64['lsr_error'] - d['lsr_error']):.1e}, so float32 is not the limit. Why this default: the "
-        "LSR (the design objective) is converged to well under 1% there, and the chirp-z (like the MFT, the same sums) "
-        "computes only the 640 x 640 window at the sensor pitch, while the FFT computes a whole zero-padded plane (several times the time and "
-        "memory) and must resample it bilinearly because its native pitch is not the sensor pitch (the mtf_mean "
-        "and PSF L1 columns show that cost). "
+        "LSR (the design objective) is converged to well under 1% there, and the chirp-z (like the MFT, the same "
+        "sums) computes only the 640 x 640 window at the sensor pitch, while the FFT computes a whole zero-padded "
+        "plane (several times the time and memory) and must resample it bilinearly because its native pitch is not "
+        "the sensor pitch (the mtf_mean and PSF L1 columns show that cost). "
         + ("Faster configurations also within 1% in LSR: " + ", ".join(
             f"{r['label']} {r['dtype']} {int(r['samples'])}" for r in cheaper) + "." if cheaper else
            "No faster configuration is within 1% in LSR."),

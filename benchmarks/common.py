@@ -51,8 +51,8 @@ def run_isolated(module: str, args: list[str]) -> dict:
 
 # ---- the suite interface (python -m benchmarks) ------------------------------------------------------------
 # Each suite module (benchmarks/bench_*.py) defines ``run(scale: str, out: Path) -> Report``: it measures at
-# scale "quick" (the whole suite ~13 min on 2 CPU cores: 12.8 measured) or "full", prints its tables, writes JSON and PNGs
-# into ``out`` (benchmarks/results/<scale>/) and returns what docs/benchmarks.md shows.
+# scale "quick" (the whole suite ~13 min on 2 CPU cores: 12.8 measured) or "full", prints its tables, writes JSON
+# and PNGs into ``out`` (benchmarks/results/<scale>/) and returns what docs/benchmarks.md shows.
 SCALES = ("quick", "full")
 
 

@@ -57,8 +57,9 @@ def evaluate_on(spec, mask, band, dtype=torch.float32, design_spec=None) -> dict
     phase = sampled.phase().to(dtype)
     psf = system.psf(phase, sampled.plate_cell_m)
     h0 = system.uncoded_peak
-    out = {"lsr": system.refined_peak(phase, psf, cell_m=sampled.plate_cell_m) / h0, "lsr_sampled": float(psf.max()) / h0,
-           "window_energy": float(psf.sum()), "pupil_n": spec.grid_n, "focal_n": spec.focal_n}
+    out = {"lsr": system.refined_peak(phase, psf, cell_m=sampled.plate_cell_m) / h0,
+           "lsr_sampled": float(psf.max()) / h0, "window_energy": float(psf.sum()), "pupil_n": spec.grid_n,
+           "focal_n": spec.focal_n}
     if design_spec is None or design_spec.focal_n == spec.focal_n:
         radial = RadialMTF(spec, device=psf.device)
         out["mtf_mean"] = float(radial.summary(radial(metrics.mtf(psf)), band)[0])

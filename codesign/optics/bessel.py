@@ -215,9 +215,7 @@ def bessel_j(x: torch.Tensor, n_max: int) -> torch.Tensor:
     Raises:
         ValueError: if x is not a real floating tensor, holds a negative/NaN value, or n_max is out of range.
     """
-    if not torch.is_floating_point(x):
-        raise ValueError(f"bessel_j: x must be a real floating tensor (float32/float64), got {x.dtype}")
+    _check_x(x)
     if isinstance(n_max, bool) or not isinstance(n_max, int) or not 1 <= n_max <= 200:
         raise ValueError(f"bessel_j: n_max must be an integer in [1, 200], got {n_max!r}")
-    _check_x(x)
     return _BesselOrders.apply(x, tuple(range(n_max + 1))).movedim(0, -1)

@@ -324,7 +324,8 @@ class SensorSimulator(torch.nn.Module):
 
 def psf_state(system, phase: torch.Tensor, cell_m: float | None = None) -> PSFState:
     """PSFState of an OpticalSystem for a pupil phase (differentiable through ``psf``)."""
-    return PSFState(psf=system.psf(phase, cell_m), uncoded_peak=system.uncoded_peak, uncoded_energy=system.uncoded_energy)
+    return PSFState(psf=system.psf(phase, cell_m), uncoded_peak=system.uncoded_peak,
+                    uncoded_energy=system.uncoded_energy)
 
 
 def mask_state_key(mask) -> tuple | None:

@@ -4,8 +4,8 @@ The mask parameters are a third parameter group of the generator optimizer (own 
 schedule; learning rate 0 during the warm-up, when the mask is also taken out of the graph so that warm-up steps
 cost what a frozen-mask step costs). The generator objective gains the LSR penalty; after every generator update
 the mask is projected and the feasibility guard keeps its smooth LSR at or below lsr_max. A non-finite loss or
-gradient skips the whole update (network and mask); non-finite mask parameters after an update restore the
-last good ones.
+gradient skips the whole update (network and mask); an update that leaves the mask or a weight non-finite is undone
+whole by the restoration trainer (``mask_rollbacks``, the earlier mask-only check, stays in the record at 0).
 
 Under torchrun the mask is one more DistributedDataParallel module: every rank holds a replica, its gradient is
 averaged with the networks', and the identical updates and guard decisions keep the replicas identical; every
@@ -21,7 +21,6 @@ import torch
 from codesign.design.lsr_constraint import (
     CodesignSpec,
     LSRConstraint,
-    restore,
     snapshot,
 )
 from codesign.design.merit import MetricsSpec
@@ -91,11 +90,6 @@ class JointTrainer(RestorationTrainer):
         if opt is not self.opt_g or not self.camera.trainable:
             return
         if not bool(applied):  # the guard below decides on the host anyway: the one sync of a mask step
-            return
-        if not all(bool(torch.isfinite(p).all()) for p in self.mask_params):
-            restore(self.mask, self._before)
-            self.mask_rollbacks += 1
-            log.warning("step %d: non-finite mask parameters after the update, last good mask restored", self.step)
             return
         self.lsr, kept = self.constraint.enforce(self.mask, self._before, self.lsr)
         self._step_info = {"mask_step_kept": kept}

@@ -106,9 +106,10 @@ def as_float32(x):
     return x
 
 
-def snapshot_optimizer(opt: torch.optim.Optimizer) -> list[tuple[torch.Tensor, torch.Tensor | None]]:
-    """(tensor, copy) of every parameter of ``opt`` and of its state tensors (Adam's moments and step) before a
-    step; a state the step is about to create (the first step) is recorded with None: its value before is 0."""
+def snapshot_optimizer(opt: torch.optim.Optimizer) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """(tensor, copy) of every parameter of ``opt`` and of its existing state tensors (Adam's moments and step)
+    before a step; states the step is about to create (the first step) have no entry (restore_if_not_finite sets
+    them back to 0, their value before)."""
     out = []
     for group in opt.param_groups:
         for p in group["params"]:

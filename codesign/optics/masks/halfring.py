@@ -17,8 +17,9 @@ Fast evaluation: sin(m_o (Phi - theta_n)) = sin(m_o Phi) cos(m_o theta_n) - cos(
     A_m = sum_n a_{m,n} cos(m_o theta_n) J_{m_o}(x_n),  B_m = sum_n a_{m,n} sin(m_o theta_n) J_{m_o}(x_n):
 Bessel functions are needed only as radial profiles, and the angular harmonics sin/cos(m_o Phi) are fixed per grid.
 Strategies: ``exact`` evaluates the profiles at the grid's distinct radii (exact, ~17x fewer points than pixels
-for large grids) and the angular sums on one eighth of the grid (``OctantSums``); ``table`` on a uniform radial table of ``table_size`` points with linear interpolation;
-``direct`` evaluates every Bessel function at every pixel (the reference, for tests and benchmarks).
+for large grids) and the angular sums on one eighth of the grid (``OctantSums``); ``table`` on a uniform radial
+table of ``table_size`` points with linear interpolation; ``direct`` evaluates every Bessel function at every
+pixel (the reference, for tests and benchmarks).
 """
 from __future__ import annotations
 
