@@ -18,6 +18,23 @@ resolvers.register()  # conf/config.yaml's ${codesign_stamp:} etc., for tests th
 
 def pytest_addoption(parser):
     parser.addoption("--runslow", action="store_true", default=False, help="also run tests marked slow")
+    parser.addoption("--device", default="cpu",
+                     help="torch device of the device tests (tests/device/): cpu (default) or cuda / cuda:N")
+
+
+def pytest_configure(config):
+    name = config.getoption("--device")
+    try:
+        dev = torch.device(name)
+    except RuntimeError:
+        raise pytest.UsageError(f"--device {name!r}: not a torch device; allowed: cpu, cuda, cuda:N") from None
+    if dev.type not in ("cpu", "cuda"):
+        raise pytest.UsageError(f"--device {name!r}: allowed: cpu, cuda, cuda:N")
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise pytest.UsageError(f"--device {name}: torch {torch.__version__} sees no CUDA device "
+                                "(torch.cuda.is_available() is False)")
+    if dev.type == "cuda" and (dev.index or 0) >= torch.cuda.device_count():
+        raise pytest.UsageError(f"--device {name}: only {torch.cuda.device_count()} CUDA device(s) visible")
 
 
 def pytest_collection_modifyitems(config, items):
@@ -27,6 +44,13 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "slow" in item.keywords:
             item.add_marker(skip_slow)
+
+
+@pytest.fixture(scope="session")
+def device(request) -> torch.device:
+    """The device of the device tests: ``--device`` (default cpu)."""
+    dev = torch.device(request.config.getoption("--device"))
+    return torch.device("cuda", torch.cuda.current_device()) if dev.type == "cuda" and dev.index is None else dev
 
 
 @pytest.fixture(scope="session")

@@ -26,14 +26,15 @@ def tiny_cfg(*overrides: str):
         return compose("config", overrides=["+experiment=baseline", *TINY, *overrides])
 
 
-def tiny_trainer(tmp_path, *overrides: str, seed: int = 0, **spec_changes) -> RestorationTrainer:
+def tiny_trainer(tmp_path, *overrides: str, seed: int = 0, device: torch.device = CPU,
+                 **spec_changes) -> RestorationTrainer:
     cfg = tiny_cfg(*overrides)
     torch.manual_seed(seed)
     model = build_model(cfg)
     init_weights(model)
-    data = SimulatedData(cfg, torch.device("cpu"), seed)
+    data = SimulatedData(cfg, device, seed)
     spec = TrainerSpec.from_config(dict(cfg.trainer)).replace(**spec_changes)
-    return RestorationTrainer(model, data, spec, tmp_path, torch.device("cpu"), {"test": 1}, None, seed)
+    return RestorationTrainer(model, data, spec, tmp_path, device, {"test": 1}, None, seed)
 
 
 def joint_cfg(*overrides: str):
@@ -42,12 +43,12 @@ def joint_cfg(*overrides: str):
 
 
 def joint_trainer(tmp_path, *overrides: str, seed: int = 0, lsr_max: float | None = None, dist=SINGLE,
-                  **codesign) -> JointTrainer:
+                  device: torch.device = CPU, **codesign) -> JointTrainer:
     cfg = joint_cfg(*overrides)
     torch.manual_seed(seed)
     model = build_model(cfg)
     init_weights(model)
-    data = SimulatedData(cfg, CPU, seed, dist)
+    data = SimulatedData(cfg, device, seed, dist)
     spec = TrainerSpec.from_config(dict(cfg.trainer)).replace(steps=4, val_every=0, checkpoint_every=0,
                                                               image_every=0)
     cs = CodesignSpec.from_config({**dict(cfg.codesign), "warmup_fraction": 0.0, **codesign})
@@ -55,5 +56,5 @@ def joint_trainer(tmp_path, *overrides: str, seed: int = 0, lsr_max: float | Non
         system = data.camera.system
         ref = build_mask(published_mask_config(dict(cfg.mask)), system.grid, system.spec.aperture_diameter_m)
         lsr_max = LSRConstraint(cs, system, 1.0).measure(ref)
-    return JointTrainer(model, data, spec, tmp_path, CPU, {"test": 1}, None, seed, cs, lsr_max,
+    return JointTrainer(model, data, spec, tmp_path, device, {"test": 1}, None, seed, cs, lsr_max,
                         dist=dist)
