@@ -8,8 +8,9 @@ Each benchmark is a module benchmarks/bench_<name>.py (a name in BENCHMARKS) wit
 ``python -m benchmarks.bench_<name> [--scale S]`` runs one alone. Each prints its tables and writes JSON + PNG into
 benchmarks/results/<scale>/; a complete run rewrites docs/benchmarks.md (quick) or docs/benchmarks_full.md (full)
 from what it measured (machine, threads, torch version and date included). Shared helpers live in
-benchmarks/common.py; benchmarks/ holds no other modules. The JSON files directly under benchmarks/results/ are
-earlier measurements that docs/ quotes, kept as they were. Benchmarks are measurements, not tests: nothing here
+benchmarks/common.py; benchmarks/ holds no other modules but benchmarks/gpu.py, the GPU campaign (``python -m
+benchmarks.gpu``, docs/gpu.md), which is not part of the suite. The JSON files directly under benchmarks/results/
+are earlier measurements that docs/ quotes, kept as they were. Benchmarks are measurements, not tests: nothing here
 asserts a time.
 """
 from __future__ import annotations

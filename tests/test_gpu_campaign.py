@@ -1,0 +1,75 @@
+"""The GPU campaign's CPU rehearsal (python -m benchmarks.gpu --dry-run): every step runs at tiny sizes and
+reports what it measured; the GPU run's results and docs/gpu.md are left alone; bad arguments are refused."""
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from benchmarks import gpu
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def test_dry_run_runs_every_step_and_writes_its_own_folder(tmp_path):
+    docs_before = gpu.DOCS.read_bytes() if gpu.DOCS.is_file() else None
+    out = subprocess.run([sys.executable, "-m", "benchmarks.gpu", "--dry-run", "--out", str(tmp_path)],
+                         capture_output=True, text=True, cwd=REPO)
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    res = json.loads((tmp_path / "gpu.json").read_text())
+    assert res["dry_run"] and set(res["seconds"]) == set(gpu.STEPS)
+    assert res["tests"]["exit"] == 0 and res["tests"]["passed"] >= 10 and "failed" not in res["tests"]
+    cells = res["speed"]["inference"]
+    assert len(cells) == 2 * 2 * 2 and all("error" not in c and c["images_per_s"] > 0 for c in cells)
+    joint = res["speed"]["joint"]
+    assert joint["joint"]["total"] > 0 and joint["joint"]["mask_to_psf"] > 0 and joint["frozen"]["total"] > 0
+    assert [r["samples_across"] for r in res["speed"]["psf"]] == [192]
+    assert res["train"]["exit"] == 0 and res["train"]["steps"] == 4
+    scores = res["evaluation"]["scores"]
+    assert res["evaluation"]["exit"] == 0 and len(res["evaluation"]["evaluation_scenes"]) == 2
+    for method in ("sgan", "sensor", "wiener"):
+        for alpha in gpu.ALPHAS:
+            assert all(math.isfinite(v) for v in scores[method][alpha].values()), (method, alpha)
+    md = (tmp_path / "gpu.md").read_text()
+    assert md.startswith("# GPU campaign (DRY RUN on a CPU at tiny sizes: not GPU figures)")
+    assert "| sgan_f | tiny | bf16 | 2 |" in md and "Not run yet" not in md
+    for name in ("inference.png", "restorations_1e6.png", "tests.log", "train.log", "evaluate.log"):
+        assert (tmp_path / name).is_file(), name
+    assert (gpu.DOCS.read_bytes() if gpu.DOCS.is_file() else None) == docs_before
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--dry-run"], "--dry-run needs --out DIR (its tiny-size figures must not replace the GPU results)"),
+    (["--dry-run", "--out", "X", "--only", "tests,fly"], "--only 'tests,fly': allowed steps: tests, speed, train, "
+                                                          "evaluate (comma-separated)"),
+    (["--dry-run", "--out", "X", "--budget-min", "0.5"], "--budget-min 0.5: must be between 1 and 600"),
+    (["--dry-run", "--out", "X", "--checkpoint", "nowhere.pt"], "--checkpoint nowhere.pt: no such file"),
+])
+def test_bad_arguments_are_refused_before_any_work(args, message, capsys):
+    with pytest.raises(SystemExit) as stop:
+        gpu.main(args)
+    assert stop.value.code == 2 and message in capsys.readouterr().err
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
+def test_without_a_gpu_the_campaign_points_to_the_dry_run(capsys):
+    with pytest.raises(SystemExit):
+        gpu.main([])
+    assert (f"no CUDA device visible (torch {torch.__version__}): run on a GPU node, or --dry-run on a CPU"
+            in capsys.readouterr().err)
+
+
+def test_a_partial_run_keeps_the_other_steps_results(tmp_path):
+    (tmp_path / "gpu.json").write_text(json.dumps({"dry_run": True, "tests": {"exit": 0, "summary": "kept",
+                                                                              "seconds": 1.0},
+                                                    "seconds": {"tests": 1.0}, "machines": {}}))
+    assert gpu.main(["--dry-run", "--out", str(tmp_path), "--only", "speed"]) == 0
+    res = json.loads((tmp_path / "gpu.json").read_text())
+    assert res["tests"]["summary"] == "kept" and "speed" in res and set(res["seconds"]) == {"tests", "speed"}
+    md = (tmp_path / "gpu.md").read_text()
+    assert "## 3. Training with the published mask\n\nNot run yet." in md
