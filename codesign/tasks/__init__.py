@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib
 import logging
 import pkgutil
+import shlex
 import shutil
 import sys
 from pathlib import Path
@@ -27,6 +28,7 @@ from codesign.errors import ConfigError, OutputWriteError
 from codesign.io import files as io
 from codesign.tasks import rundir
 from codesign.train import distributed
+from codesign.train.trainer import TrainingInterrupted
 
 log = logging.getLogger("codesign")
 
@@ -131,6 +133,18 @@ def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None
     except OutputWriteError as err:
         print(f"codesign: output error: {err}", file=sys.stderr)
         raise SystemExit(1) from None
+    except TrainingInterrupted as stop:
+        if ctx.is_main:
+            print(f"codesign: {stop} (checkpoint {stop.checkpoint}); resume with: {resume_command(run_dir, ctx)}",
+                  file=sys.stderr)
+        raise SystemExit(stop.exit_code) from None
+
+
+def resume_command(run_dir: Path, ctx) -> str:
+    """The command line that continues this run: the same overrides, this run directory."""
+    args = [a for a in sys.argv[1:] if not a.startswith("hydra.run.dir=")] + [f"hydra.run.dir={run_dir}"]
+    launcher = f"torchrun --nproc_per_node={ctx.world} -m codesign" if ctx.enabled else "python -m codesign"
+    return " ".join([launcher, *(shlex.quote(a) for a in args)])
 
 
 def resolved_config_yaml(cfg: DictConfig) -> str:

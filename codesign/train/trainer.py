@@ -21,7 +21,10 @@ from __future__ import annotations
 import copy
 import logging
 import math
+import signal
+import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import torch
@@ -41,6 +44,44 @@ from codesign.train.checkpoint import (
 from codesign.train.spec import TrainerSpec
 
 log = logging.getLogger("codesign.train")
+
+
+class TrainingInterrupted(Exception):
+    """SIGINT or SIGTERM arrived during training: the step in progress finished, a checkpoint was written (rank 0)
+    and training stopped. ``exit_code``: 128 + the signal's number (130 for SIGINT, 143 for SIGTERM)."""
+
+    def __init__(self, signum: int, step: int, checkpoint: Path | None):
+        self.signum, self.step, self.checkpoint = signum, step, checkpoint
+        self.exit_code = 128 + signum
+        super().__init__(f"{signal.Signals(signum).name} at step {step}")
+
+
+@contextmanager
+def stop_requests():
+    """SIGINT (Ctrl-C) and SIGTERM (what SLURM sends before a time limit) append their number to the yielded list
+    instead of stopping the process: the training loop reads it at the next step boundary. A second signal stops
+    at once, as before. Outside the main thread (signals cannot be caught there) the list stays empty."""
+    got: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield got
+        return
+    old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    def request(signum, frame):
+        if got:  # asked twice: stop now
+            signal.signal(signum, old[signum] if callable(old[signum]) else signal.SIG_DFL)
+            raise KeyboardInterrupt
+        got.append(signum)
+        log.warning("%s: stopping after this step (checkpoint, then exit; again to stop at once)",
+                    signal.Signals(signum).name)
+
+    for s in old:
+        signal.signal(s, request)
+    try:
+        yield got
+    finally:
+        for s, handler in old.items():
+            signal.signal(s, handler)
 
 
 def init_weights(module: nn.Module) -> None:
@@ -344,23 +385,32 @@ class RestorationTrainer(TrainContext):
         [first, last] terms see those steps; in between the device runs ahead of the host."""
         spec = self.spec
         t0, start = time.perf_counter(), self.step
-        while self.step < spec.steps:
-            terms = self.train_step()
-            over = spec.time_budget_s is not None and time.perf_counter() - t0 >= spec.time_budget_s
-            if self.dist.enabled and spec.time_budget_s is not None:  # all ranks stop together: rank 0's clock
-                over = distributed.broadcast_flag(over, self.dist)
-            last = self.step == spec.steps or over
-            if self.step % progress_every == 0 or last or self.step == start + 1:
-                self._log_step(terms, t0, start)
-            if spec.val_every and (self.step % spec.val_every == 0) or last:
-                self.check_replicas()
-                if self.dist.is_main:
-                    self.validate(images=last or bool(spec.image_every and self.step % spec.image_every == 0))
-            if (spec.checkpoint_every and self.step % spec.checkpoint_every == 0 or last) and self.dist.is_main:
-                self.save()
-            if over:
-                log.info("time budget of %.0f s reached at step %d/%d", spec.time_budget_s, self.step, spec.steps)
-                break
+        with stop_requests() as stop:
+            while self.step < spec.steps:
+                terms = self.train_step()
+                over = spec.time_budget_s is not None and time.perf_counter() - t0 >= spec.time_budget_s
+                if self.dist.enabled and spec.time_budget_s is not None:  # all ranks stop together: rank 0's clock
+                    over = distributed.broadcast_flag(over, self.dist)
+                asked = bool(stop)
+                if self.dist.enabled:  # a signal stops every rank at the same step (rank 0's decides)
+                    asked = distributed.broadcast_flag(asked, self.dist)
+                last = self.step == spec.steps or over
+                if self.step % progress_every == 0 or last or asked or self.step == start + 1:
+                    self._log_step(terms, t0, start)
+                if spec.val_every and (self.step % spec.val_every == 0) or last:
+                    self.check_replicas()
+                    if self.dist.is_main:
+                        self.validate(images=last or bool(spec.image_every and self.step % spec.image_every == 0))
+                if (spec.checkpoint_every and self.step % spec.checkpoint_every == 0 or last or asked) \
+                        and self.dist.is_main:
+                    path = self.save()
+                if asked:
+                    raise TrainingInterrupted(stop[0] if stop else signal.SIGTERM, self.step,
+                                              path if self.dist.is_main else None)
+                if over:
+                    log.info("time budget of %.0f s reached at step %d/%d", spec.time_budget_s, self.step,
+                             spec.steps)
+                    break
         return [t for t in (self.first_terms, self.last_terms) if t]
 
     def _log_step(self, terms: dict, t0: float, start: int) -> None:
