@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import importlib.metadata as md
-import json
 import platform
 import re
 import subprocess
@@ -35,6 +34,8 @@ from pathlib import Path
 
 from packaging.markers import default_environment
 from packaging.requirements import Requirement
+
+from codesign.io.files import write_json
 
 # The platforms a manylinux x86_64 node accepts (pip matches a manylinux_2_N tag exactly, so several are listed).
 DEFAULT_PLATFORMS = ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64",
@@ -82,7 +83,7 @@ def closure(root: str, env: dict, extras: tuple[str, ...], requires=None) -> dic
     """{package: [its dependencies]} of every distribution reachable from ``root``'s requirements in ``env``,
     read from the installed metadata (``requires(name) -> list[str] | None`` for tests). A requirement that is not
     installed here is an error: the wheelhouse holds what this machine runs, nothing it has not tested."""
-    requires = requires or (lambda name: md.requires(name))
+    requires = requires or md.requires
     graph: dict[str, list[str]] = {}
     todo = [(canonical(root), extras)]
     while todo:
@@ -179,9 +180,7 @@ def build(out: Path, python_version: str, platforms: tuple[str, ...], have: set[
                 "packages": {n: {"version": v, "how": how[n]} for n, v in what["packages"].items()},
                 "left_out": what["left_out"], "wheels": [w.name for w in wheels],
                 "megabytes": round(sum(w.stat().st_size for w in wheels) / 2**20, 2)}
-    tmp_manifest = out / "wheelhouse.json.tmp"
-    tmp_manifest.write_text(json.dumps(manifest, indent=2) + "\n")
-    tmp_manifest.replace(out / "wheelhouse.json")
+    write_json(out / "wheelhouse.json", manifest)
     return manifest
 
 

@@ -16,23 +16,27 @@ import torch
 from codesign.train.checkpoint import load_checkpoint
 
 REPO = Path(__file__).resolve().parents[2]
-ARGS = ["+experiment=baseline", "debug=smoke", "trainer.steps=400", "trainer.checkpoint_every=1000",
-        "trainer.val_every=1000", "logging.log_every=1"]
 
 
-def _start(run_dir: Path) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "codesign", *ARGS, f"hydra.run.dir={run_dir}"], cwd=REPO,
+def _args(steps: int) -> list[str]:
+    return ["+experiment=baseline", "debug=smoke", f"trainer.steps={steps}", "trainer.checkpoint_every=1000",
+            "trainer.val_every=1000", "logging.log_every=1"]
+
+
+ARGS = _args(400)
+
+
+def _start_and_wait_for_step_2(run_dir: Path, steps: int, timeout: float = 120.0) -> subprocess.Popen:
+    """Start ``python -m codesign _args(steps)`` and return it once its log shows step 2."""
+    proc = subprocess.Popen([sys.executable, "-m", "codesign", *_args(steps), f"hydra.run.dir={run_dir}"], cwd=REPO,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-
-
-def _wait_for_training(proc: subprocess.Popen, log: Path, timeout: float = 120.0) -> None:
-    t_end = time.time() + timeout
+    log, t_end = run_dir / "__main__.log", time.time() + timeout
     while time.time() < t_end:
         if proc.poll() is not None:
             raise AssertionError(f"ended before training: {proc.communicate()[1][-2000:]}")
-        if log.is_file() and " - step 2/400" in log.read_text():
-            return
-        time.sleep(0.2)
+        if log.is_file() and f" - step 2/{steps}" in log.read_text():
+            return proc
+        time.sleep(0.1)
     proc.kill()
     raise AssertionError("no training step within the timeout")
 
@@ -40,8 +44,7 @@ def _wait_for_training(proc: subprocess.Popen, log: Path, timeout: float = 120.0
 @pytest.mark.parametrize("sig,code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
 def test_a_signal_checkpoints_at_the_next_step_and_exits_with_its_code(tmp_path, sig, code):
     run = tmp_path / "run"
-    proc = _start(run)
-    _wait_for_training(proc, run / "__main__.log")
+    proc = _start_and_wait_for_step_2(run, 400)
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == code, err[-3000:]
@@ -58,14 +61,7 @@ def test_a_signal_checkpoints_at_the_next_step_and_exits_with_its_code(tmp_path,
 
 def test_the_printed_command_resumes_the_run_to_its_end(tmp_path):
     run = tmp_path / "run"
-    args = ["+experiment=baseline", "debug=smoke", "trainer.steps=12", "trainer.checkpoint_every=1000",
-            "trainer.val_every=1000", "logging.log_every=1"]
-    proc = subprocess.Popen([sys.executable, "-m", "codesign", *args, f"hydra.run.dir={run}"], cwd=REPO,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    t_end = time.time() + 120
-    while not ((run / "__main__.log").is_file() and " - step 2/12" in (run / "__main__.log").read_text()):
-        assert proc.poll() is None and time.time() < t_end, proc.communicate()[1][-2000:]
-        time.sleep(0.1)
+    proc = _start_and_wait_for_step_2(run, 12)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=120)
     if proc.returncode == 0:
