@@ -1,6 +1,7 @@
 """Config-level helpers shared by every experiment: debug shrinking, typed keys, device and thread selection."""
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 
 import torch
@@ -113,6 +114,25 @@ def set_threads(threads) -> int:
     return torch.get_num_threads()
 
 
+def set_deterministic(mode: bool | str, device: torch.device) -> bool:
+    """Switch torch's deterministic kernels on or off for this process (``mode``: RunSpec.deterministic); returns
+    whether they are on.
+
+    Why: on the CPU the backward of an advanced-indexing gather (``values[index]``, e.g. the half-ring mask's
+    octant sums and radial profiles spread over the pupil) accumulates with ``index_put_(accumulate=True)``,
+    which for more than ~32k indices runs on several threads with atomic float adds: the mask's gradient then
+    differs in its last bits from call to call, and a joint run parts from itself after ~100 steps. torch's
+    deterministic mode sorts the indices instead (as fast here: docs/codesign.md). On CUDA it would also need
+    CUBLAS_WORKSPACE_CONFIG and slower convolution algorithms, so ``auto`` leaves it off there; ``true`` sets both.
+    Ops without a deterministic kernel warn (warn_only) rather than stop the run."""
+    on = device.type == "cpu" if mode == "auto" else bool(mode)
+    if on and device.type == "cuda":
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+        torch.backends.cudnn.benchmark = False
+    torch.use_deterministic_algorithms(on, warn_only=True)
+    return on
+
+
 def resolve_dtype(key: str, name: str) -> torch.dtype:
     return {"float32": torch.float32, "float64": torch.float64}[require_choice(key, name, ("float32", "float64"))]
 
@@ -121,17 +141,21 @@ def resolve_dtype(key: str, name: str) -> torch.dtype:
 class RunSpec(SpecMixin):
     """The root keys of every run: seed (torch, numpy and the data draws; search.seed defaults to it); device:
     auto (CUDA when present, else CPU) | cpu | cuda | cuda:N; threads: torch intra-op threads (null: torch's
-    default)."""
+    default); deterministic: auto (on for CPU runs, off on CUDA) | true | false, torch's deterministic kernels
+    (see set_deterministic)."""
 
     seed: int = 0
     device: str = "auto"
     threads: int | None = None
+    deterministic: bool | str = "auto"
     prefix: str = field(default="", compare=False, repr=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "seed", require_number("seed", self.seed, lo=0, hi=1e9, integer=True))
         if self.threads is not None:
             object.__setattr__(self, "threads", require_number("threads", self.threads, lo=1, hi=1024, integer=True))
+        if self.deterministic not in (True, False, "auto"):
+            raise ConfigError("deterministic", self.deterministic, "must be auto, true or false")
 
 
 register("run", "default", {**spec_node(RunSpec)}, package="_global_")
@@ -139,7 +163,7 @@ register("run", "default", {**spec_node(RunSpec)}, package="_global_")
 
 def run_spec(cfg) -> RunSpec:
     """The validated root keys of a composed config (RunSpec's defaults for keys it lacks)."""
-    return RunSpec(**{k: cfg.get(k) for k in ("seed", "device", "threads") if cfg.get(k) is not None})
+    return RunSpec(**{k: cfg.get(k) for k in ("seed", "device", "threads", "deterministic") if cfg.get(k) is not None})
 
 
 def check_seed(cfg) -> int:

@@ -22,6 +22,7 @@ from codesign.config.runtime import (
     explicit_keys,
     resolve_device,
     run_spec,
+    set_deterministic,
     set_threads,
 )
 from codesign.errors import ConfigError, OutputWriteError
@@ -41,8 +42,8 @@ EXPERIMENTS: tuple[str, ...] = tuple(sorted(m.name for m in pkgutil.iter_modules
                                             if m.name not in _NOT_EXPERIMENTS))
 
 # Root keys every experiment has (conf/config.yaml and its groups).
-COMMON_KEYS = ("task", "seed", "device", "threads", "optics", "mask", "sensor", "model", "data", "trainer", "metrics",
-               "logging", "evaluate", "debug")
+COMMON_KEYS = ("task", "seed", "device", "threads", "deterministic", "optics", "mask", "sensor", "model", "data",
+               "trainer", "metrics", "logging", "evaluate", "debug")
 
 
 def task_module(name: str):
@@ -118,10 +119,12 @@ def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None
         check_logging(cfg)
         threads = set_threads(root.threads)
         device = resolve_device(root.device, ctx.local_rank if ctx.enabled else None)
+        deterministic = set_deterministic(root.deterministic, device)
         if ctx.is_main:  # the other ranks write nothing
             io.check_writable_dir(run_dir)  # before any work: never an hour of training, then a failed write
         torch.manual_seed(seed)
-        log.info("task=%s device=%s threads=%d run_dir=%s%s", task, device, threads, run_dir,
+        log.info("task=%s device=%s threads=%d deterministic=%s run_dir=%s%s", task, device, threads,
+                 "on" if deterministic else "off", run_dir,
                  f" ranks={ctx.world} ({distributed.backend_name()})" if ctx.enabled else "")
         return experiment_function(task)(cfg, run_dir, device)
     except ConfigError as err:

@@ -47,10 +47,11 @@ ROWS = [
     ("psf", "seed=-1", "seed = -1: must be an integer >= 0 and <= 1e+09"),
     ("psf", "logging.tensorboard=maybe", "logging.tensorboard = 'maybe': must be true or false"),
     ("psf", "+logging.foo=1", "logging.foo = 1: unknown key; allowed: log_every, tensorboard"),
-    ("psf", "+foo=1", "foo = 1: unknown key for +experiment=psf; allowed: task, seed, device, threads, optics, mask, "
-     "sensor, model, data, trainer, metrics, logging, evaluate, debug, precision, timing_repeats"),
+    ("psf", "+foo=1", "foo = 1: unknown key for +experiment=psf; allowed: task, seed, device, threads, deterministic, "
+     "optics, mask, sensor, model, data, trainer, metrics, logging, evaluate, debug, precision, timing_repeats"),
+    ("psf", "deterministic=maybe", "deterministic = 'maybe': must be auto, true or false"),
     ("baseline", "+checkpoint=x", "checkpoint = 'x': unknown key for +experiment=baseline; allowed: task, seed, "
-     "device, threads, optics, mask, sensor, model, data, trainer, metrics, logging, evaluate, debug"),
+     "device, threads, deterministic, optics, mask, sensor, model, data, trainer, metrics, logging, evaluate, debug"),
     # ---- simulate and data ---------------------------------------------------------------------------------
     ("simulate", "simulate.alpha_l=5", "simulate.alpha_l = 5: must be a list of laser strengths >= 0"),
     ("simulate", "simulate.laser_angle_rad=5", "simulate.laser_angle_rad = 5: must be [n_u, n_v] in radians"),
