@@ -28,17 +28,19 @@ SCHEDULES = ("constant", "trainer", "cosine")
 
 @dataclass(frozen=True)
 class CodesignSpec(SpecMixin):
-    """lsr_max: the smooth-LSR ceiling (null = the published mask's smooth LSR; p of the smooth LSR: metrics.lsr_p);
+    """lsr_max: the smooth-LSR ceiling (null = the published mask's smooth LSR; start = the start mask's own, so a
+    searched design can only improve; p of the smooth LSR: metrics.lsr_p);
     penalty_weight, margin: the penalty (0 weight = off); guard, guard_halvings, guard_tolerance: the
     feasibility guard (relative tolerance on lsr_max).
     mask_lr: Adam learning rate of the mask parameters (units of the parameters per step: r_n in lambda f / W_a,
-    theta_n and freeform phase in rad); mask_betas; mask_schedule: constant | trainer (the network's Sec. 6.2
+    theta_n and freeform phase in rad; 0 = the mask stays frozen: the control arm of a fine-tuning study);
+    mask_betas; mask_schedule: constant | trainer (the network's Sec. 6.2
     factors) | cosine (to zero at trainer.steps); warmup_fraction: share of the steps with the mask frozen (the
     network first learns to restore, so that the mask's gradient means something).
     compare_published: also train a network on the published mask, same steps and seed, and evaluate both.
     """
 
-    lsr_max: float | None = None
+    lsr_max: float | str | None = None
     penalty_weight: float = 1.0e4
     margin: float = 0.02
     guard: bool = True
@@ -53,13 +55,16 @@ class CodesignSpec(SpecMixin):
 
     def __post_init__(self) -> None:
         p = self.prefix
-        if self.lsr_max is not None:
+        if self.lsr_max is not None and self.lsr_max != "start":
+            if isinstance(self.lsr_max, str):
+                raise ConfigError(f"{p}.lsr_max", self.lsr_max, "must be null (the published mask's smooth LSR), "
+                                  "start (the start mask's) or a number in (0, 1]")
             require_number(f"{p}.lsr_max", self.lsr_max, lo=0, lo_open=True, hi=1)
         require_number(f"{p}.penalty_weight", self.penalty_weight, lo=0)
         require_number(f"{p}.margin", self.margin, lo=0, hi=0.5)
         require_number(f"{p}.guard_halvings", self.guard_halvings, lo=0, hi=60, integer=True)
         require_number(f"{p}.guard_tolerance", self.guard_tolerance, lo=0, hi=0.1)
-        require_number(f"{p}.mask_lr", self.mask_lr, lo=0, lo_open=True, hi=10)
+        require_number(f"{p}.mask_lr", self.mask_lr, lo=0, hi=10)
         betas = _as_list(self.mask_betas)
         if len(betas) != 2 or not all(isinstance(b, (int, float)) and 0 <= b < 1 for b in betas):
             raise ConfigError(f"{p}.mask_betas", self.mask_betas, "must be [beta1, beta2], each in [0, 1)")

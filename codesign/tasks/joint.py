@@ -17,8 +17,8 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from codesign.config.runtime import check_seed, logging_spec, to_container
-from codesign.design.lsr_constraint import CodesignSpec
 from codesign.design.limits import MTFLimit
+from codesign.design.lsr_constraint import CodesignSpec, LSRConstraint
 from codesign.design.merit import metrics_spec
 from codesign.design.monitor import MaskMonitor, published_reference
 from codesign.design.records import write_record
@@ -32,14 +32,14 @@ from codesign.train.checkpoint import CHECKPOINT_NAME
 from codesign.train.data import SimulatedData
 from codesign.train.evaluation import eval_settings, run_evaluation
 from codesign.train.joint_trainer import JointTrainer
-from codesign.train.resume import resume_if_possible
+from codesign.train.resume import load_initial_weights, resume_if_possible
 from codesign.train.setup import build_model, distributed_metrics, run_metrics
-from codesign.train.spec import TrainerSpec
+from codesign.train.spec import InitSpec, TrainerSpec
 from codesign.train.trainer import RestorationTrainer, init_weights
 
 log = logging.getLogger("codesign.joint")
 # Root keys this experiment reads besides the common ones (conf/experiment/joint.yaml); any other is refused.
-ROOT_KEYS: tuple[str, ...] = ("codesign",)
+ROOT_KEYS: tuple[str, ...] = ("codesign", "init")
 DISTRIBUTED = True  # trains networks: runs data-parallel under torchrun
 
 PUBLISHED_DIR = "published"
@@ -107,17 +107,16 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     ev = eval_settings(cfg)  # every setting checked before any training
     log_every = logging_spec(cfg).log_every
     published_cfg = published_mask_config(to_container(cfg.mask))
+    init = InitSpec.from_config(to_container(cfg.get("init")) or {})
 
-    torch.manual_seed(seed)
-    model = build_model(cfg)
-    init_weights(model)
+    model, warm = _network(cfg, init, seed)
     ctx = distributed.current()
     data = SimulatedData(cfg, device, seed, ctx)
     camera = data.camera
     system = camera.system
     reference = published_reference(to_container(cfg.mask), system)
     monitor = MaskMonitor(system, reference, ms.mtf_band, ms.lsr_p)
-    lsr_max = cs.lsr_max if cs.lsr_max is not None else monitor.reference[0]["lsr_smooth"]
+    lsr_max, lsr_max_from = _lsr_max(cs, monitor, system, camera.mask)
     trainer = JointTrainer(model, data, spec, run_dir, device, to_container(cfg), None, seed, cs, lsr_max, monitor,
                            ctx, ms.lsr_p)
     common = run_metrics(cfg, model, device)
@@ -125,14 +124,14 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
              "lsr_max %.4g (%s); %d steps, batch %d, %d px padded to %d", common["variant"], common["size"],
              common["parameters_generators"] / 1e6, to_container(cfg.mask)["kind"],
              sum(p.numel() for p in camera.mask.parameters()), cs.mask_lr, cs.warmup_steps(spec.steps), lsr_max,
-             "given" if cs.lsr_max is not None else "published mask's smooth LSR", spec.steps,
+             lsr_max_from, spec.steps,
              int(cfg.data.batch_size), data.image_size, data.padded_size)
     timing = _train(trainer, cfg, run_dir, log_every, "joint")
     camera.set_trainable(False)
     camera.invalidate()
     steps = trainer.step
     # every rank trains the published comparison too; evaluations and files then come from rank 0 alone
-    published = _published_train(cfg, published_cfg, spec, steps, seed, device, run_dir, log_every, ctx) \
+    published = _published_train(cfg, published_cfg, init, spec, steps, seed, device, run_dir, log_every, ctx) \
         if cs.compare_published else None
     if not ctx.is_main:
         return None
@@ -149,7 +148,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         ms.mtf_band, f"radial MTF after {steps} joint steps"))
 
     metrics = {**common, **distributed_metrics(trainer), "mask_max_rank_difference": trainer.mask_diff,
-               "steps": steps, **timing, "lsr_max": lsr_max,
+               "steps": steps, **timing, "lsr_max": lsr_max, "lsr_max_from": lsr_max_from, **warm,
                "lsr_constraint_met": learned["lsr_smooth"] <= lsr_max * (1 + cs.guard_tolerance),
                "skipped_updates": trainer.skipped, "undone_updates": trainer.rollbacks,
                "mask_rollbacks": trainer.mask_rollbacks,
@@ -173,17 +172,34 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     return metrics.get("psnr", float("nan"))
 
 
-def _published_train(cfg, published_cfg, spec, steps, seed, device, run_dir, log_every, ctx) -> tuple:
-    """Train the same restorer on the published mask with the same steps, seed and data draws: (model, trainer, data,
-    timing) for _published_evaluation."""
+def _network(cfg, init: InitSpec, seed: int) -> tuple:
+    """The restorer with its starting weights: seeded fresh ones, or a warm start's (init.checkpoint); and what the
+    run records of the latter."""
+    torch.manual_seed(seed)
+    model = build_model(cfg)
+    init_weights(model)
+    warm = load_initial_weights(model, init.checkpoint, cfg) if init.checkpoint else {}
+    return model, warm
+
+
+def _lsr_max(cs: CodesignSpec, monitor: MaskMonitor, system, mask) -> tuple[float, str]:
+    """The smooth-LSR ceiling (codesign.lsr_max) and where it comes from."""
+    if cs.lsr_max == "start":
+        return LSRConstraint(cs, system, 1.0, monitor.p).measure(mask), "the start mask's smooth LSR"
+    if cs.lsr_max is not None:
+        return float(cs.lsr_max), "given"
+    return monitor.reference[0]["lsr_smooth"], "the published mask's smooth LSR"
+
+
+def _published_train(cfg, published_cfg, init, spec, steps, seed, device, run_dir, log_every, ctx) -> tuple:
+    """Train the same restorer on the published mask with the same steps, seed, data draws and starting weights:
+    (model, trainer, data, timing) for _published_evaluation."""
     sub = run_dir / PUBLISHED_DIR
     pub_cfg = OmegaConf.create(to_container(cfg))
     pub_cfg.mask = published_cfg
     pub_spec = TrainerSpec.from_config({**to_container(cfg.trainer), "steps": steps, "time_budget_s": None,
                                         "resume": None})
-    torch.manual_seed(seed)  # the same initial weights as the joint network
-    model = build_model(pub_cfg)
-    init_weights(model)
+    model, _ = _network(pub_cfg, init, seed)  # the same initial weights as the joint network
     data = SimulatedData(pub_cfg, device, seed, ctx)
     trainer = RestorationTrainer(model, data, pub_spec, sub, device, to_container(pub_cfg), None, seed, ctx)
     timing = _train(trainer, pub_cfg, sub, log_every, "published mask")

@@ -34,10 +34,7 @@ def check_resume_config(saved: dict, cfg: DictConfig, key: str, extra_keys: tupl
     saved_cfg, current = OmegaConf.create(saved), OmegaConf.create(to_container(cfg))
     differ = []
     for dotted in RESUME_MUST_MATCH + tuple(extra_keys):
-        a, b = OmegaConf.select(saved_cfg, dotted), OmegaConf.select(current, dotted)
-        a = OmegaConf.to_container(a) if OmegaConf.is_config(a) else a
-        b = OmegaConf.to_container(b) if OmegaConf.is_config(b) else b
-        if a != b:
+        if _plain(OmegaConf.select(saved_cfg, dotted)) != _plain(OmegaConf.select(current, dotted)):
             differ.append(dotted)
     if differ:
         raise ConfigError(key, str(path), "was trained with different " + ", ".join(differ) + ": resume with the "
@@ -64,6 +61,35 @@ def resume_if_possible(trainer, cfg: DictConfig, run_dir: Path, extra_keys: tupl
                              "and optimizers", err) from None
         log.info("resumed from %s at step %d (written by %d process(es), resumed by %d)", path, trainer.step,
                  int(state.get("world_size", 1)), trainer.dist.world)
+
+
+# What a network's starting weights must share with the run they start (init.checkpoint): the network itself, and
+# the physics and image geometry it learned to invert. The mask, the batch and the scenes may differ.
+INIT_MUST_MATCH = ("model", "optics", "sensor", "data.image_size", "data.padded_size")
+
+
+def load_initial_weights(model, path, cfg: DictConfig, key: str = "init.checkpoint") -> dict:
+    """Start ``model`` from the weights of a checkpoint trained on another mask (a warm start): weights only (no
+    optimizer, step or mask); the model, physics and image geometry checked against this run's (any difference a
+    ConfigError naming the file and the keys). Returns what the run records: the path and the checkpoint's step
+    and mask family."""
+    state = load_checkpoint(path, key)
+    check_trained(state, path, key)
+    saved, current = OmegaConf.create(state["config"]), OmegaConf.create(to_container(cfg))
+    differ = [k for k in INIT_MUST_MATCH if _plain(OmegaConf.select(saved, k)) != _plain(OmegaConf.select(current, k))]
+    if differ:
+        raise ConfigError(key, str(path), "was trained with different " + ", ".join(differ) + ": a warm start keeps "
+                          "the network, the optics, the sensor and the image sizes (only the mask may change)")
+    facts = model.summary()
+    load_module_state(model, state["model"], key, path, f"its weights do not fit this run's model (model.kind="
+                      f"{model.kind}, variant={facts['variant']}, size={facts['size']})")
+    mask = OmegaConf.select(saved, "mask.kind")
+    log.info("network weights from %s (step %d, trained on mask %s)", path, int(state["step"]), mask)
+    return {"init_checkpoint": str(path), "init_steps": int(state["step"]), "init_mask_kind": mask}
+
+
+def _plain(value):
+    return OmegaConf.to_container(value) if OmegaConf.is_config(value) else value
 
 
 def apply_checkpoint_mask(mask, state: dict, path="checkpoint", key: str = "checkpoint") -> None:

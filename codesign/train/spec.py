@@ -89,3 +89,17 @@ class TrainerSpec(SpecMixin):
 
 
 register("trainer", "default", spec_node(TrainerSpec))
+
+
+@dataclass(frozen=True)
+class InitSpec(SpecMixin):
+    """A warm start (``init.*`` of +experiment=joint): checkpoint: a training checkpoint whose network weights the
+    run starts from (trained on another mask; the same model, optics, sensor and image sizes; null = fresh
+    weights). The mask comes from mask / mask.init, never from this checkpoint."""
+
+    checkpoint: str | None = None
+    prefix: str = field(default="init", compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.checkpoint is not None and not isinstance(self.checkpoint, str):
+            raise ConfigError(f"{self.prefix}.checkpoint", self.checkpoint, "must be a checkpoint path or null")

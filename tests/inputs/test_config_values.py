@@ -92,6 +92,11 @@ ROWS = [
     ("baseline", "data.image_size=48 data.padded_size=50",  # the PSF kernel fits the padded sensor image
      "data.padded_size = 50: must be >= data.image_size + PSF kernel - 1 = 48 + 5 - 1 = 52 at this pitch, so that "
      "deconvolution does not wrap"),
+    ("joint", "codesign.lsr_max=best", "codesign.lsr_max = 'best': must be null (the published mask's smooth LSR), "
+     "start (the start mask's) or a number in (0, 1]"),
+    ("joint", "codesign.mask_lr=-1", "codesign.mask_lr = -1: must be a finite number >= 0 and <= 10"),
+    ("joint", "+init.foo=1", "init.foo = 1: unknown key; allowed: checkpoint"),
+    ("joint", "init.checkpoint=/nonexistent/ck.pt", "init.checkpoint = '/nonexistent/ck.pt': no such checkpoint file"),
     ("joint", "metrics.mtf_band=[0.5,0.2]", f"metrics.mtf_band = [0.5, 0.2]: {MTF_BAND}, beyond which the MTF is 0)"),
 ]
 

@@ -85,3 +85,34 @@ def test_evaluate_of_a_joint_checkpoint_uses_the_learned_mask(joint_run, tmp_pat
     joint = json.loads((joint_run / "metrics.json").read_text())
     assert ev["evaluation"] == joint["evaluation"]  # the learned mask's sensor images, not the published mask's
     assert ev["evaluation"] != joint["evaluation_baseline"]
+
+
+def test_warm_start_frozen_mask_continues_the_checkpoint_exactly(joint_run, tmp_path):
+    """init.checkpoint with the published network (trained 4 steps on the published mask) and the mask frozen
+    (codesign.mask_lr=0, the control arm of a fine-tuning study): the untrained-network validation scores of the
+    new run are the checkpoint's final ones, bit for bit; the mask does not move; the start is recorded."""
+    ckpt = joint_run / "published" / "checkpoint.pt"
+    run_dir = tmp_path / "warm"
+    proc = run_codesign("+experiment=joint", "debug=smoke", f"init.checkpoint={ckpt}", "codesign.mask_lr=0",
+                        "codesign.lsr_max=start", "codesign.compare_published=false", "logging.tensorboard=false",
+                        f"hydra.run.dir={run_dir}", timeout=300)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    m = json.loads((run_dir / "metrics.json").read_text())
+    pretrained = json.loads((joint_run / "published" / "metrics.json").read_text())
+    assert m["val_psnr_start"] == pretrained["val_psnr_end"] and m["val_ssim_start"] == pretrained["val_ssim_end"]
+    assert m["init_checkpoint"] == str(ckpt) and m["init_steps"] == 4 and m["init_mask_kind"] == "halfring"
+    assert m["lsr"] == m["lsr_baseline"]  # the frozen start mask is the published one
+    assert m["lsr_max_from"] == "the start mask's smooth LSR"
+    assert m["lsr_max"] == pytest.approx(m["lsr_smooth_baseline"], rel=1e-6)  # the start is the published mask
+
+
+def test_warm_start_from_other_image_sizes_is_refused_before_work(joint_run, tmp_path):
+    ckpt = joint_run / "published" / "checkpoint.pt"
+    proc = run_codesign("+experiment=joint", "debug=smoke", f"init.checkpoint={ckpt}", "data.image_size=64",
+                        "data.padded_size=96", f"hydra.run.dir={tmp_path / 'bad'}", timeout=300)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines()[-1] == (
+        f"codesign: configuration error: init.checkpoint = '{ckpt}': was trained with different data.image_size, "
+        "data.padded_size: a warm start keeps the network, the optics, the sensor and the image sizes (only the "
+        "mask may change)")
+    assert not (tmp_path / "bad" / "checkpoint.pt").exists()
