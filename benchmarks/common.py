@@ -11,14 +11,16 @@ import platform
 import resource
 import subprocess
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
 
 import torch
 
-RESULTS = Path(__file__).resolve().parent / "results"
-CONF = Path(__file__).resolve().parent.parent / "conf"
+REPO = Path(__file__).resolve().parent.parent
+RESULTS = REPO / "benchmarks" / "results"
+CONF = REPO / "conf"
 
 
 def machine() -> dict:
@@ -65,6 +67,18 @@ class Report:
     tables: list[str] = field(default_factory=list)  # markdown, each printed and written as-is
     figures: list[Path] = field(default_factory=list)  # PNGs under ``out``
     notes: list[str] = field(default_factory=list)  # one paragraph each (how measured, what is the default)
+
+
+def run_logged(cmd: list[str], log: Path, timeout: float) -> tuple[int, float]:
+    """Run ``cmd`` in the repository with its output in ``log``; (exit status, seconds); 124 on timeout."""
+    t0 = time.perf_counter()
+    with open(log, "w") as f:
+        try:
+            rc = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, cwd=REPO, timeout=max(timeout, 1),
+                                env={**os.environ, "PYTHONUNBUFFERED": "1"}).returncode
+        except subprocess.TimeoutExpired:
+            rc = 124
+    return rc, time.perf_counter() - t0
 
 
 def markdown_table(header: list[str], rows: list[list], fmt: dict | None = None) -> str:

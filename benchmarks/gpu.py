@@ -36,8 +36,8 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import compose, cuda_sync, machine, markdown_table, peak_cuda_mib, timeit, write_json, \
-    write_text
+from benchmarks.common import compose, cuda_sync, machine, markdown_table, peak_cuda_mib, run_logged, timeit, \
+    write_json, write_text
 
 REPO = Path(__file__).resolve().parent.parent
 RESULTS = REPO / "benchmarks" / "results" / "gpu"
@@ -93,18 +93,6 @@ def gpu_facts(dev: torch.device) -> dict:
         except (OSError, subprocess.TimeoutExpired):
             info["driver"] = None
     return info
-
-
-def run_logged(cmd: list[str], log: Path, timeout: float) -> tuple[int, float]:
-    """Run ``cmd`` in the repository with its output in ``log``; (exit status, seconds); 124 on timeout."""
-    t0 = time.perf_counter()
-    with open(log, "w") as f:
-        try:
-            rc = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, cwd=REPO, timeout=max(timeout, 1),
-                                env={**os.environ, "PYTHONUNBUFFERED": "1"}).returncode
-        except subprocess.TimeoutExpired:
-            rc = 124
-    return rc, time.perf_counter() - t0
 
 
 def step_tests(dev: torch.device, out: Path, budget: float) -> dict:

@@ -64,18 +64,25 @@ def resume_if_possible(trainer, cfg: DictConfig, run_dir: Path, extra_keys: tupl
 
 
 # What a network's starting weights must share with the run they start (init.checkpoint): the network itself, and
-# the physics and image geometry it learned to invert. The mask, the batch and the scenes may differ.
+# the physics and image geometry it learned to invert. The mask, the batch, the scenes and the loss weights
+# (model.loss: pretraining on the reconstruction terms alone, then adding the adversarial ones) may differ.
 INIT_MUST_MATCH = ("model", "optics", "sensor", "data.image_size", "data.padded_size")
+INIT_MAY_DIFFER = ("model.loss",)
 
 
 def load_initial_weights(model, path, cfg: DictConfig, key: str = "init.checkpoint") -> dict:
     """Start ``model`` from the weights of a checkpoint trained on another mask (a warm start): weights only (no
-    optimizer, step or mask); the model, physics and image geometry checked against this run's (any difference a
-    ConfigError naming the file and the keys). Returns what the run records: the path and the checkpoint's step
-    and mask family."""
+    optimizer, step or mask); the model (but its loss weights), physics and image geometry checked against this
+    run's, any difference a ConfigError naming the file and the keys. Returns what the run records: the path and
+    the checkpoint's step and mask family."""
     state = load_checkpoint(path, key)
     check_trained(state, path, key)
     saved, current = OmegaConf.create(state["config"]), OmegaConf.create(to_container(cfg))
+    for node in (saved, current):
+        for dotted in INIT_MAY_DIFFER:
+            parent, _, leaf = dotted.rpartition(".")
+            if OmegaConf.select(node, parent) is not None:
+                OmegaConf.select(node, parent).pop(leaf, None)
     differ = [k for k in INIT_MUST_MATCH if _plain(OmegaConf.select(saved, k)) != _plain(OmegaConf.select(current, k))]
     if differ:
         raise ConfigError(key, str(path), "was trained with different " + ", ".join(differ) + ": a warm start keeps "
