@@ -30,11 +30,12 @@ from codesign.optics.masks import published_mask_config
 from codesign.train import distributed
 from codesign.train.checkpoint import CHECKPOINT_NAME
 from codesign.train.data import SimulatedData
-from codesign.train.evaluation import eval_settings, run_evaluation
+from codesign.train.evaluation import conditions, eval_settings, run_evaluation
 from codesign.train.joint_trainer import JointTrainer
 from codesign.train.resume import load_initial_weights, resume_if_possible
 from codesign.train.setup import build_model, distributed_metrics, run_metrics
 from codesign.train.spec import InitSpec, TrainerSpec
+from codesign.train.summary import comparison_figure, joint_summary
 from codesign.train.trainer import RestorationTrainer, init_weights
 
 log = logging.getLogger("codesign.joint")
@@ -43,6 +44,7 @@ ROOT_KEYS: tuple[str, ...] = ("codesign", "init")
 DISTRIBUTED = True  # trains networks: runs data-parallel under torchrun
 
 PUBLISHED_DIR = "published"
+COMPARED = "laser_1e6"  # the condition whose restorations the comparison figure shows side by side
 
 
 def _train(trainer, cfg, run_dir: Path, log_every: int, label: str) -> dict:
@@ -126,6 +128,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
              sum(p.numel() for p in camera.mask.parameters()), cs.mask_lr, cs.warmup_steps(spec.steps), lsr_max,
              lsr_max_from, spec.steps,
              int(cfg.data.batch_size), data.image_size, data.padded_size)
+    trainer.steps_after = spec.steps if cs.compare_published else 0  # the ETA covers the published training too
     timing = _train(trainer, cfg, run_dir, log_every, "joint")
     camera.set_trainable(False)
     camera.invalidate()
@@ -156,18 +159,25 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
                "vgg_loss": model.loss_status, "mask_kind": to_container(cfg.mask)["kind"],
                **learned, **{f"{k}_baseline": v for k, v in base.items()}, **camera.mask.summary(), **rings,
                "checkpoint": str(run_dir / CHECKPOINT_NAME)}
-    joint_eval = run_evaluation(ev, model, trainer.restoring_modules(), data, run_dir, seed)
-    metrics["evaluation"] = joint_eval["evaluation"]
-    metrics["evaluation_scenes"] = joint_eval["evaluation_scenes"]
+    keep = (COMPARED,) if published is not None and COMPARED in conditions(ev["lasers"], ev["stages"]) else ()
+    joint_eval = run_evaluation(ev, model, trainer.restoring_modules(), data, run_dir, seed, keep)
+    for key in ("evaluation", "evaluation_scenes", "evaluation_per_scene_psnr_affine"):
+        metrics[key] = joint_eval[key]
 
     if published is not None:
-        metrics.update(_published_evaluation(*published, run_dir, ev, seed, metrics["evaluation"]))
+        extra, pub_images = _published_evaluation(*published, run_dir, ev, seed, metrics["evaluation"], keep)
+        metrics.update(extra)
+        if keep:
+            io.save_figure(run_dir / f"compare_{COMPARED}.png", comparison_figure(
+                joint_eval["images"][COMPARED], pub_images[COMPARED], model.method, COMPARED))
     io.write_json(run_dir / "metrics.json", metrics)
     _hparams(trainer.writer, cfg, metrics)
-    log.info("joint: lsr %.4g (published %.4g), mtf_mean %.4g (published %.4g); psnr %s", metrics["lsr"],
-             metrics["lsr_baseline"], metrics["mtf_mean"], metrics["mtf_mean_baseline"],
-             f"{metrics['psnr']:.2f} dB (published {metrics['psnr_baseline']:.2f} dB)" if "psnr" in metrics
-             else "(no published comparison)")
+    if published is not None:
+        print(joint_summary({**metrics, "seed": seed}, model.method), flush=True)
+    else:
+        log.info("joint: lsr %.4g (published %.4g), mtf_mean %.4g (published %.4g); no published comparison "
+                 "(codesign.compare_published=false)", metrics["lsr"], metrics["lsr_baseline"],
+                 metrics["mtf_mean"], metrics["mtf_mean_baseline"])
     log.info("wrote %s", run_dir)
     return metrics.get("psnr", float("nan"))
 
@@ -206,15 +216,18 @@ def _published_train(cfg, published_cfg, init, spec, steps, seed, device, run_di
     return model, trainer, data, timing
 
 
-def _published_evaluation(model, trainer, data, timing: dict, run_dir, ev, seed, joint_eval) -> dict:
-    """Evaluate the published-mask restorer (rank 0) and compare it with the joint one."""
+def _published_evaluation(model, trainer, data, timing: dict, run_dir, ev, seed, joint_eval, keep) -> tuple:
+    """Evaluate the published-mask restorer (rank 0) and compare it with the joint one: (metrics entries, the
+    images of the ``keep`` conditions)."""
     sub = run_dir / PUBLISHED_DIR
-    result = run_evaluation(ev, model, trainer.restoring_modules(), data, sub, seed)
+    result = run_evaluation(ev, model, trainer.restoring_modules(), data, sub, seed, keep)
+    images = result.pop("images", {})
     io.write_json(sub / "metrics.json", {"steps": trainer.step, **timing, **result})
     if trainer.writer is not None:
         trainer.writer.close()
     return {**{f"{k}_baseline": v for k, v in timing.items()}, "evaluation_baseline": result["evaluation"],
-            **_comparison(joint_eval, result["evaluation"], model.method)}
+            "evaluation_per_scene_psnr_affine_baseline": result["evaluation_per_scene_psnr_affine"],
+            **_comparison(joint_eval, result["evaluation"], model.method)}, images
 
 
 def _hparams(writer, cfg, metrics: dict) -> None:

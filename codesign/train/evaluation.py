@@ -185,24 +185,35 @@ def conditions(laser_strengths=LASER_STRENGTHS, stages=tuple(ROBUSTNESS_STAGES))
     return [laser_preset_name(float(a)) for a in laser_strengths] + list(stages)
 
 
+def per_scene_psnr_affine(images: dict, target: torch.Tensor) -> dict:
+    """Each method's PSNR after the gain/offset match, scene by scene (the paired differences between two systems
+    on the same scenes tell a real difference from scene-to-scene noise)."""
+    return {m: quality.psnr(affine_match(x, target), target).flatten().tolist() for m, x in images.items()}
+
+
 def evaluate(evaluator: Evaluator, scenes: torch.Tensor, names: list[str], presets: list[str], seed: int,
-             run_dir: Path, overrides: dict | None = None) -> dict:
-    """Score every method under every preset; write metrics.json entries (returned), evaluation.csv, panels."""
-    results, rows = {}, []
+             run_dir: Path, overrides: dict | None = None, keep: tuple[str, ...] = ()) -> tuple[dict, dict, dict]:
+    """Score every method under every preset; write evaluation.csv and the panels. Returns the tables (metrics.json
+    entries), each preset's per-scene PSNR after the gain/offset match, and the images of the presets in ``keep``
+    (input, every method, truth; for figures that compare runs)."""
+    results, rows, per_scene, kept = {}, [], {}, {}
     for j, preset in enumerate(presets):
         batch = evaluator.data.preset_batch(scenes, preset, seed=seed + 1000 + j, **(overrides or {}))
         images = evaluator.restore_all(batch)
         target = centre(batch["scene"], evaluator.n).clamp(0, 1)
         table = evaluator.score(images, target)
         results[preset] = table
+        per_scene[preset] = per_scene_psnr_affine(images, target)
         for method, metrics in table.items():
             rows.append({"condition": preset, "method": method, **metrics})
         shown = {"input": centre(batch["sensor"], evaluator.n), **images}
+        if preset in keep:
+            kept[preset] = {**{k: v.detach().cpu() for k, v in shown.items()}, "truth": target.cpu()}
         io.save_figure(run_dir / f"panel_{preset}.png", panel_figure(shown, target, names, preset, table))
         log.info("%-10s %s", preset, "  ".join(f"{m} {table[m]['psnr']:.2f} dB/{table[m]['ssim']:.3f} "
                                              f"(affine {table[m]['psnr_affine']:.2f})" for m in table))
     write_csv(run_dir / "evaluation.csv", rows)
-    return results
+    return results, per_scene, kept
 
 
 def write_csv(path: Path, rows: list[dict]) -> None:
@@ -304,8 +315,9 @@ def eval_settings(cfg) -> dict:
             "overrides": {} if ev.laser_angle_rad is None else {"laser_angle_rad": list(ev.laser_angle_rad)}}
 
 
-def run_evaluation(ev: dict, model, generators, data, run_dir: Path, seed: int) -> dict:
-    """Tune baselines on the training distribution, then score every method on the chosen split."""
+def run_evaluation(ev: dict, model, generators, data, run_dir: Path, seed: int, keep: tuple[str, ...] = ()) -> dict:
+    """Tune baselines on the training distribution, then score every method on the chosen split. ``keep``: presets
+    whose images the result carries under "images" (not JSON: pop it before writing metrics)."""
     names = data.source.split_names(ev["split"])[: ev["max_scenes"]]
     if not names:
         raise ConfigError("evaluate.split", ev["split"], "has no scenes in this data source")
@@ -313,7 +325,8 @@ def run_evaluation(ev: dict, model, generators, data, run_dir: Path, seed: int) 
     evaluator = Evaluator(model, generators, data, ev["perceptual"], ev["batch_size"])
     calib = evaluator.tune(data.validation_batch(ev["tuning"]))
     presets = conditions(ev["lasers"], ev["stages"])
-    results = evaluate(evaluator, scenes, names, presets, seed, run_dir, ev["overrides"])
+    results, per_scene, kept = evaluate(evaluator, scenes, names, presets, seed, run_dir, ev["overrides"], keep)
     perceptual = {k: ("available" if callable(v) else v) for k, v in ev["perceptual"].items()}
-    return {"evaluation": results, "evaluation_scenes": names, "baseline_calibration": calib,
-            "perceptual_metrics": perceptual, **flat_summary(results)}
+    out = {"evaluation": results, "evaluation_scenes": names, "evaluation_per_scene_psnr_affine": per_scene,
+           "baseline_calibration": calib, "perceptual_metrics": perceptual, **flat_summary(results)}
+    return {**out, "images": kept} if keep else out

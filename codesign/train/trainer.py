@@ -222,6 +222,9 @@ class RestorationTrainer(TrainContext):
         self._rollbacks = torch.zeros((), dtype=torch.long, device=device)  # updates undone: non-finite weights
         self._rollbacks_reported = 0
         self.replica_diff = 0.0  # largest weight difference between ranks found by the last check
+        # training steps of the same job that follow this training (a joint run's published comparison): the
+        # progress line's ETA covers them too, at this training's rate
+        self.steps_after = 0
         self.first_terms: dict = {}  # loss terms of the first and the last step of this process's run
         self.last_terms: dict = {}
         self.last_val: dict = {}
@@ -426,7 +429,7 @@ class RestorationTrainer(TrainContext):
         shown = "".join(f"  {k} {values[k]:.4g}" for k in ("rec1", "rec2") if k in values)
         log.info("step %d/%d  G %.4g%s%s%s  %.2f s/step  ETA %.0f s", self.step, self.spec.steps,
                  values["generator_total"], shown, f"  D {values['critic_total']:.4g}" if "critic_total" in values
-                 else "", self.progress_extra(values), rate, rate * (self.spec.steps - self.step))
+                 else "", self.progress_extra(values), rate, rate * (self.spec.steps - self.step + self.steps_after))
 
     def replicated_parameters(self) -> list[torch.Tensor]:
         """Parameters that must be identical on every rank (checked by check_replicas)."""

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -26,6 +27,7 @@ def joint_run(tmp_path_factory) -> Path:
     run_dir = tmp_path_factory.mktemp("joint") / "run"
     proc = run_codesign("+experiment=joint", "debug=smoke", f"hydra.run.dir={run_dir}", timeout=300)
     assert proc.returncode == 0, proc.stderr[-4000:]
+    (run_dir.parent / "console.txt").write_text(proc.stdout + proc.stderr)
     return run_dir
 
 
@@ -39,9 +41,27 @@ def test_joint_writes_the_comparison_metrics(joint_run):
     assert set(m["evaluation"]) == set(m["evaluation_baseline"]) == {"laser_0", "laser_1e6", "H1"}
     learned = json.loads((joint_run / "learned_mask.json").read_text())
     assert learned["kind"] == "halfring" and learned["r"] == m["r_n"]
-    for name in ("checkpoint.pt", "mtf.png", "learned_phase.png", "learned_psf_log.png", "published_phase.png",
-                 "evaluation.csv", "published/checkpoint.pt", "published/metrics.json", "published/evaluation.csv"):
+    for name in ("checkpoint.pt", "mtf.png", "compare_laser_1e6.png", "learned_phase.png", "learned_psf_log.png",
+                 "published_phase.png", "evaluation.csv", "published/checkpoint.pt", "published/metrics.json",
+                 "published/evaluation.csv"):
         assert (joint_run / name).is_file(), name
+
+
+def test_joint_ends_with_the_summary_and_its_verdict(joint_run):
+    console = (joint_run.parent / "console.txt").read_text()
+    m = json.loads((joint_run / "metrics.json").read_text())
+    summary = console[console.index("== summary: 4 steps, seed 0, 2 held-out test scene(s) =="):]
+    assert f"{'learned':<11}{m['lsr']:>10.3e}{m['mtf_mean']:>10.4f}" in summary
+    assert f"{'published':<11}{m['lsr_baseline']:>10.3e}" in summary
+    row = m["evaluation_baseline"]["laser_1e6"]["sensor"]["psnr_affine"]
+    assert "  floor: sensor image (published)" in summary and f"{row:>8.2f}" in summary
+    per = m["evaluation_per_scene_psnr_affine"]["laser_1e6"]["sgan"]
+    assert len(per) == 2 and sum(per) / 2 == pytest.approx(m["evaluation"]["laser_1e6"]["sgan"]["psnr_affine"])
+    assert "verdict: the learned mask lets" in summary and "(2 scenes; two standard errors" in summary
+    # the first progress line's ETA covers the published training too: twice the joint steps left, about
+    first = next(line for line in console.splitlines() if "step 1/4" in line)
+    rate, eta = (float(x) for x in re.search(r"([\d.]+) s/step\s+ETA (\d+) s", first).groups())
+    assert eta == pytest.approx(rate * 7, abs=1)
 
 
 def test_joint_tensorboard_holds_losses_mask_constraint_images_and_hparams(joint_run):

@@ -1,0 +1,85 @@
+"""What a joint run prints at its end and draws for a newcomer: the two masks, the two restorations with the sensor
+image and classical Wiener as floors, a verdict that says when a difference is within noise, and the two systems'
+restorations side by side."""
+from __future__ import annotations
+
+import math
+import statistics
+
+import numpy as np
+
+ALPHA_NAMES = {"laser_0": "0", "laser_1e3": "1e3", "laser_1e6": "1e6"}
+VERDICT_CONDITION = "laser_1e6"
+
+
+def paired_difference(learned: list[float], published: list[float]) -> tuple[float, float | None]:
+    """Mean of the per-scene differences and twice its standard error (None below 2 scenes: no noise estimate)."""
+    d = [a - b for a, b in zip(learned, published)]
+    if len(d) < 2:
+        return statistics.mean(d), None
+    return statistics.mean(d), 2 * statistics.stdev(d) / math.sqrt(len(d))
+
+
+def verdict(m: dict, method: str, condition: str = VERDICT_CONDITION) -> str:
+    """One line: the learned system's PSNR (after the gain/offset match) against the published one at
+    ``condition``, and whether the difference exceeds two standard errors of the per-scene differences."""
+    learned = m["evaluation_per_scene_psnr_affine"][condition][method]
+    published = m["evaluation_per_scene_psnr_affine_baseline"][condition][method]
+    mean, noise = paired_difference(learned, published)
+    lsr_change = m["lsr"] / m["lsr_baseline"] - 1
+    alpha = ALPHA_NAMES.get(condition, condition)
+    head = (f"verdict: the learned mask lets {abs(lsr_change):.0%} {'less' if lsr_change < 0 else 'more'} laser "
+            f"light through; at alpha_l = {alpha} its restoration is {mean:+.2f} dB against the published system's")
+    if noise is None:
+        return head + f" ({len(learned)} scene: no noise estimate; evaluate more scenes to judge)"
+    judged = "a real difference" if abs(mean) > noise else "within noise"
+    return head + (f" ({len(learned)} scenes; two standard errors of the per-scene differences: {noise:.2f} dB): "
+                   f"{judged}")
+
+
+def joint_summary(m: dict, method: str) -> str:
+    """The printed end of a joint run with its published comparison (metrics.json's keys)."""
+    scenes = len(m["evaluation_scenes"])
+    lines = [f"== summary: {m['steps']} steps, seed {m.get('seed', 0)}, {scenes} held-out test scene(s) ==",
+             f"{'mask':<11}{'LSR':>10}{'mtf_mean':>10}{'LSR / limit':>13}   (LSR: laser peak / unmasked peak; "
+             "lower protects more)"]
+    for name, sfx in (("learned", ""), ("published", "_baseline")):
+        lines.append(f"{name:<11}{m['lsr' + sfx]:>10.3e}{m['mtf_mean' + sfx]:>10.4f}{m['lsr_over_limit' + sfx]:>13.2f}")
+    conds = [c for c in ALPHA_NAMES if c in m["evaluation"]]
+    lines.append("PSNR after gain/offset match [dB] at alpha_l = " + ", ".join(ALPHA_NAMES[c] for c in conds))
+    rows = (("learned mask + network", "evaluation", method), ("published mask + network", "evaluation_baseline",
+            method), ("  floor: sensor image (published)", "evaluation_baseline", "sensor"),
+            ("  floor: classical Wiener (published)", "evaluation_baseline", "wiener"))
+    for label, key, col in rows:
+        lines.append(f"{label:<40}" + "".join(f"{m[key][c][col]['psnr_affine']:>8.2f}" for c in conds))
+    if VERDICT_CONDITION in conds:
+        lines.append(verdict(m, method))
+    return "\n".join(lines)
+
+
+def comparison_figure(learned: dict, published: dict, method: str, condition: str, rows: int = 3):
+    """Both systems side by side at one condition: truth, then per mask its sensor image, Wiener and the network
+    (``learned`` / ``published``: evaluation images, run_evaluation(keep=...))."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cols = [("truth", learned, "truth"), ("published: sensor", published, "input"),
+            ("published: Wiener", published, "wiener"), (f"published: {method}", published, method),
+            ("learned: sensor", learned, "input"), ("learned: Wiener", learned, "wiener"),
+            (f"learned: {method}", learned, method)]
+    n = min(rows, learned["truth"].shape[0])
+    fig, axes = plt.subplots(n, len(cols), figsize=(2.0 * len(cols), 2.1 * n), squeeze=False)
+    for i in range(n):
+        for j, (title, images, key) in enumerate(cols):
+            img = images[key][i, 0].numpy()
+            vmax = max(float(np.percentile(img, 99.5)), 1e-6) if key == "input" else 1.0
+            ax = axes[i][j]
+            ax.imshow(img, cmap="gray", vmin=0, vmax=vmax)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if i == 0:
+                ax.set_title(title, fontsize=8)
+    fig.suptitle(f"published vs learned mask at alpha_l = {ALPHA_NAMES.get(condition, condition)}", fontsize=10)
+    return fig
