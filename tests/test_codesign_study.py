@@ -51,10 +51,12 @@ def test_gain_is_paired_by_seed_and_significant_only_beyond_twice_the_spread():
     psnr = out["clear"]["net_psnr_affine_1e6"]
     assert psnr["mean"] == pytest.approx(21.0) and psnr["std"] == pytest.approx(0.4)
     assert psnr["gain"] == pytest.approx(1.0) and psnr["spread"] == pytest.approx(0.4) and psnr["significant"]
+    assert psnr["gain_std"] == pytest.approx(0.0, abs=1e-12)  # the same +1.0 dB at every seed
     n = out["noisy"]["net_psnr_affine_1e6"]
     assert n["gain"] == pytest.approx(0.4) and n["spread"] == pytest.approx(0.4)  # the reference arm's, the larger
     assert n["significant"] is False
     assert "gain" not in out[study.REFERENCE]["lsr"] and out["clear"]["lsr"]["gain"] == pytest.approx(-6e-3)
+    assert study.goal_met(out) == {"clear": True, "noisy": False}  # both at a quarter of the LSR
 
 
 @pytest.mark.parametrize("argv, message", [

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import logging
-import time
 from pathlib import Path
 
 import torch
@@ -45,9 +44,8 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
              "VGG loss %s", common["variant"], common["size"], common["parameters_generators"] / 1e6,
              common["parameters_critics"] / 1e6, spec.steps, int(cfg.data.batch_size), data.image_size,
              data.padded_size, model.loss_status)
-    t0 = time.perf_counter()
     history = trainer.fit(log_every)
-    seconds = time.perf_counter() - t0
+    seconds = trainer.train_seconds  # the whole run's, across resumes
     if not ctx.is_main:  # rank 0 evaluates and writes
         return None
     first, last = (history[0], history[-1]) if history else ({}, {})

@@ -55,6 +55,7 @@ class SimulatedData:
             raise ConfigError("data.batch_size", self.sampler.batch_size, f"must be divisible by the number of "
                               f"processes ({dist.world}): it is the global batch, split evenly across the ranks")
         self.camera.frozen_optics()
+        self._val_inputs: tuple | None = None  # the validation batch's scenes and parameters (validation_batch)
 
     @property
     def otf(self) -> torch.Tensor:
@@ -108,11 +109,17 @@ class SimulatedData:
         return out
 
     def validation_batch(self, size: int) -> dict:
-        """A fixed batch from the training distribution (own generators: independent of training's draws)."""
-        gen = torch.Generator().manual_seed(self.seed + 7919)
-        sampler = SceneSampler(self.source, "train", self.camera.scene_size, size, gen, flips=self.sampler.flips)
-        scenes = sampler.sample()
-        return self.simulate(scenes, self._params(size, gen), seed=self.seed + 104729)
+        """A fixed batch from the training distribution (own generators: independent of training's draws): the
+        same scenes, parameters and noise every call, imaged through the camera's current mask (a joint run
+        validates its network on the mask it has learned, and a resumed run sees the batch an uninterrupted one
+        sees)."""
+        if self._val_inputs is None or self._val_inputs[0].shape[0] != size:
+            gen = torch.Generator().manual_seed(self.seed + 7919)
+            sampler = SceneSampler(self.source, "train", self.camera.scene_size, size, gen, flips=self.sampler.flips)
+            scenes = sampler.sample()
+            self._val_inputs = (scenes, self._params(size, gen))
+        with torch.no_grad():
+            return self.simulate(*self._val_inputs, seed=self.seed + 104729)
 
     def preset_batch(self, scenes: torch.Tensor, preset: str, seed: int, **overrides) -> dict:
         """Evaluation batch: every scene under the named preset (laser_1e3, E1, ...), optional overrides."""

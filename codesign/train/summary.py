@@ -45,6 +45,12 @@ def joint_summary(m: dict, method: str) -> str:
              "lower protects more)"]
     for name, sfx in (("learned", ""), ("published", "_baseline")):
         lines.append(f"{name:<11}{m['lsr' + sfx]:>10.3e}{m['mtf_mean' + sfx]:>10.4f}{m['lsr_over_limit' + sfx]:>13.2f}")
+    if "recheck_gain_moved" in m:
+        r = m["recheck"]
+        lines.append(f"re-check on a {r['learned']['fine_factor']}x finer pupil grid and a 2x wider window: LSR "
+                     f"learned / published {r['lsr_ratio_design']:.3f} -> {r['lsr_ratio_fine']:.3f} (fine), "
+                     f"{r['lsr_ratio_whole']:.3f} (wide); the gain moves by {100 * m['recheck_gain_moved']:.1f} % "
+                     f"({'ok' if m['recheck_agree'] else 'more than 2 %: partly the simulation, not the optics'})")
     conds = [c for c in ALPHA_NAMES if c in m["evaluation"]]
     lines.append("PSNR after gain/offset match [dB] at alpha_l = " + ", ".join(ALPHA_NAMES[c] for c in conds))
     rows = (("learned mask + network", "evaluation", method), ("published mask + network", "evaluation_baseline",

@@ -225,10 +225,14 @@ class RestorationTrainer(TrainContext):
         # training steps of the same job that follow this training (a joint run's published comparison): the
         # progress line's ETA covers them too, at this training's rate
         self.steps_after = 0
-        self.first_terms: dict = {}  # loss terms of the first and the last step of this process's run
+        self.first_terms: dict = {}  # loss terms of the run's first logged step (kept across resumes)
         self.last_terms: dict = {}
         self.last_val: dict = {}
-        self._val = None
+        # what the final record needs from before a resume: the experiment's entries (e.g. the untrained network's
+        # validation scores) and the training seconds so far; both travel in the checkpoint
+        self.record: dict = {}
+        self.seconds_before = 0.0
+        self._fit_t0: float | None = None
 
     # ---- losses ---------------------------------------------------------------------------------------------
     @property
@@ -388,6 +392,7 @@ class RestorationTrainer(TrainContext):
         [first, last] terms see those steps; in between the device runs ahead of the host."""
         spec = self.spec
         t0, start = time.perf_counter(), self.step
+        self._fit_t0 = t0
         with stop_requests() as stop:
             while self.step < spec.steps:
                 terms = self.train_step()
@@ -415,6 +420,11 @@ class RestorationTrainer(TrainContext):
                              spec.steps)
                     break
         return [t for t in (self.first_terms, self.last_terms) if t]
+
+    @property
+    def train_seconds(self) -> float:
+        """Seconds spent in fit() over the whole run, before and after any resume."""
+        return self.seconds_before + (time.perf_counter() - self._fit_t0 if self._fit_t0 is not None else 0.0)
 
     def _log_step(self, terms: dict, t0: float, start: int) -> None:
         """Read this step's terms (global-batch means), log them and the skips; the progress line."""
@@ -467,9 +477,7 @@ class RestorationTrainer(TrainContext):
     def validate(self, images: bool) -> dict:
         """PSNR / SSIM of the restoring modules on the fixed validation batch (field of view), logged to
         TensorBoard with, when ``images``, a panel of inputs, outputs and targets."""
-        if self._val is None:
-            self._val = self.data.validation_batch(self.spec.val_size)
-        batch = self._val
+        batch = self.data.validation_batch(self.spec.val_size)  # through the current mask (the data caches the rest)
         out = self.model.restore(batch["sensor"], self.data.otf, self.restoring_modules())
         n = self.data.image_size
         crop = lambda x: field_of_view(x, n).clamp(0, 1)  # noqa: E731
@@ -516,6 +524,8 @@ class RestorationTrainer(TrainContext):
                     "data": self.data.state_dict()},
             "config": self.config, "model_spec": dict(vars(self.model.spec)), "world_size": self.dist.world,
             "versions": {"torch": str(torch.__version__)},
+            "record": {**self.record, "first_terms": self.first_terms, "last_val": self.last_val},
+            "seconds": self.train_seconds,
         }
 
     def save(self, path: Path | None = None) -> Path:
@@ -529,6 +539,11 @@ class RestorationTrainer(TrainContext):
             self.opt_d.load_state_dict(state["opt_d"])
             self.sched_d.load_state_dict(state["sched_d"])
         self.step = int(state["step"])
+        record = dict(state.get("record") or {})  # absent in checkpoints written before it existed
+        self.first_terms = dict(record.pop("first_terms", {}) or {})
+        self.last_val = dict(record.pop("last_val", {}) or {})
+        self.record = record
+        self.seconds_before = float(state.get("seconds", 0.0))
         self._skips = torch.tensor([int(state.get("skipped", 0)), 0], dtype=torch.long, device=self.device)
         self._skips_reported = self._skips.tolist()
         if self.ema is not None:

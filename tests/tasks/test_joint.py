@@ -2,12 +2,17 @@
 from __future__ import annotations
 
 import json
+import os
 import re
+import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
 from tests.cli import run_codesign
+from tests.conftest import REPO_ROOT as REPO
 
 KEYS = ("lsr", "lsr_baseline", "mtf_mean", "mtf_mean_baseline", "psnr", "psnr_baseline", "ssim", "ssim_baseline",
         "r_n", "theta_n", "steps", "seconds", "lsr_max", "psnr_laser_1e6", "psnr_baseline_laser_1e6",
@@ -58,6 +63,11 @@ def test_joint_ends_with_the_summary_and_its_verdict(joint_run):
     per = m["evaluation_per_scene_psnr_affine"]["laser_1e6"]["sgan"]
     assert len(per) == 2 and sum(per) / 2 == pytest.approx(m["evaluation"]["laser_1e6"]["sgan"]["psnr_affine"])
     assert "verdict: the learned mask lets" in summary and "(2 scenes; two standard errors" in summary
+    r = m["recheck"]
+    assert r["learned"]["fine"]["pupil_n"] > r["learned"]["design"]["pupil_n"]
+    assert r["published"]["whole"]["focal_n"] == 2 * r["published"]["design"]["focal_n"]
+    assert r["lsr_ratio_design"] == pytest.approx(r["learned"]["design"]["lsr"] / r["published"]["design"]["lsr"])
+    assert f"the gain moves by {100 * m['recheck_gain_moved']:.1f} %" in summary
     # the first progress line's ETA covers the published training too: twice the joint steps left, about
     first = next(line for line in console.splitlines() if "step 1/4" in line)
     rate, eta = (float(x) for x in re.search(r"([\d.]+) s/step\s+ETA (\d+) s", first).groups())
@@ -95,6 +105,28 @@ def test_a_killed_joint_run_resumes_from_its_checkpoint(tmp_path):
     bad = run_codesign("+experiment=joint", "debug=smoke", "trainer.steps=6", "codesign.lsr_max=0.001",
                        f"hydra.run.dir={run_dir}", timeout=300)
     assert bad.returncode == 2 and "was trained with different codesign" in bad.stderr
+
+
+def test_a_run_killed_at_a_step_and_resumed_records_what_an_uninterrupted_run_records(joint_run, tmp_path):
+    """SIGKILL right after the joint training's checkpoint at step 2 of 4, then the same command again: every
+    value of metrics.json equals the uninterrupted run's (the same command in joint_run), the untrained network's
+    *_start scores included, but the wall times; seconds counts the whole training, not the part after the resume."""
+    run_dir = tmp_path / "run"
+    killer = [sys.executable, str(Path(__file__).with_name("kill_after_checkpoint.py")), "1", "+experiment=joint",
+              "debug=smoke", f"hydra.run.dir={run_dir}"]
+    killed = subprocess.run(killer, cwd=REPO, capture_output=True, text=True, timeout=300,
+                            env={**os.environ, "OMP_NUM_THREADS": "2", "MKL_NUM_THREADS": "2"})
+    assert killed.returncode == -signal.SIGKILL, killed.stderr[-3000:]
+    assert not (run_dir / "metrics.json").exists() and (run_dir / "checkpoint.pt").is_file()
+    again = run_codesign("+experiment=joint", "debug=smoke", f"hydra.run.dir={run_dir}", timeout=300)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "at step 2" in again.stdout + again.stderr
+    resumed = json.loads((run_dir / "metrics.json").read_text())
+    whole = json.loads((joint_run / "metrics.json").read_text())
+    assert resumed.keys() == whole.keys()
+    timing = {"seconds", "seconds_baseline", "checkpoint"}
+    assert [k for k in whole if k not in timing and resumed[k] != whole[k]] == []
+    assert resumed["seconds"] > 0.5 * whole["seconds"]  # the whole training's, not the 2 steps after the resume
 
 
 def test_evaluate_of_a_joint_checkpoint_uses_the_learned_mask(joint_run, tmp_path):
