@@ -62,7 +62,7 @@ def test_joint_ends_with_the_summary_and_its_verdict(joint_run):
     assert "  floor: sensor image (published)" in summary and f"{row:>8.2f}" in summary
     per = m["evaluation_per_scene_psnr_affine"]["laser_1e6"]["sgan"]
     assert len(per) == 2 and sum(per) / 2 == pytest.approx(m["evaluation"]["laser_1e6"]["sgan"]["psnr_affine"])
-    assert "verdict: the learned mask lets" in summary and "(2 scenes; two standard errors" in summary
+    assert "verdict: the learned mask lets" in summary and "(2 scenes; 95 % interval of the per-scene" in summary
     r = m["recheck"]
     assert r["learned"]["fine"]["pupil_n"] > r["learned"]["design"]["pupil_n"]
     assert r["published"]["whole"]["focal_n"] == 2 * r["published"]["design"]["focal_n"]

@@ -21,18 +21,21 @@ def _metrics(learned: list[float], published: list[float], lsr: float = 4e-3) ->
             "evaluation_per_scene_psnr_affine_baseline": {"laser_1e6": {"sgan": published}}}
 
 
-def test_paired_difference_is_the_mean_and_two_standard_errors():
+def test_paired_difference_is_the_mean_and_its_95_percent_t_interval():
     mean, noise = paired_difference([21.0, 22.0, 26.0], [20.0, 20.0, 20.0])  # differences 1, 2, 6
     assert mean == pytest.approx(3.0)
-    assert noise == pytest.approx(2 * math.sqrt(((1 - 3) ** 2 + (2 - 3) ** 2 + (6 - 3) ** 2) / 2) / math.sqrt(3))
+    t_975_2 = 4.302652729911275  # Student's t, 97.5 % quantile, 2 degrees of freedom
+    assert noise == pytest.approx(t_975_2 * math.sqrt(((1 - 3) ** 2 + (2 - 3) ** 2 + (6 - 3) ** 2) / 2) / math.sqrt(3))
+    _, two = paired_difference([21.0, 19.0], [20.0, 20.0])  # 1 degree of freedom: t = 12.706, sd 1.414, se 1
+    assert two == pytest.approx(12.706204736174698)
     assert paired_difference([21.0], [20.0]) == (1.0, None)
 
 
 def test_verdict_within_noise_and_real():
-    noisy = verdict(_metrics([21.0, 19.2], [20.0, 20.0]), "sgan")  # +0.1 +- 1.8
+    noisy = verdict(_metrics([21.0, 19.2], [20.0, 20.0]), "sgan")  # +0.1 +- 11.4
     assert noisy.endswith("within noise") and "+0.10 dB" in noisy and "50% less laser light" in noisy
-    real = verdict(_metrics([21.0, 21.2, 21.1], [20.0, 20.1, 20.0]), "sgan")  # +1.07, noise 0.07
-    assert real.endswith("a real difference") and "+1.07 dB" in real
+    real = verdict(_metrics([21.0, 21.2, 21.1], [20.0, 20.1, 20.0]), "sgan")  # +1.07 +- 0.14
+    assert "+1.07 dB" in real and "+-0.14 dB): beyond the scene noise (one seed" in real
     one = verdict(_metrics([21.0], [20.0], lsr=9.2e-3), "sgan")
     assert "15% more laser light" in one and "no noise estimate" in one
 
