@@ -15,8 +15,8 @@ and writes gpu.json, the figures and gpu.md into benchmarks/results/gpu/ and doc
     python -m benchmarks.gpu --dry-run --out /tmp/gpu_dry     # any CPU: every step at tiny sizes, ~1-2 min
 
 A cell that fails (out of memory, a compile error) is recorded with its error and the campaign goes on: the
-errors are the CUDA-only defects docs/gpu.md lists. A joint run warm-started from the trained network needs
-``init.checkpoint`` (not built yet): it is reported as not run.
+errors are the CUDA-only defects docs/gpu.md lists. A joint run warm-started from the trained network
+(``+experiment=joint init.checkpoint=...``, which exists now) is not a step of the campaign yet: reported as not run.
 """
 from __future__ import annotations
 
@@ -344,7 +344,8 @@ def main(argv=None) -> int:
                     if ckpt.is_file() else {"exit": None, "error": f"no checkpoint ({ckpt}): the training failed "
                                                                    "or was not run (train.log; --checkpoint PATH)"}
             res.setdefault("seconds", {})[step] = time.perf_counter() - t0
-    res["joint_from_trained"] = "not run: warm start from a checkpoint (init.checkpoint) is not built yet"
+    res["joint_from_trained"] = ("not run: the campaign has no warm-started joint step yet (init.checkpoint exists: "
+                                 "python -m codesign +experiment=joint init.checkpoint=CKPT, same sizes)")
     write_json(out / "gpu.json", res)
     fig = inference_figure(res["speed"]["inference"], out / "inference.png") if "speed" in res else None
     write_text(out / "gpu.md", render(res, out, fig, ""))
