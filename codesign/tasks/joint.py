@@ -88,16 +88,15 @@ def _save_learned_mask(mask, spec, run_dir: Path, values: dict) -> dict:
     return {"r_n": record["r"], "theta_n": record["theta"]}
 
 
-def _comparison(evaluation: dict, evaluation_base: dict, method: str) -> dict:
-    """psnr / ssim (and affine-matched) of the restorer's restorations (column ``method``), mean over conditions
-    and per condition."""
+def _scores(evaluation: dict, method: str, suffix: str = "") -> dict:
+    """psnr / ssim (and affine-matched) of the restorer's restorations (column ``method``), the mean over the
+    conditions and per condition, keys ending in ``suffix`` ("_baseline": the published system's)."""
     out = {}
-    for suffix, table in (("", evaluation), ("_baseline", evaluation_base)):
-        for metric in ("psnr", "ssim", "psnr_affine", "ssim_affine"):
-            vals = {cond: t[method][metric] for cond, t in table.items()}
-            out[f"{metric}{suffix}"] = float(np.mean(list(vals.values())))
-            for cond, v in vals.items():
-                out[f"{metric}{suffix}_{cond}"] = v
+    for metric in ("psnr", "ssim", "psnr_affine", "ssim_affine"):
+        vals = {cond: t[method][metric] for cond, t in evaluation.items()}
+        out[f"{metric}{suffix}"] = float(np.mean(list(vals.values())))
+        for cond, v in vals.items():
+            out[f"{metric}{suffix}_{cond}"] = v
     return out
 
 
@@ -164,9 +163,10 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     joint_eval = run_evaluation(ev, model, trainer.restoring_modules(), data, run_dir, seed, keep)
     for key in ("evaluation", "evaluation_scenes", "evaluation_per_scene_psnr_affine"):
         metrics[key] = joint_eval[key]
+    metrics.update(_scores(joint_eval["evaluation"], model.method))  # with or without the published comparison
 
     if published is not None:
-        extra, pub_images = _published_evaluation(*published, run_dir, ev, seed, metrics["evaluation"], keep)
+        extra, pub_images = _published_evaluation(*published, run_dir, ev, seed, keep)
         metrics.update(extra)
         if keep:
             io.save_figure(run_dir / f"compare_{COMPARED}.png", comparison_figure(
@@ -238,9 +238,9 @@ def _published_train(cfg, published_cfg, init, spec, steps, seed, device, run_di
     return model, trainer, data, timing
 
 
-def _published_evaluation(model, trainer, data, timing: dict, run_dir, ev, seed, joint_eval, keep) -> tuple:
-    """Evaluate the published-mask restorer (rank 0) and compare it with the joint one: (metrics entries, the
-    images of the ``keep`` conditions)."""
+def _published_evaluation(model, trainer, data, timing: dict, run_dir, ev, seed, keep) -> tuple:
+    """Evaluate the published-mask restorer (rank 0): (its metrics entries with the _baseline suffix, the images of
+    the ``keep`` conditions)."""
     sub = run_dir / PUBLISHED_DIR
     result = run_evaluation(ev, model, trainer.restoring_modules(), data, sub, seed, keep)
     images = result.pop("images", {})
@@ -249,7 +249,7 @@ def _published_evaluation(model, trainer, data, timing: dict, run_dir, ev, seed,
         trainer.writer.close()
     return {**{f"{k}_baseline": v for k, v in timing.items()}, "evaluation_baseline": result["evaluation"],
             "evaluation_per_scene_psnr_affine_baseline": result["evaluation_per_scene_psnr_affine"],
-            **_comparison(joint_eval, result["evaluation"], model.method)}, images
+            **_scores(result["evaluation"], model.method, "_baseline")}, images
 
 
 def _hparams(writer, cfg, metrics: dict) -> None:
