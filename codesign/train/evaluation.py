@@ -165,7 +165,9 @@ class Evaluator:
         return out
 
     @torch.no_grad()
-    def score(self, images: dict, target: torch.Tensor) -> dict:
+    def score(self, images: dict, target: torch.Tensor, per_scene: dict | None = None) -> dict:
+        """Every metric of every method, the mean over the images; ``per_scene``: a dict that receives each
+        method's PSNR after the gain/offset match image by image (paired comparisons of two systems)."""
         table = {}
         for name, x in images.items():
             row = {"one_minus_mse": quality.one_minus_mse(x, target), "psnr": quality.psnr(x, target),
@@ -176,6 +178,8 @@ class Evaluator:
             matched = affine_match(x, target)
             row["psnr_affine"] = quality.psnr(matched, target)
             row["ssim_affine"] = quality.ssim(matched, target)
+            if per_scene is not None:
+                per_scene[name] = row["psnr_affine"].flatten().tolist()
             table[name] = {k: float(v.mean()) for k, v in row.items()}
         return table
 
@@ -183,12 +187,6 @@ class Evaluator:
 def conditions(laser_strengths=LASER_STRENGTHS, stages=tuple(ROBUSTNESS_STAGES)) -> list[str]:
     """Preset names: laser_0, laser_1e1 .. laser_1e6 (figure settings) then the robustness stages."""
     return [laser_preset_name(float(a)) for a in laser_strengths] + list(stages)
-
-
-def per_scene_psnr_affine(images: dict, target: torch.Tensor) -> dict:
-    """Each method's PSNR after the gain/offset match, scene by scene (the paired differences between two systems
-    on the same scenes tell a real difference from scene-to-scene noise)."""
-    return {m: quality.psnr(affine_match(x, target), target).flatten().tolist() for m, x in images.items()}
 
 
 def evaluate(evaluator: Evaluator, scenes: torch.Tensor, names: list[str], presets: list[str], seed: int,
@@ -201,9 +199,9 @@ def evaluate(evaluator: Evaluator, scenes: torch.Tensor, names: list[str], prese
         batch = evaluator.data.preset_batch(scenes, preset, seed=seed + 1000 + j, **(overrides or {}))
         images = evaluator.restore_all(batch)
         target = centre(batch["scene"], evaluator.n).clamp(0, 1)
-        table = evaluator.score(images, target)
+        per_scene[preset] = {}
+        table = evaluator.score(images, target, per_scene[preset])
         results[preset] = table
-        per_scene[preset] = per_scene_psnr_affine(images, target)
         for method, metrics in table.items():
             rows.append({"condition": preset, "method": method, **metrics})
         shown = {"input": centre(batch["sensor"], evaluator.n), **images}
