@@ -70,6 +70,17 @@ def check_writable_dir(folder: Path, key: str = "hydra.run.dir") -> None:
                           f"{probe}): choose a writable output folder with {key}=PATH") from None
 
 
+def check_output_files(folder: Path, names: tuple[str, ...], key: str = "hydra.run.dir") -> None:
+    """ConfigError naming ``key`` before any work when one of the files ``names`` in ``folder`` could not be
+    replaced: a folder or other non-file stands at its path (the rename at the end of the run would fail)."""
+    for name in names:
+        path = Path(folder) / name
+        if path.exists() and not path.is_file():
+            kind = "a folder" if path.is_dir() else "something other than a file"
+            raise ConfigError(key, str(Path(folder).absolute()), f"{name} there is {kind}, where the run writes its "
+                              f"file {name}: move it away or choose another output folder with {key}=PATH")
+
+
 def _jsonable(v: Any) -> Any:
     if isinstance(v, dict):
         return {str(k): _jsonable(x) for k, x in v.items()}

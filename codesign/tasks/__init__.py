@@ -35,8 +35,10 @@ log = logging.getLogger("codesign")
 
 
 # Every module of this package but these is an experiment: codesign.tasks.NAME runs +experiment=NAME through its
-# run(cfg, run_dir, device), reads the root keys COMMON_KEYS + its ROOT_KEYS, and trains under torchrun when it sets
-# DISTRIBUTED. Modules are imported only when their experiment runs (+experiment=psf never loads networks or nlopt).
+# run(cfg, run_dir, device), reads the root keys COMMON_KEYS + its ROOT_KEYS, writes the fixed file names OUTPUTS
+# (checked before any work), continues a killed run on its own folder when it sets RESUMES (rundir.py refuses any
+# other folder holding results), and trains under torchrun when it sets DISTRIBUTED.
+# Modules are imported only when their experiment runs (+experiment=psf never loads networks or nlopt).
 _NOT_EXPERIMENTS = ("rundir",)
 EXPERIMENTS: tuple[str, ...] = tuple(sorted(m.name for m in pkgutil.iter_modules(__path__)
                                             if m.name not in _NOT_EXPERIMENTS))
@@ -122,6 +124,7 @@ def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None
         deterministic = set_deterministic(root.deterministic, device)
         if ctx.is_main:  # the other ranks write nothing
             io.check_writable_dir(run_dir)  # before any work: never an hour of training, then a failed write
+            io.check_output_files(run_dir, getattr(task_module(task), "OUTPUTS", ("metrics.json",)))
         torch.manual_seed(seed)
         log.info("task=%s device=%s threads=%d deterministic=%s run_dir=%s%s", task, device, threads,
                  "on" if deterministic else "off", run_dir,

@@ -24,6 +24,9 @@ log = logging.getLogger("codesign.restoration")
 
 # Root keys this experiment reads besides the common ones (conf/experiment/baseline.yaml); any other is refused.
 ROOT_KEYS: tuple[str, ...] = ()
+# The fixed names it writes in its run dir: each is checked to be writable before any work.
+OUTPUTS = ("metrics.json", "checkpoint.pt", "evaluation.csv")
+RESUMES = True  # a killed run started again on its folder continues from its checkpoint
 DISTRIBUTED = True  # trains networks: runs data-parallel under torchrun
 
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:

@@ -18,6 +18,8 @@ from codesign.train.setup import run_metrics
 
 # Root keys this experiment reads besides the common ones (conf/experiment/evaluate.yaml); any other is refused.
 ROOT_KEYS: tuple[str, ...] = ("checkpoint",)
+# The fixed names it writes in its run dir: each is checked to be writable before any work.
+OUTPUTS = ("metrics.json", "evaluation.csv")
 
 def merged_eval_config(cfg: DictConfig, ckpt_cfg: DictConfig, typed: frozenset[str]) -> DictConfig:
     """The checkpoint's physics, model and data split, with the scene-source keys typed on this command line

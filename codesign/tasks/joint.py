@@ -41,6 +41,9 @@ from codesign.train.trainer import RestorationTrainer, init_weights
 log = logging.getLogger("codesign.joint")
 # Root keys this experiment reads besides the common ones (conf/experiment/joint.yaml); any other is refused.
 ROOT_KEYS: tuple[str, ...] = ("codesign", "init")
+# The fixed names it writes in its run dir: each is checked to be writable before any work.
+OUTPUTS = ("metrics.json", "checkpoint.pt", "learned_mask.json", "evaluation.csv", "mtf.png")
+RESUMES = True  # a killed run started again on its folder continues from its checkpoint
 DISTRIBUTED = True  # trains networks: runs data-parallel under torchrun
 
 PUBLISHED_DIR = "published"

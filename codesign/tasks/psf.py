@@ -23,6 +23,8 @@ log = logging.getLogger("codesign.psf")
 
 # Root keys this experiment reads besides the common ones (conf/experiment/psf.yaml); any other is refused.
 ROOT_KEYS: tuple[str, ...] = ("precision", "timing_repeats")
+# The fixed names it writes in its run dir: each is checked to be writable before any work.
+OUTPUTS = ("metrics.json", "mask.json", "phase.png", "psf_log.png", "mtf.png", "mtf2d.png")
 
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     spec = OpticsSpec.from_config(OmegaConf.to_container(cfg.optics, resolve=True))

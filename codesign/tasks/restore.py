@@ -25,6 +25,8 @@ from codesign.train.resume import apply_checkpoint_mask, load_trained
 log = logging.getLogger("codesign.restore")
 # Root keys this experiment reads besides the common ones (conf/experiment/restore.yaml); any other is refused.
 ROOT_KEYS: tuple[str, ...] = ("input", "checkpoint")
+# The fixed names it writes in its run dir: each is checked to be writable before any work.
+OUTPUTS = ("metrics.json",)
 
 SUFFIXES = (".png", ".tif", ".tiff")
 

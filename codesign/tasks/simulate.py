@@ -22,6 +22,8 @@ from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enable
 log = logging.getLogger("codesign.simulate")
 # Root keys this experiment reads besides the common ones (conf/experiment/simulate.yaml); any other is refused.
 ROOT_KEYS: tuple[str, ...] = ("precision", "simulate")
+# The fixed names it writes in its run dir: each is checked to be writable before any work.
+OUTPUTS = ("metrics.json", "sensor_grid_linear.png", "sensor_grid_log.png")
 
 SIMULATE_KEYS = ("scenes", "alpha_l", "laser_angle_rad", "params", "timing_repeats")
 

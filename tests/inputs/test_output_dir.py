@@ -207,3 +207,87 @@ def test_a_refused_run_in_a_folder_of_the_users_keeps_it_as_it_was(tmp_path, mon
     config_error(monkeypatch, capsys, run_dir, "+experiment=psf", "debug=smoke", "optics.focal_n=0")
     assert sorted(p.name for p in run_dir.iterdir()) == ["notes.txt"]
     assert (run_dir / "notes.txt").read_text() == "keep me\n"
+
+
+def _earlier_run(run_dir, task: str):
+    """A folder as a finished run of ``task`` leaves it: its recorded config, log and results."""
+    (run_dir / ".hydra").mkdir(parents=True)
+    (run_dir / ".hydra" / "config.yaml").write_text(f"task: {task}\nseed: 0\n")
+    (run_dir / "__main__.log").write_text("earlier log\n")
+    (run_dir / "metrics.json").write_text('{"v": 1}\n')
+    (run_dir / "mtf.png").write_bytes(b"png")
+
+
+def _tree(folder) -> dict:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_another_experiments_folder_is_refused_and_left_byte_identical(tmp_path):
+    run_dir = tmp_path / "run"
+    _earlier_run(run_dir, "psf")
+    before = _tree(run_dir)
+    proc = run_codesign("+experiment=evaluate", "checkpoint=x", f"hydra.run.dir={run_dir}")
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines()[-1] == (
+        f"codesign: configuration error: hydra.run.dir = '{run_dir}': holds the results of +experiment=psf "
+        f"(metrics.json, mtf.png); +experiment=evaluate never writes into another experiment's folder: choose "
+        f"another folder with hydra.run.dir=PATH (or leave hydra.run.dir unset: every run gets a new one)")
+    assert _tree(run_dir) == before  # no .hydra/ rewritten, no log line appended
+
+
+def test_a_finished_run_of_an_experiment_without_resume_is_not_overwritten(tmp_path):
+    run_dir = tmp_path / "run"
+    _earlier_run(run_dir, "psf")
+    before = _tree(run_dir)
+    proc = run_codesign("+experiment=psf", "debug=smoke", f"hydra.run.dir={run_dir}")
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines()[-1].endswith(
+        "holds a finished +experiment=psf run (metrics.json, mtf.png); psf does not resume, and a rerun would "
+        "overwrite it: choose another folder with hydra.run.dir=PATH (or leave hydra.run.dir unset: every run "
+        "gets a new one)")
+    assert _tree(run_dir) == before
+
+
+def test_the_same_training_experiment_may_continue_on_its_folder(tmp_path):
+    for task in ("joint", "baseline"):
+        run_dir = tmp_path / task
+        _earlier_run(run_dir, task)
+        rundir.check_earlier_run(run_dir, task)  # no error: resume is defined there
+        with pytest.raises(ConfigError, match=rf"holds the results of \+experiment={task} "):
+            rundir.check_earlier_run(run_dir, "mask_search")
+    empty, users = tmp_path / "empty", tmp_path / "users"
+    empty.mkdir()
+    users.mkdir()
+    (users / "notes.txt").write_text("mine\n")
+    for folder in (empty, users):  # no run wrote there: any experiment may use it
+        rundir.check_earlier_run(folder, "psf")
+
+
+def test_an_output_path_taken_by_a_folder_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
+    run_dir = tmp_path / "run"
+    (run_dir / "metrics.json").mkdir(parents=True)
+    line = config_error(monkeypatch, capsys, run_dir, "+experiment=psf", "debug=smoke")
+    assert line == (f"codesign: configuration error: hydra.run.dir = '{run_dir}': metrics.json there is a folder, "
+                    f"where the run writes its file metrics.json: move it away or choose another output folder "
+                    f"with hydra.run.dir=PATH")
+    assert [p.name for p in run_dir.iterdir()] == ["metrics.json"]
+
+
+def test_every_experiment_declares_its_fixed_outputs():
+    for name in experiments.EXPERIMENTS:
+        outputs = experiments.task_module(name).OUTPUTS
+        assert "metrics.json" in outputs, name
+
+
+def test_a_refused_resume_cuts_the_log_back_to_the_earlier_run(tmp_path, monkeypatch, capsys):
+    run_dir = tmp_path / "run"
+    _earlier_run(run_dir, "joint")
+    before = _tree(run_dir)
+    monkeypatch.setattr(rundir, "EARLIER", {})
+    monkeypatch.setattr(rundir, "EARLIER_LOGS", {})
+    rundir.remember(run_dir)
+    with open(run_dir / "__main__.log", "a") as f:  # what Hydra's file handler writes for the refused run
+        f.write("[codesign] refused run's line\n")
+    (run_dir / "other.log").write_text("a log the refused run added\n")
+    config_error(monkeypatch, capsys, run_dir, "+experiment=joint", "debug=smoke", "optics.focal_n=0")
+    assert _tree(run_dir) == before
