@@ -8,6 +8,7 @@ import torch
 from omegaconf import DictConfig
 
 from codesign.config.runtime import check_seed, logging_spec, to_container
+from codesign.design.check import camera_sampling_report
 from codesign.io import files as io
 from codesign.io.tensorboard import open_writer, tensorboard_enabled
 from codesign.train import distributed
@@ -38,6 +39,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     init_weights(model)
     ctx = distributed.current()
     data = SimulatedData(cfg, device, seed, ctx)
+    sampling = camera_sampling_report(data.camera, cfg, log) if ctx.is_main else {}
     trainer = RestorationTrainer(model, data, spec, run_dir, device, to_container(cfg), None, seed, ctx)
     resume_if_possible(trainer, cfg, run_dir)
     # purge_step drops the events a killed run logged after its last checkpoint; rank 0 alone writes
@@ -52,8 +54,9 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     if not ctx.is_main:  # rank 0 evaluates and writes
         return None
     first, last = (history[0], history[-1]) if history else ({}, {})
-    metrics = {**common, **distributed_metrics(trainer), "steps": trainer.step, "seconds": seconds,
-               "skipped_updates": trainer.skipped, "undone_updates": trainer.rollbacks, "vgg_loss": model.loss_status,
+    metrics = {**common, **sampling, **distributed_metrics(trainer), "steps": trainer.step, "seconds": seconds,
+               "skipped_updates": trainer.skipped, "undone_updates": trainer.rollbacks, **trainer.divergence(),
+               "vgg_loss": model.loss_status,
                "loss_first": first, "loss_last": last, **trainer.last_val,
                "checkpoint": str(run_dir / CHECKPOINT_NAME)}
     metrics.update(run_evaluation(ev, model, trainer.restoring_modules(), data, run_dir, seed))

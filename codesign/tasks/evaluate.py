@@ -2,12 +2,14 @@
 on held-out scenes, per laser strength and robustness stage."""
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import torch
 from omegaconf import DictConfig, OmegaConf
 
 from codesign.config.runtime import check_seed, explicit_keys
+from codesign.design.check import camera_sampling_report
 from codesign.errors import ConfigError
 from codesign.io import files as io
 from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
@@ -15,6 +17,8 @@ from codesign.train.data import SimulatedData
 from codesign.train.evaluation import eval_settings, run_evaluation
 from codesign.train.resume import apply_checkpoint_mask, load_trained
 from codesign.train.setup import run_metrics
+
+log = logging.getLogger("codesign.evaluate")
 
 # Root keys this experiment reads besides the common ones (conf/experiment/evaluate.yaml); any other is refused.
 ROOT_KEYS: tuple[str, ...] = ("checkpoint",)
@@ -59,7 +63,8 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     data = SimulatedData(merged, device, seed)
     apply_checkpoint_mask(data.camera.mask, state, path)
     data.camera.invalidate()
-    metrics = {**run_metrics(merged, model, device), "checkpoint": str(path), "steps": int(state["step"])}
+    metrics = {**run_metrics(merged, model, device), "checkpoint": str(path), "steps": int(state["step"]),
+               **camera_sampling_report(data.camera, merged, log)}
     metrics.update(run_evaluation(ev, model, generators, data, run_dir, seed))
     io.write_json(run_dir / "metrics.json", metrics)
     log_summary(open_writer(run_dir, tensorboard_enabled(cfg)), {**model.summary(), "checkpoint": str(path)},

@@ -16,7 +16,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from codesign.config.runtime import check_seed, logging_spec, to_container
-from codesign.design.check import verify_design
+from codesign.design.check import camera_sampling_report, verify_design
 from codesign.design.limits import MTFLimit
 from codesign.design.lsr_constraint import CodesignSpec, LSRConstraint
 from codesign.design.merit import metrics_spec
@@ -61,7 +61,7 @@ def _train(trainer, cfg, run_dir: Path, log_every: int, label: str) -> dict:
     trainer.fit(log_every)
     end = {f"{k.replace('/', '_')}_end": v for k, v in trainer.last_val.items()}
     # a resumed run's record is the whole run's: its start scores and seconds come from the checkpoint
-    return {"seconds": trainer.train_seconds, **trainer.record.get("start", {}), **end}
+    return {"seconds": trainer.train_seconds, **trainer.record.get("start", {}), **end, **trainer.divergence()}
 
 
 def _mask_outputs(monitor: MaskMonitor, system, mask, run_dir: Path, prefix: str, psf0: np.ndarray) -> dict:
@@ -121,6 +121,11 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     reference = published_reference(to_container(cfg.mask), system)
     monitor = MaskMonitor(system, reference, ms.mtf_band, ms.lsr_p)
     lsr_max, lsr_max_from = _lsr_max(cs, monitor, system, camera.mask)
+    start = {}
+    if ctx.is_main:  # warned about before any training
+        sampling = camera_sampling_report(camera, cfg, log, "the start mask")
+        start = {"phase_resolved_start": sampling["phase_resolved"], "phase_sampling_start": sampling["phase_sampling"],
+                 **_check_lsr_max(lsr_max, cs, monitor, system, camera.mask)}
     trainer = JointTrainer(model, data, spec, run_dir, device, to_container(cfg), None, seed, cs, lsr_max, monitor,
                            ctx, ms.lsr_p)
     common = run_metrics(cfg, model, device)
@@ -145,6 +150,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         psf0 = system.uncoded_psf().cpu().numpy()
     learned = _mask_outputs(monitor, system, camera.mask, run_dir, "learned", psf0)
     recheck = _recheck(camera.mask, reference, system.spec, ms.mtf_band)
+    sampling = camera_sampling_report(camera, cfg, log, "the learned mask")
     base = _mask_outputs(monitor, system, reference, run_dir, "published", psf0)
     rings = _save_learned_mask(camera.mask, system.spec, run_dir, learned)
     freqs = monitor.radial.freqs.cpu().numpy()
@@ -154,7 +160,8 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         ms.mtf_band, f"radial MTF after {steps} joint steps"))
 
     metrics = {**common, **distributed_metrics(trainer), "mask_max_rank_difference": trainer.mask_diff,
-               "steps": steps, **timing, "lsr_max": lsr_max, "lsr_max_from": lsr_max_from, **warm,
+               "steps": steps, **timing, "lsr_max": lsr_max, "lsr_max_from": lsr_max_from, **start, **sampling,
+               **warm,
                "lsr_constraint_met": learned["lsr_smooth"] <= lsr_max * (1 + cs.guard_tolerance),
                "skipped_updates": trainer.skipped, "undone_updates": trainer.rollbacks,
                "mask_rollbacks": trainer.mask_rollbacks,
@@ -224,6 +231,28 @@ def _lsr_max(cs: CodesignSpec, monitor: MaskMonitor, system, mask) -> tuple[floa
     if cs.lsr_max is not None:
         return float(cs.lsr_max), "given"
     return monitor.reference[0]["lsr_smooth"], "the published mask's smooth LSR"
+
+
+# codesign.lsr_max this many times below the start mask's smooth LSR draws a warning: the constraint then
+# dominates the loss from the first step (a typed 1e-9 for 1e-3 is the usual cause)
+LSR_MAX_FAR = 10.0
+
+
+def _check_lsr_max(lsr_max: float, cs: CodesignSpec, monitor: MaskMonitor, system, mask) -> dict:
+    """Warn at the start when codesign.lsr_max cannot be reached by any phase-only mask on this window (below the
+    light spread evenly over it: MTFLimit.lsr_limit(0)), or lies far below the start mask's smooth LSR."""
+    start = LSRConstraint(cs, system, 1.0, monitor.p).measure(mask)
+    floor = MTFLimit(system, monitor.band).lsr_limit(0.0)
+    if lsr_max < floor:
+        log.warning("codesign.lsr_max = %.3g is below what any phase-only mask can reach on this %d-sample window "
+                    "(%.3g: the light spread evenly over it, MTF 0): the constraint can never be met; the start "
+                    "mask's smooth LSR is %.3g (%.3gx over it)", lsr_max, system.spec.focal_n, floor, start,
+                    start / lsr_max)
+    elif start > LSR_MAX_FAR * lsr_max:
+        log.warning("codesign.lsr_max = %.3g is %.3gx below the start mask's smooth LSR %.3g: the constraint "
+                    "dominates the loss from the first step and the mask is pulled toward it at any cost in MTF "
+                    "(give a ceiling near the start, e.g. codesign.lsr_max=start)", lsr_max, start / lsr_max, start)
+    return {"lsr_smooth_start": start, "lsr_max_over_start": lsr_max / start, "lsr_max_reachable": lsr_max >= floor}
 
 
 def _published_train(cfg, published_cfg, init, spec, steps, seed, device, run_dir, log_every, ctx) -> tuple:

@@ -13,7 +13,7 @@ import torch
 from omegaconf import DictConfig
 
 from codesign.config.runtime import resolve_dtype, to_container
-from codesign.design.check import verify_design
+from codesign.design.check import sampling_report, verify_design
 from codesign.design.figures import evaluations_figure
 from codesign.design.limits import MTFLimit
 from codesign.design.merit import metrics_spec
@@ -124,11 +124,13 @@ def _outputs(run_dir: Path, s: SearchSpec, ms, system, mask, published, base, ba
                     "fine and a window twice as wide differ by up to %.1f%% (tolerance %.0f%%): part of its gain is "
                     "the simulation's, not the optics' (metrics.json: check)", 100 * check["max_deviation"],
                     100 * s.check_tolerance)
+    sampling = sampling_report(mask.freeze(), spec, ms.mtf_band, log, "the best design")
     quantized = quantized_figures(mask, monitor, rest, (2, 4, 8, 16))
     figures = {k: values[k] for k in ("lsr", "lsr_smooth", "lsr_sampled", "mtf_mean", "window_energy", "lsr_limit",
                                       "lsr_over_limit", "restorability")}
     write_record(run_dir / "best_mask.json", mask, spec, {**figures, "feasible": feasible,
-                                                         "check_agree": check["agree"] if check else None})
+                                                         "check_agree": check["agree"] if check else None,
+                                                         "phase_resolved": sampling["phase_resolved"]})
     _write_evaluations(run_dir / "evaluations.csv", search.sweeps, mask)
     metrics = {
         **figures, "mtf_min": values["mtf_min"], "bsr": values["bsr"], "feasible": feasible,
@@ -138,7 +140,7 @@ def _outputs(run_dir: Path, s: SearchSpec, ms, system, mask, published, base, ba
                                               "lsr_limit", "lsr_over_limit", "restorability")},
         "lsr_vs_baseline": values["lsr"] / base["lsr"], "mtf_mean_uncoded": limit.uncoded_mtf_mean,
         "limits": {k: getattr(main.limits, k) for k in main.limits.active}, "objective": s.objective,
-        "check": check, "quantized": quantized, "starts": main.starts, "pareto": front,
+        "check": check, **sampling, "quantized": quantized, "starts": main.starts, "pareto": front,
         "evaluations": main.problem.evaluations, "evaluations_total": search.evaluations,
         "seconds": main.seconds, "evals_per_second": main.problem.evaluations / max(main.seconds, 1e-12),
         "algorithm": search.algorithm, "lsr_p_schedule": list(search.schedule), "n_starts": len(main.starts),

@@ -8,6 +8,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from codesign.config.runtime import resolve_dtype
+from codesign.design.check import sampling_report
 from codesign.design.limits import MTFLimit
 from codesign.design.merit import evaluate_mask, metrics_spec, time_forward_backward
 from codesign.design.records import write_record
@@ -44,8 +45,9 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     limit = MTFLimit(system, band)
     values["lsr_limit"] = limit.lsr_limit(values["mtf_mean"], values["psf_energy_in_window"])
     values["lsr_over_limit"] = values["lsr"] / values["lsr_limit"]
+    sampling = sampling_report(mask, spec, band, log, f"{mask_cfg['kind']} mask", dtype)
     metrics_out = {
-        **values,
+        **values, **sampling,
         "pupil_n": spec.grid_n, "pupil_pitch_m": spec.pupil_pitch_m,
         "pupil_samples_across_aperture": spec.samples_across_aperture,
         "focal_pitch_m": spec.focal_pitch_m, "focal_n": spec.focal_n,
@@ -75,8 +77,9 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         f"MTF, mean over band = {values['mtf_mean']:.3g}"))
     step = 1.0 / (spec.focal_n * spec.focal_pitch_m * spec.cutoff_frequency)
     io.save_figure(run_dir / "mtf2d.png", plots.mtf2d_figure(np_["mtf2d"], step, f"2-D MTF, {label}"))
-    write_record(run_dir / "mask.json", mask, spec, {k: values[k] for k in (
-        "lsr", "lsr_smooth", "lsr_sampled", "mtf_mean", "lsr_limit", "lsr_over_limit")})
+    write_record(run_dir / "mask.json", mask, spec, {**{k: values[k] for k in (
+        "lsr", "lsr_smooth", "lsr_sampled", "mtf_mean", "lsr_limit", "lsr_over_limit")},
+        "phase_resolved": sampling["phase_resolved"]})
     io.write_json(run_dir / "metrics.json", metrics_out)
     writer = open_writer(run_dir, tensorboard_enabled(cfg))
     if writer is not None:

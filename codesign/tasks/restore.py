@@ -16,6 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from codesign.camera import build_camera, field_of_view
+from codesign.design.check import camera_sampling_report
 from codesign.errors import ConfigError
 from codesign.io import files as io
 from codesign.io.images import read_counts, save_png16
@@ -79,6 +80,7 @@ def run(cfg, run_dir: Path, device: torch.device) -> float:
     apply_checkpoint_mask(camera.mask, state, cfg.checkpoint)
     sensor = camera.sensor
     images = validate(files, sensor.image_size, sensor.saturation_dn)  # everything checked before any work
+    sampling = camera_sampling_report(camera, ckpt_cfg, log)
     otf = camera.otf
     n, p = sensor.image_size, sensor.padded_size
     m = (p - n) // 2
@@ -93,7 +95,7 @@ def run(cfg, run_dir: Path, device: torch.device) -> float:
             written.append(out.name)
             restored.append(b)
     seconds = (time.perf_counter() - t0) / len(files)
-    metrics = {"inputs": [str(f) for f in files], "outputs": written, "seconds_per_image": seconds,
+    metrics = {**sampling, "inputs": [str(f) for f in files], "outputs": written, "seconds_per_image": seconds,
                "checkpoint": str(cfg.checkpoint), "device": str(device), "image_size": n, "padded_size": p}
     io.write_json(run_dir / "metrics.json", metrics)
     writer = open_writer(run_dir, tensorboard_enabled(cfg))

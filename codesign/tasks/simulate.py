@@ -13,6 +13,7 @@ from codesign.camera import build_camera
 from codesign.config.runtime import check_seed, resolve_dtype
 from codesign.data.params import fixed_scene_params, sample_scene_params
 from codesign.data.scenes import build_scene_source
+from codesign.design.check import camera_sampling_report
 from codesign.errors import ConfigError, require_number, require_numbers, unknown_keys
 from codesign.io import files as io
 from codesign.io.images import save_png16
@@ -87,6 +88,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     log.info("sensor path %s: %d x %d network pixels of %.3g m (bin %.3f), scene crop %d, PSF kernel %d",
              sim.sensor.path, sim.sensor.image_size, sim.sensor.image_size, sim.sensor.coarse_pitch_m,
              sim.sensor.bin_factor, sim.scene_size, sim.coarse.ksize)
+    sampling = camera_sampling_report(camera, cfg, log)
     optics = camera.frozen_optics()
     state, key = optics.state, optics.key
     seed = check_seed(cfg)
@@ -127,7 +129,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     lsr = float(state.psf.max()) / state.uncoded_peak
     bsr_window = float(state.psf.sum()) / state.uncoded_energy
     metrics.update({
-        "seconds_per_image": seconds, "images_per_second": 1.0 / seconds, "batch_size": batch,
+        **sampling, "seconds_per_image": seconds, "images_per_second": 1.0 / seconds, "batch_size": batch,
         "sensor_path": sim.sensor.path, "lsr_sampled": lsr,
         # uniform-background ratio of the simulated image: 1 with the out-of-window veil (energy conservation),
         # else the window's (sum h / sum h0); the window's value is always reported

@@ -45,6 +45,16 @@ from codesign.train.spec import TrainerSpec
 
 log = logging.getLogger("codesign.train")
 
+# A reconstruction term ending this many times above its lowest logged value marks the run as diverged (a sound run
+# ends within a few times its lowest; learning rates 5000x the default end 4.8e4x above it after 16 smoke steps).
+DIVERGED_FACTOR = 100.0
+
+
+def reconstruction_terms(terms: dict) -> list[str]:
+    """The reconstruction loss terms (rec1, rec2, ...: every restorer's fit to the target) among logged ``terms``;
+    the adversarial and total terms change sign and scale by design, so divergence is judged on these."""
+    return [k for k in terms if k.startswith("rec")]
+
 
 class TrainingInterrupted(Exception):
     """SIGINT or SIGTERM arrived during training: the step in progress finished, a checkpoint was written (rank 0)
@@ -227,6 +237,7 @@ class RestorationTrainer(TrainContext):
         self.steps_after = 0
         self.first_terms: dict = {}  # loss terms of the run's first logged step (kept across resumes)
         self.last_terms: dict = {}
+        self.lowest_terms: dict = {}  # lowest logged value of each reconstruction term (kept across resumes)
         self.last_val: dict = {}
         # what the final record needs from before a resume: the experiment's entries (e.g. the untrained network's
         # validation scores) and the training seconds so far; both travel in the checkpoint
@@ -419,7 +430,28 @@ class RestorationTrainer(TrainContext):
                     log.info("time budget of %.0f s reached at step %d/%d", spec.time_budget_s, self.step,
                              spec.steps)
                     break
+        self.warn_if_diverged()
         return [t for t in (self.first_terms, self.last_terms) if t]
+
+    def divergence(self) -> dict:
+        """``diverged`` (1 or 0): a reconstruction term ended non-finite or more than DIVERGED_FACTOR times above
+        its lowest logged value; ``loss_growth``: the largest last / lowest ratio; ``loss_growth_term``."""
+        growth, worst = 1.0, None
+        for k in reconstruction_terms(self.last_terms):
+            last, low = self.last_terms[k], self.lowest_terms.get(k)
+            ratio = math.inf if not math.isfinite(last) else last / low if low else 1.0
+            if ratio > growth:
+                growth, worst = ratio, k
+        return {"diverged": int(growth > DIVERGED_FACTOR), "loss_growth": growth, "loss_growth_term": worst}
+
+    def warn_if_diverged(self) -> None:
+        d = self.divergence()
+        if d["diverged"] and self.dist.is_main:
+            k = d["loss_growth_term"]
+            log.warning("training DIVERGED: the reconstruction term %s ended at %.4g, %.3gx its lowest logged value "
+                        "%.4g; the results are not a trained network's (lower trainer.lr_weights / "
+                        "trainer.lr_biases; metrics.json: diverged = 1)", k, self.last_terms[k], d["loss_growth"],
+                        self.lowest_terms.get(k, math.nan))
 
     @property
     def train_seconds(self) -> float:
@@ -432,6 +464,9 @@ class RestorationTrainer(TrainContext):
         values["step"] = self.step
         self.first_terms = self.first_terms or values
         self.last_terms = values
+        for k in reconstruction_terms(values):
+            if math.isfinite(values[k]):
+                self.lowest_terms[k] = min(self.lowest_terms.get(k, math.inf), values[k])
         self.report_skips()
         if self.dist.is_main:
             self._log_scalars(values)
@@ -524,7 +559,8 @@ class RestorationTrainer(TrainContext):
                     "data": self.data.state_dict()},
             "config": self.config, "model_spec": dict(vars(self.model.spec)), "world_size": self.dist.world,
             "versions": {"torch": str(torch.__version__)},
-            "record": {**self.record, "first_terms": self.first_terms, "last_val": self.last_val},
+            "record": {**self.record, "first_terms": self.first_terms, "last_val": self.last_val,
+                       "lowest_terms": self.lowest_terms},
             "seconds": self.train_seconds,
         }
 
@@ -542,6 +578,7 @@ class RestorationTrainer(TrainContext):
         record = dict(state.get("record") or {})  # absent in checkpoints written before it existed
         self.first_terms = dict(record.pop("first_terms", {}) or {})
         self.last_val = dict(record.pop("last_val", {}) or {})
+        self.lowest_terms = dict(record.pop("lowest_terms", {}) or {})
         self.record = record
         self.seconds_before = float(state.get("seconds", 0.0))
         self._skips = torch.tensor([int(state.get("skipped", 0)), 0], dtype=torch.long, device=self.device)

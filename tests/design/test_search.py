@@ -388,6 +388,8 @@ def test_smoke_run_writes_everything(smoke_run):
     assert [s["start"] for s in m["starts"]] == ["0", "1"] and m["starts"][0]["init"] == "published"
     assert [p["factor"] for p in m["pareto"]] == [1.0]
     assert set(m["quantized"]) == {"2", "4", "8", "16"} and set(m["check"]) >= {"design", "fine", "whole", "agree"}
+    # the search's best design says whether the pupil grid resolves its phase (the smoke grid does not)
+    assert isinstance(m["phase_resolved"], bool) and m["phase_sampling"]["fine_pupil_n"] > m["pupil_n"]
     rows = (run_dir / "evaluations.csv").read_text().splitlines()
     assert rows[0].split(",")[:4] == ["floor_factor", "mtf_floor", "start", "lsr_p"] and len(rows) == 17
     assert rows[0].split(",")[-10:] == [f"r_{i}" for i in range(1, 6)] + [f"theta_{i}" for i in range(1, 6)]

@@ -16,7 +16,8 @@ from tests.conftest import REPO_ROOT as REPO
 
 KEYS = ("lsr", "lsr_baseline", "mtf_mean", "mtf_mean_baseline", "psnr", "psnr_baseline", "ssim", "ssim_baseline",
         "r_n", "theta_n", "steps", "seconds", "lsr_max", "psnr_laser_1e6", "psnr_baseline_laser_1e6",
-        "psnr_laser_0", "ssim_baseline_laser_0")
+        "psnr_laser_0", "ssim_baseline_laser_0", "diverged", "diverged_baseline", "phase_resolved",
+        "phase_resolved_start", "lsr_smooth_start", "lsr_max_over_start", "lsr_max_reachable")
 
 
 def _tags(run_dir: Path) -> dict:

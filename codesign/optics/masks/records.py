@@ -37,7 +37,7 @@ RECORD_SETTINGS: dict[str, tuple[str, ...]] = {
     "spline": (),
 }
 FIGURE_KEYS = ("lsr", "lsr_smooth", "lsr_sampled", "mtf_mean", "window_energy", "lsr_limit", "lsr_over_limit",
-               "restorability", "feasible", "check_agree")
+               "restorability", "feasible", "check_agree", "phase_resolved")
 
 
 def record_keys(kind: str) -> set[str]:
