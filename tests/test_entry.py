@@ -233,3 +233,23 @@ def test_run_experiment_config_error_exits_2(tmp_path, capsys):
     assert info.value.code == 2
     assert "mask.convention = 'atan3': must be one of atan, atan2" in capsys.readouterr().err
     assert not run_dir.exists()
+
+
+@pytest.mark.parametrize("task,applied", [
+    ("psf", ["optics.pupil_pitch_m", "optics.focal_n", "optics.propagator", "optics.fft_n", "timing_repeats"]),
+    ("restore", []),  # its optics, sensor and network sizes are the checkpoint's: nothing of debug=smoke applies
+])
+def test_debug_smoke_applies_and_names_only_what_the_experiment_reads(task, applied):
+    """The log line "debug=smoke: applied ..." once named trainer.*, model.* and evaluate.* keys for psf."""
+    from codesign.config.runtime import apply_debug_overrides
+    from codesign.tasks import read_keys
+
+    cfg = _compose([f"+experiment={task}", "debug=smoke"])
+    assert apply_debug_overrides(cfg, frozenset(), read_keys(task)) == applied
+
+
+def test_every_experiment_declares_only_root_keys_it_accepts():
+    from codesign.tasks import EXPERIMENTS, read_keys, root_keys
+
+    for name in EXPERIMENTS:
+        assert set(read_keys(name)) <= set(root_keys(name)), name

@@ -13,10 +13,13 @@ from codesign.errors import ConfigError, require_choice, require_number
 from codesign.spec_base import SpecMixin
 
 
-def apply_debug_overrides(cfg: DictConfig, explicit: frozenset[str] = frozenset()) -> list[str]:
+def apply_debug_overrides(cfg: DictConfig, explicit: frozenset[str] = frozenset(),
+                          reads: tuple[str, ...] | None = None) -> list[str]:
     """Apply ``cfg.debug.overrides`` (dotted key -> value) after composition; returns the keys applied.
 
     Keys in ``explicit`` (given on the command line) are left alone: what a user types wins over the shrink.
+    ``reads``: the root keys the experiment reads (None: all); a key under any other root is not applied, so the
+    log of what was applied names only what shrinks this experiment.
     """
     dbg = cfg.get("debug")
     if not dbg or not dbg.get("overrides"):
@@ -24,7 +27,7 @@ def apply_debug_overrides(cfg: DictConfig, explicit: frozenset[str] = frozenset(
     applied = []
     with open_dict(cfg):
         for key, value in dbg.overrides.items():
-            if key in explicit:
+            if key in explicit or (reads is not None and key.split(".", 1)[0] not in reads):
                 continue
             parent = key.rsplit(".", 1)[0] if "." in key else None
             if (parent is None and key in cfg) or (parent is not None and OmegaConf.select(cfg, parent) is not None):

@@ -53,9 +53,21 @@ def task_module(name: str):
     return importlib.import_module(f"codesign.tasks.{name}")
 
 
+# The common keys every experiment reads; the others (optics, mask, sensor, model, data, trainer, metrics, evaluate)
+# only where a module's READS names them (all of them without READS).
+ALWAYS_READ = ("task", "seed", "device", "threads", "deterministic", "logging", "debug")
+
+
 def root_keys(name: str) -> tuple[str, ...]:
-    """Every root key experiment ``name`` reads."""
+    """Every root key experiment ``name`` accepts (COMMON_KEYS + its ROOT_KEYS)."""
     return COMMON_KEYS + tuple(task_module(name).ROOT_KEYS)
+
+
+def read_keys(name: str) -> tuple[str, ...]:
+    """The root keys experiment ``name`` actually reads: what debug=smoke shrinks and says it shrank."""
+    module = task_module(name)
+    reads = getattr(module, "READS", None)
+    return root_keys(name) if reads is None else ALWAYS_READ + tuple(reads) + tuple(module.ROOT_KEYS)
 
 
 def check_root_keys(cfg: DictConfig, task: str) -> None:
@@ -113,7 +125,7 @@ def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None
             raise ConfigError("task", task, f"does not train networks and runs in one process: start it without "
                               f"torchrun (training experiments under torchrun: {trainers})")
         check_root_keys(cfg, task)
-        applied = apply_debug_overrides(cfg, explicit_keys())
+        applied = apply_debug_overrides(cfg, explicit_keys(), read_keys(task))
         if applied:
             log.info("debug=%s: applied %s", cfg.debug.name, ", ".join(applied))
         root = run_spec(cfg)

@@ -26,6 +26,8 @@ from codesign.train.resume import apply_checkpoint_mask, load_trained
 log = logging.getLogger("codesign.restore")
 # Root keys this experiment reads besides the common ones (conf/experiment/restore.yaml); any other is refused.
 ROOT_KEYS: tuple[str, ...] = ("input", "checkpoint")
+# The common groups it reads (besides ALWAYS_READ in codesign/tasks/__init__.py)  (optics, sensor, model and data: the checkpoint's).
+READS = ()
 # The fixed names it writes in its run dir: each is checked to be writable before any work.
 OUTPUTS = ("metrics.json",)
 
@@ -53,13 +55,17 @@ def input_files(path) -> list[Path]:
     raise ConfigError("input", str(path), "no such file or folder")
 
 
-def validate(files: list[Path], size: int, saturation_dn: float) -> list[np.ndarray]:
+def validate(files: list[Path], size: int, saturation_dn: float, padded: int | None = None) -> list[np.ndarray]:
+    """The counts of every file, each checked (size, range) before any is used; ``padded``: the checkpoint's
+    data.padded_size, named in the hint of a size error."""
     images = []
     for f in files:
         arr = read_counts(f)
         if arr.shape != (size, size):
             raise ConfigError("input", str(f), f"is {arr.shape[1]} x {arr.shape[0]} px: the checkpoint's network "
-                              f"resolution is {size} x {size} (data.image_size)")
+                              f"resolution is {size} x {size} (data.image_size)" + (
+                                  f"; simulate captures at that size with +experiment=simulate data.image_size="
+                                  f"{size} data.padded_size={padded}" if padded else ""))
         if arr.max() > saturation_dn:
             raise ConfigError("input", str(f), f"has counts up to {arr.max():.0f} DN, above the sensor's "
                               f"{saturation_dn:.0f} DN (sensor.bit_depth)")
@@ -79,7 +85,8 @@ def run(cfg, run_dir: Path, device: torch.device) -> float:
                           f"version of codesign: {err}") from None
     apply_checkpoint_mask(camera.mask, state, cfg.checkpoint)
     sensor = camera.sensor
-    images = validate(files, sensor.image_size, sensor.saturation_dn)  # everything checked before any work
+    # every file checked before any work
+    images = validate(files, sensor.image_size, sensor.saturation_dn, sensor.padded_size)
     sampling = camera_sampling_report(camera, ckpt_cfg, log)
     otf = camera.otf
     n, p = sensor.image_size, sensor.padded_size

@@ -1,4 +1,8 @@
-"""``+experiment=simulate``: example sensor images across laser strengths, 16-bit captures, and metrics."""
+"""``+experiment=simulate``: example sensor images across laser strengths, 16-bit captures, and metrics.
+
+The captures go into their own folder, ``captures/``, so that it can be handed to the restorer as it is
+(``+experiment=restore input=<run>/captures checkpoint=...``; simulate at the checkpoint's data.image_size, e.g.
+preset=cpu for a CPU baseline)."""
 from __future__ import annotations
 
 import logging
@@ -23,8 +27,11 @@ from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enable
 log = logging.getLogger("codesign.simulate")
 # Root keys this experiment reads besides the common ones (conf/experiment/simulate.yaml); any other is refused.
 ROOT_KEYS: tuple[str, ...] = ("precision", "simulate")
+# The common groups it reads (besides ALWAYS_READ in codesign/tasks/__init__.py).
+READS = ("optics", "mask", "sensor", "data", "metrics")
 # The fixed names it writes in its run dir: each is checked to be writable before any work.
 OUTPUTS = ("metrics.json", "sensor_grid_linear.png", "sensor_grid_log.png")
+CAPTURES = "captures"  # the 16-bit sensor captures alone: a folder +experiment=restore takes as input=DIR
 
 SIMULATE_KEYS = ("scenes", "alpha_l", "laser_angle_rad", "params", "timing_repeats")
 
@@ -104,7 +111,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
             metrics[f"saturated_fraction_alpha_l_{a:g}"] = float(out["saturated"].float().mean())
             metrics[f"laser_peak_alpha_l_{a:g}"] = float(out["laser"].max())
             for i, name in enumerate(names):
-                save_png16(run_dir / f"sensor_{name}_alpha_l_{a:g}.png", dn[i])
+                save_png16(run_dir / CAPTURES / f"sensor_{name}_alpha_l_{a:g}.png", dn[i])
             if j == len(alphas) - 1:
                 io.save_npy(run_dir / "example_sensor.npy", out["sensor"][0, 0])
                 io.save_npy(run_dir / "example_irradiance_target.npy", out["irradiance"][0, 0])

@@ -70,15 +70,14 @@ def test_evaluate_from_checkpoint_reproduces_the_baseline_table(baseline_run, tm
     assert ev["evaluation"] == base["evaluation"]  # same seed, same checkpoint, same scenes: identical numbers
 
 
-def test_restore_folder_of_captures(baseline_run, tmp_path):
+def test_the_readme_path_simulate_then_restore_works_as_written(baseline_run, tmp_path):
+    """README: +experiment=simulate preset=cpu, then +experiment=restore input=<run>/captures (the CPU baseline's
+    128 px; simulate's figures stay out of the captures folder)."""
     sim_dir = tmp_path / "sim"
-    proc = _run("+experiment=simulate", "debug=smoke", "data.image_size=128", "data.padded_size=192",
-                f"hydra.run.dir={sim_dir}")
+    proc = _run("+experiment=simulate", "preset=cpu", "debug=smoke", f"hydra.run.dir={sim_dir}")
     assert proc.returncode == 0, proc.stderr[-4000:]
-    inputs = tmp_path / "in"
-    inputs.mkdir()
-    for f in sim_dir.glob("sensor_*_alpha_l_*.png"):
-        (inputs / f.name).write_bytes(f.read_bytes())
+    inputs = sim_dir / "captures"
+    assert sorted(p.suffix for p in inputs.iterdir()) == [".png", ".png"]
     out = tmp_path / "restore"
     proc = _run("+experiment=restore", f"input={inputs}", f"checkpoint={baseline_run / 'checkpoint.pt'}",
                 f"hydra.run.dir={out}")

@@ -23,7 +23,7 @@ def test_simulate_writes_grids_captures_and_metrics(simulate_run):
     for name in ("sensor_grid_linear.png", "sensor_grid_log.png", "metrics.json", "example_sensor.npy",
                  "example_irradiance_target.npy", "example_scene_target.npy"):
         assert (simulate_run / name).is_file(), name
-    captures = sorted(simulate_run.glob("sensor_*_alpha_l_*.png"))
+    captures = sorted((simulate_run / "captures").glob("sensor_*_alpha_l_*.png"))
     assert len(captures) == 2  # debug=smoke: one scene, alpha_l in {0, 1e6}
     for path in captures:
         img = np.asarray(Image.open(path))
@@ -35,8 +35,7 @@ def test_simulate_writes_grids_captures_and_metrics(simulate_run):
     assert 0.0 < m["bsr"] <= 1.0 and 0.0 < m["lsr_sampled"] < 0.1
     assert m["seconds_per_image"] > 0 and m["sensor_path"] == "direct"
     # the 16-bit capture is the counts: a saturated laser pixel reads G e_sat = 0.37 * 25500 = 9435 DN
-    hot = np.asarray(Image.open(simulate_run / captures[-1].name)) if "1e+06" in captures[-1].name else \
-        np.asarray(Image.open(captures[0]))
+    hot = np.asarray(Image.open(next(c for c in captures if "1e+06" in c.name)))
     assert int(hot.max()) == 9435
     net = np.load(simulate_run / "example_sensor.npy")
     assert net.shape == (384, 384) and float(np.abs(net[:64]).max()) == 0.0  # zero padding 256 -> 384
