@@ -13,8 +13,10 @@ from dataclasses import dataclass
 import torch
 
 from codesign.errors import ConfigError
+from codesign.optics.far_field import far_psf
 from codesign.optics.masks import Mask
 from codesign.optics.psf import OpticalSystem
+from codesign.sensor.halo import LaserHalo
 from codesign.sensor.kernels import otf_from_kernel
 from codesign.sensor.simulator import (
     PSFState,
@@ -55,6 +57,7 @@ class Camera(torch.nn.Module):
         self.mask_forward = mask  # called for the phase; a DistributedDataParallel wrapper may take its place
         self.trainable = False
         self._frozen: OpticsOutputs | None = None
+        self._halo: tuple | None = None  # (mask key or None, optics evaluations since computed, LaserHalo)
         self.set_trainable(False)
 
     # ---- geometry ---------------------------------------------------------------------------------------------
@@ -106,8 +109,31 @@ class Camera(torch.nn.Module):
         """PSF state, network-pitch kernel and padded-grid OTF of a pupil phase; all carry the phase's graph.
         ``key``: the cache key of a frozen mask's values (the simulator then keeps the kernels for its images)."""
         state = psf_state(self.system, phase, self.mask.plate_cell_m)
+        state.halo = self._halo_source(key) if self.simulator.sensor.laser_halo else None
         kernel = self.simulator.kernel(state, key=key)
         return OpticsOutputs(state, kernel, otf_from_kernel(kernel, self.padded_size).to(self.device), key)
+
+    def _halo_source(self, key: tuple | None):
+        """A callable giving the LaserHalo of the mask's current values, computed on first call (only a laser
+        needs it). A frozen mask's is kept under its key; a training mask's is reused for sensor.halo_refresh
+        optics evaluations (the far PSF takes seconds and carries no gradient; the mask moves little between)."""
+        if self._halo is not None:
+            old_key, age, halo = self._halo
+            fresh = old_key == key if key is not None else old_key is None and age < self.simulator.sensor.halo_refresh
+            if fresh:
+                self._halo = (old_key, age + 1, halo)
+                return lambda: halo
+        cell: list = []
+
+        def compute():
+            if not cell:
+                spec, m = self.system.spec, self.system.spec.focal_n
+                far, pitch = far_psf(self.mask, spec, self.simulator.sensor.side_m, self.system.dtype)
+                window = ((-(m // 2) - 0.5) * spec.focal_pitch_m, (m - m // 2 - 0.5) * spec.focal_pitch_m)
+                cell.append(LaserHalo(far, pitch, window))
+                self._halo = (key, 0, cell[0])
+            return cell[0]
+        return compute
 
     def current_optics(self) -> OpticsOutputs:
         """The optics of the mask's current values: with the mask's graph while it is trainable (recomputed every

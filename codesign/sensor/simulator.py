@@ -30,6 +30,7 @@ from __future__ import annotations
 import hashlib
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import torch
 import torch.nn.functional as F
@@ -38,6 +39,7 @@ from codesign.errors import ConfigError
 from codesign.optics.propagation import next_fast_len
 from codesign.optics.spec import OpticsSpec
 from codesign.sensor import kernels
+from codesign.sensor.halo import LaserHalo
 from codesign.sensor.noise import (
     NoiseStreams,
     dark_current,
@@ -53,12 +55,14 @@ class PSFState:
     """What the simulator needs of the optics: the coded window PSF and the uncoded normalizers.
 
     psf: (M, M) unit-energy coded PSF on the optics window (pitch dx); uncoded_peak: h0(0) per window sample;
-    uncoded_energy: sum of h0 over the window.
+    uncoded_energy: sum of h0 over the window; halo: a callable returning the LaserHalo of the same mask (the
+    light beyond the window, computed on first use: only a laser needs it), or None to leave that light out.
     """
 
     psf: torch.Tensor
     uncoded_peak: float
     uncoded_energy: float
+    halo: Callable[[], LaserHalo] | None = None
 
 
 @dataclass
@@ -163,6 +167,7 @@ class SensorSimulator(torch.nn.Module):
         """
         n, ks, pitch = level.n_sensor, self.footprint_size(level), level.pitch
         f = self.optics.focal_length_m
+        halo = state.halo if self.sensor.laser_halo else None  # its light reaches the sensor from anywhere
         todo = []  # (sample, first row, first col, laser position in pixels, footprint outside the sensor)
         for i in range(alpha_l.shape[0]):
             if float(alpha_l[i]) == 0.0 and self.skip_unneeded:
@@ -171,7 +176,7 @@ class SensorSimulator(torch.nn.Module):
             pos = (f * angle[i].detach().to(torch.float64).cpu().flip(-1)) / pitch + (n - 1) / 2  # (row, col)
             r0, c0 = (int(v) - ks // 2 for v in torch.round(pos).long())
             outside = r0 >= n or c0 >= n or r0 + ks <= 0 or c0 + ks <= 0
-            if outside and self.skip_unneeded:
+            if outside and self.skip_unneeded and halo is None:
                 continue  # footprint entirely outside the sensor
             todo.append((i, r0, c0, pos, outside))
         if not todo:
@@ -184,13 +189,20 @@ class SensorSimulator(torch.nn.Module):
         # One product per footprint (a batched product would round differently with the batch's composition and
         # break the bit-identity of the skip paths); each is normalized to the window's energy, then cropped.
         # (Ringing of the truncated window can dip below 0, which is not light: clamped before normalizing.)
-        foot = [kernels.conserve_energy(kernels.resample_spectrum(
+        foot = [None if todo[j][4] and self.skip_unneeded else kernels.conserve_energy(kernels.resample_spectrum(
             kd["spectrum"], self.sensor.pixel_pitch_m, ys[j], xs[j], pitch, self.sensor.pixel_integration
         ).clamp_min(0), kd["psf64"]) for j in range(len(todo))]
         out = torch.zeros(alpha_l.shape[0], 1, n, n, dtype=dtype, device=dev)
         norm = state.uncoded_peak * level.bins
+        if halo is not None:  # the light beyond the window: (1 - window energy) x the halo's shape, per pixel
+            far, beyond = halo(), (1.0 - state.psf.detach().to(torch.float64).sum()).clamp_min(0)
+            for i, _, _, pos, _ in todo:
+                spot = ((pos - (n - 1) / 2) * pitch).tolist()
+                block = alpha_l[i].to(device=dev, dtype=torch.float64, non_blocking=True) * beyond \
+                    * far.pixel_energy(spot, n, pitch).to(dev) / norm
+                out[i, 0] += block.to(dtype)
         for j, (i, r0, c0, _, outside) in enumerate(todo):
-            if outside:  # reference path only: computed, and nothing of it lands on the sensor
+            if outside:  # nothing of the footprint lands on the sensor (the halo may: added above)
                 continue
             r_lo, r_hi, c_lo, c_hi = max(r0, 0), min(r0 + ks, n), max(c0, 0), min(c0 + ks, n)
             patch = foot[j][r_lo - r0: r_hi - r0, c_lo - c0: c_hi - c0]

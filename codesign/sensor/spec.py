@@ -31,6 +31,11 @@ class SensorSpec(SpecMixin):
         pixel_integration: integrate the PSF over the pixel (True) or point-sample it (False).
         background_veil: add the energy scattered beyond the optics window back as a uniform veil of the scene's
             mean (True), so that a uniform scene keeps its brightness through any phase mask (BSR = 1).
+        laser_halo: add the laser's light beyond the optics window (True: the far PSF on a pupil grid fine enough
+            for the whole sensor, codesign/sensor/halo.py), so that a strong laser saturates pixels far from its
+            spot; False keeps only the window PSF (the light beyond it is dropped).
+        halo_refresh: while the mask trains, the far PSF (no gradient, ~2-4 s on 2 cores) is recomputed every
+            this many optics evaluations; a frozen mask computes it once.
     """
 
     wavelength_background_m: float = 633e-9
@@ -51,6 +56,8 @@ class SensorSpec(SpecMixin):
     downsample: str = "area"
     pixel_integration: bool = True
     background_veil: bool = True
+    laser_halo: bool = True
+    halo_refresh: int = 25
     prefix: str = field(default="sensor", compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -76,7 +83,9 @@ class SensorSpec(SpecMixin):
                               f"must be >= {p}.image_size ({self.image_size}): the sensor is binned, never upsampled")
         require_choice(f"{p}.path", self.path, PATHS)
         require_choice(f"{p}.downsample", self.downsample, DOWNSAMPLERS)
-        for key in ("pixel_integration", "background_veil"):
+        object.__setattr__(self, "halo_refresh", require_number(f"{p}.halo_refresh", self.halo_refresh, lo=1,
+                                                                integer=True))
+        for key in ("pixel_integration", "background_veil", "laser_halo"):
             if not isinstance(getattr(self, key), bool):
                 raise ConfigError(f"{p}.{key}", getattr(self, key), "must be true or false")
 
