@@ -8,6 +8,7 @@ restoration loss reaches the mask parameters.
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import torch
@@ -57,7 +58,8 @@ class Camera(torch.nn.Module):
         self.mask_forward = mask  # called for the phase; a DistributedDataParallel wrapper may take its place
         self.trainable = False
         self._frozen: OpticsOutputs | None = None
-        self._halo: tuple | None = None  # (mask key or None, optics evaluations since computed, LaserHalo)
+        self._halo_frozen: tuple | None = None  # (mask values' key, LaserHalo) of a frozen mask
+        self._halo_train: dict | None = None  # a training mask's: age (optics evaluations), values, LaserHalo
         self.set_trainable(False)
 
     # ---- geometry ---------------------------------------------------------------------------------------------
@@ -114,26 +116,53 @@ class Camera(torch.nn.Module):
         return OpticsOutputs(state, kernel, otf_from_kernel(kernel, self.padded_size).to(self.device), key)
 
     def _halo_source(self, key: tuple | None):
-        """A callable giving the LaserHalo of the mask's current values, computed on first call (only a laser
-        needs it). A frozen mask's is kept under its key; a training mask's is reused for sensor.halo_refresh
-        optics evaluations (the far PSF takes seconds and carries no gradient; the mask moves little between)."""
-        if self._halo is not None:
-            old_key, age, halo = self._halo
-            fresh = old_key == key if key is not None else old_key is None and age < self.simulator.sensor.halo_refresh
-            if fresh:
-                self._halo = (old_key, age + 1, halo)
-                return lambda: halo
+        """A callable giving the LaserHalo of the mask, computed on first call (only a laser needs it). A frozen
+        mask's is kept under its values' key. While the mask trains, every optics evaluation (training steps and
+        validations alike) uses the halo of the mask as it was at the last refresh, recomputed every
+        sensor.halo_refresh evaluations: the far PSF takes seconds and carries no gradient, and the mask moves
+        little in between. That schedule and the refresh's mask values are in ``halo_state`` (the checkpoint), so
+        a resumed run uses the halo an uninterrupted one uses."""
+        if self.trainable:
+            t = self._halo_train
+            if t is not None and t["age"] < self.simulator.sensor.halo_refresh:
+                t["age"] += 1
+                return lambda: self._training_halo(t)
+            snapshot = {k: v.detach().clone() for k, v in self.mask.state_dict().items()}
+            self._halo_train = t = {"age": 1, "values": snapshot, "halo": None}
+            return lambda: self._training_halo(t)
+        if self._halo_frozen is not None and self._halo_frozen[0] == key and key is not None:
+            halo = self._halo_frozen[1]
+            return lambda: halo
         cell: list = []
 
         def compute():
             if not cell:
-                spec, m = self.system.spec, self.system.spec.focal_n
-                far, pitch = far_psf(self.mask, spec, self.simulator.sensor.side_m, self.system.dtype)
-                window = ((-(m // 2) - 0.5) * spec.focal_pitch_m, (m - m // 2 - 0.5) * spec.focal_pitch_m)
-                cell.append(LaserHalo(far, pitch, window))
-                self._halo = (key, 0, cell[0])
+                cell.append(self._far_halo(self.mask))
+                self._halo_frozen = (key, cell[0])
             return cell[0]
         return compute
+
+    def _training_halo(self, t: dict) -> LaserHalo:
+        if t["halo"] is None:
+            source = copy.deepcopy(self.mask)
+            source.load_state_dict(t["values"])
+            t["halo"] = self._far_halo(source)
+        return t["halo"]
+
+    def _far_halo(self, mask) -> LaserHalo:
+        spec, m = self.system.spec, self.system.spec.focal_n
+        far, pitch = far_psf(mask, spec, self.simulator.sensor.side_m, self.system.dtype)
+        window = ((-(m // 2) - 0.5) * spec.focal_pitch_m, (m - m // 2 - 0.5) * spec.focal_pitch_m)
+        return LaserHalo(far, pitch, window)
+
+    def halo_state(self) -> dict | None:
+        """What a checkpoint keeps of a training mask's halo: its age and the mask values it came from."""
+        t = self._halo_train
+        return None if t is None else {"age": t["age"], "values": t["values"]}
+
+    def load_halo_state(self, state: dict | None) -> None:
+        self._halo_train = None if state is None else {"age": int(state["age"]), "values": state["values"],
+                                                       "halo": None}
 
     def current_optics(self) -> OpticsOutputs:
         """The optics of the mask's current values: with the mask's graph while it is trainable (recomputed every

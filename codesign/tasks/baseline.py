@@ -15,6 +15,7 @@ from codesign.train import distributed
 from codesign.train.checkpoint import CHECKPOINT_NAME
 from codesign.train.data import SimulatedData
 from codesign.train.evaluation import eval_settings, run_evaluation
+from codesign.train.memory import check_training_fits
 from codesign.train.resume import resume_if_possible
 from codesign.train.setup import build_model, distributed_metrics, run_metrics
 from codesign.train.spec import TrainerSpec
@@ -40,6 +41,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     ctx = distributed.current()
     data = SimulatedData(cfg, device, seed, ctx)
     sampling = camera_sampling_report(data.camera, cfg, log) if ctx.is_main else {}
+    memory = check_training_fits(model, data, spec, device, "baseline")  # before any training
     trainer = RestorationTrainer(model, data, spec, run_dir, device, to_container(cfg), None, seed, ctx)
     resume_if_possible(trainer, cfg, run_dir)
     # purge_step drops the events a killed run logged after its last checkpoint; rank 0 alone writes
@@ -54,7 +56,8 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     if not ctx.is_main:  # rank 0 evaluates and writes
         return None
     first, last = (history[0], history[-1]) if history else ({}, {})
-    metrics = {**common, **sampling, **distributed_metrics(trainer), "steps": trainer.step, "seconds": seconds,
+    metrics = {**common, **sampling, **memory, **distributed_metrics(trainer), "steps": trainer.step,
+               "seconds": seconds,
                "skipped_updates": trainer.skipped, "undone_updates": trainer.rollbacks, **trainer.divergence(),
                "vgg_loss": model.loss_status,
                "loss_first": first, "loss_last": last, **trainer.last_val,

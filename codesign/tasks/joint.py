@@ -32,6 +32,7 @@ from codesign.train.checkpoint import CHECKPOINT_NAME
 from codesign.train.data import SimulatedData
 from codesign.train.evaluation import conditions, eval_settings, run_evaluation
 from codesign.train.joint_trainer import JointTrainer
+from codesign.train.memory import check_training_fits
 from codesign.train.resume import load_initial_weights, resume_if_possible
 from codesign.train.setup import build_model, distributed_metrics, run_metrics
 from codesign.train.spec import InitSpec, TrainerSpec
@@ -121,11 +122,11 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     reference = published_reference(to_container(cfg.mask), system)
     monitor = MaskMonitor(system, reference, ms.mtf_band, ms.lsr_p)
     lsr_max, lsr_max_from = _lsr_max(cs, monitor, system, camera.mask)
-    start = {}
+    start = check_training_fits(model, data, spec, device, "joint")  # before any training
     if ctx.is_main:  # warned about before any training
         sampling = camera_sampling_report(camera, cfg, log, "the start mask")
-        start = {"phase_resolved_start": sampling["phase_resolved"], "phase_sampling_start": sampling["phase_sampling"],
-                 **_check_lsr_max(lsr_max, cs, monitor, system, camera.mask)}
+        start.update(phase_resolved_start=sampling["phase_resolved"], phase_sampling_start=sampling["phase_sampling"],
+                     **_check_lsr_max(lsr_max, cs, monitor, system, camera.mask))
     trainer = JointTrainer(model, data, spec, run_dir, device, to_container(cfg), None, seed, cs, lsr_max, monitor,
                            ctx, ms.lsr_p)
     common = run_metrics(cfg, model, device)

@@ -139,6 +139,7 @@ class JointTrainer(RestorationTrainer):
         state["constraint"] = {"lsr_max": self.constraint.lsr_max, "lsr": self.lsr,
                                "shortened": self.constraint.shortened, "undone": self.constraint.undone,
                                "mask_rollbacks": self.mask_rollbacks}
+        state["laser_halo"] = self.camera.halo_state()  # the far PSF's refresh schedule and source values
         return state
 
     def load_state_dict(self, state: dict) -> None:
@@ -148,3 +149,4 @@ class JointTrainer(RestorationTrainer):
         self.lsr, self.mask_rollbacks = float(c["lsr"]), int(c["mask_rollbacks"])
         self.constraint.shortened, self.constraint.undone = int(c["shortened"]), int(c["undone"])
         self.camera.invalidate()
+        self.camera.load_halo_state(state.get("laser_halo"))

@@ -128,7 +128,7 @@ def test_root_key_allowlist_accepts_every_shipped_config(experiment):
     ('{"kind": "spiral", "charge": 2.0, "axicon_cycles": 3.0, "defocus_rad": 0.0, "charg": 5.0, "note": "x"}',
      "its key(s) charg, note are not keys of a spiral record (allowed: axicon_bounds, axicon_cycles, charge, "
      "charge_bounds, check_agree, defocus_bounds, defocus_rad, feasible, kind, levels, lsr, lsr_limit, "
-     "lsr_over_limit, lsr_sampled, lsr_smooth, mtf_mean, optics, restorability, window_energy)"),
+     "lsr_over_limit, lsr_sampled, lsr_smooth, mtf_mean, optics, phase_resolved, restorability, window_energy)"),
 ], ids=["unequal-rings", "nan", "truncated", "not-a-mask", "unknown-keys"])
 def test_mask_init_file_with_bad_rings(tmp_path, monkeypatch, capsys, content, message):
     path = tmp_path / "best_mask.json"

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from benchmarks import laser_halo as bench
+from benchmarks import bench_laser_halo as bench
 from codesign.camera import camera as camera_module
 from codesign.camera.build import build_camera
 from codesign.data.params import fixed_scene_params
@@ -107,6 +107,18 @@ def test_a_training_mask_refreshes_its_halo_every_halo_refresh_evaluations(monke
     monkeypatch.setattr(camera_module, "far_psf", lambda *a, **k: calls.append(1) or real(*a, **k))
     cam = _camera("sensor.halo_refresh=3")
     cam.set_trainable(True)
-    for _ in range(7):  # optics evaluations 1..7, each with a laser: the far PSF at the 1st, 5th (after 3 reuses)
+    for _ in range(7):  # optics evaluations 1..7, each with a laser: the far PSF at the 1st, 4th and 7th
         cam.current_optics().state.halo()
-    assert calls == [1, 1]
+    assert calls == [1, 1, 1]
+    # validation (frozen_optics of the training mask) shares the training halo instead of computing its own
+    cam.invalidate()
+    cam.frozen_optics().state.halo()
+    assert calls == [1, 1, 1]
+    # a checkpoint keeps the schedule and the values the halo came from: a resumed camera continues it
+    state = cam.halo_state()
+    assert state["age"] == 2
+    other = _camera("sensor.halo_refresh=3")
+    other.set_trainable(True)
+    other.load_halo_state(state)
+    other.current_optics().state.halo()  # the 3rd evaluation of this halo: recomputed from the saved values
+    assert calls == [1, 1, 1, 1] and other.halo_state()["age"] == 3

@@ -31,6 +31,7 @@ def test_baseline_writes_checkpoint_metrics_tables_and_panels(baseline_run):
         assert (baseline_run / name).is_file(), name
     m = json.loads((baseline_run / "metrics.json").read_text())
     assert m["steps"] == 4 and m["variant"] == "sgan_b" and m["skipped_updates"] == 0 and m["diverged"] == 0
+    assert 0 < m["memory_estimate_gib"] < 4  # a smoke run's
     assert m["phase_resolved"] is False  # the smoke pupil grid (202 samples) does not resolve the published phase
     assert m["vgg_loss"] == "off: model.loss.vgg = 0 (not in this variant's objective)"  # SGAN-B has no VGG term
     assert m["perceptual_metrics"]["one_minus_lpips"].startswith("unavailable")

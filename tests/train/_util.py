@@ -18,7 +18,7 @@ from tests.conftest import REPO_ROOT
 CPU = torch.device("cpu")
 
 TINY = ["optics.pupil_pitch_m=2.0e-5", "optics.focal_n=160", "data.image_size=48", "data.padded_size=64",
-        "data.batch_size=2", "model.size=tiny", "trainer.val_size=2"]
+        "data.batch_size=2", "model.size=tiny", "trainer.val_size=2", "sensor.laser_halo=false"]
 
 
 def tiny_cfg(*overrides: str):

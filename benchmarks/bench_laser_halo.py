@@ -9,18 +9,17 @@ simulator's direct path saturates a network pixel where the average over it does
 fraction averages its sensor pixels the same way (area, as the full path's downsampling). It shares nothing with
 the simulator's laser model (window footprint + far-PSF halo), only the mask, the optics and the sensor numbers.
 
-    python -m benchmarks.laser_halo [--refine 8] [--alphas 1e3,...] [--out benchmarks/results/laser_halo.json]
+    python -m benchmarks --only laser_halo [--scale full]     (quick: reference pupil 4x finer; full: 8x)
 """
 from __future__ import annotations
 
-import argparse
-import json
 import time
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 
+from benchmarks.common import Report, machine, markdown_table, write_json
 from codesign.data.params import fixed_scene_params
 from codesign.optics.grid import axis_coords
 from codesign.optics.propagation import mft, mft_matrix
@@ -91,40 +90,46 @@ def rows(camera, alphas=ALPHAS, refine: int = 8, angle=ANGLE, without_halo=None)
     return out, seconds
 
 
-def main(argv=None) -> None:
+SPLINE_RECORD = Path(__file__).resolve().parent / "results/full/design/spline/best_mask.json"
+REFINE = {"quick": 4, "full": 8}
+
+
+def cameras(*overrides: str) -> tuple:
+    """(camera, the same camera with sensor.laser_halo=false) of +experiment=simulate with ``overrides``."""
     from hydra import compose, initialize_config_dir
 
     from codesign.camera.build import build_camera
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--refine", type=int, default=8, help="reference pupil grid: this many times finer")
-    ap.add_argument("--alphas", default=",".join(f"{a:g}" for a in ALPHAS))
-    ap.add_argument("--out", default="benchmarks/results/laser_halo.json")
-    ap.add_argument("overrides", nargs="*", help="Hydra overrides of +experiment=simulate (e.g. mask=spline ...)")
-    args = ap.parse_args(argv)
     conf = Path(__file__).resolve().parent.parent / "conf"
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        cfg = compose("config", overrides=["+experiment=simulate", *args.overrides])
-        cfg_off = compose("config", overrides=["+experiment=simulate", *args.overrides, "sensor.laser_halo=false"])
-    camera, off = build_camera(cfg, "cpu"), build_camera(cfg_off, "cpu")
-    alphas = [float(a) for a in args.alphas.split(",")]
-    table, seconds = rows(camera, alphas, args.refine, without_halo=off)
-    print(f"reference: pupil {camera.system.spec.grid_n} x {args.refine}, sensor {camera.sensor.resolution}^2 "
-          f"float64, {seconds:.1f} s")
-    print(f"{'alpha_l':>8} {'ref (sensor px)':>16} {'ref (net px)':>13} {'model':>8} {'rel. err':>9} {'no halo':>8}")
-    for r in table:
-        print(f"{r['alpha_l']:8.0e} {r['reference_sensor_pixels']:16.5f} {r['reference']:13.5f} {r['model']:8.5f} "
-              f"{100 * r['relative_error']:8.2f}% {r['model_without_halo']:8.5f}")
-    from benchmarks.common import machine
+        on = compose("config", overrides=["+experiment=simulate", *overrides])
+        off = compose("config", overrides=["+experiment=simulate", *overrides, "sensor.laser_halo=false"])
+    return build_camera(on, "cpu"), build_camera(off, "cpu")
 
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".tmp")
-    tmp.write_text(json.dumps({"machine": machine(), "refine": args.refine, "overrides": args.overrides,
-                               "reference_seconds": seconds, "rows": table}, indent=2))
-    tmp.replace(out)
-    print(f"wrote {out}")
+
+def run(scale: str, out: Path) -> Report:
+    """The table for the published mask and the searched spline design (docs/sensor.md Sec. 7)."""
+    masks = {"published": (), "spline design": ("mask=spline", f"mask.init={SPLINE_RECORD}")}
+    data, tables = {"machine": machine(), "scale": scale, "refine": REFINE[scale], "masks": {}}, []
+    for name, overrides in masks.items():
+        camera, off = cameras(*overrides)
+        table, seconds = rows(camera, ALPHAS, REFINE[scale], without_halo=off)
+        data["masks"][name] = {"reference_seconds": seconds, "rows": table}
+        tables.append(f"**{name} mask** (reference {seconds:.0f} s):\n\n" + markdown_table(
+            ["alpha_l", "reference, sensor px", "reference, network px", "model", "error", "window only"],
+            [[f"{r['alpha_l']:.0e}", r["reference_sensor_pixels"], r["reference"], r["model"],
+              f"{100 * r['relative_error']:+.1f} %", r["model_without_halo"]] for r in table]))
+    write_json(out / "laser_halo.json", data)
+    print("\n\n".join(tables))
+    return Report("laser_halo", "Laser saturated area against a float64 reference of the whole sensor", tables,
+                  notes=[f"Reference: the laser PSF at every sensor pixel centre by one float64 MFT from a pupil "
+                         f"grid {REFINE[scale]}x finer than the design grid, plus the uniform background, "
+                         f"noise-free; network pixels saturate where their sensor pixels' average does. Model: the "
+                         f"simulator's direct path (window footprint + far-PSF halo); 'window only': "
+                         f"sensor.laser_halo=false. Laser at the simulate experiment's angle."])
 
 
 if __name__ == "__main__":
-    main()
+    from benchmarks.__main__ import standalone
+
+    standalone(run)
