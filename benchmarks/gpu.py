@@ -46,7 +46,8 @@ SCENES = REPO.parent / "shared" / "data" / "scenes"
 ALPHAS = ("0", "1e3", "1e6")
 STEPS = {"tests": "tests on the device", "speed": "speed table", "train": "training with the published mask",
          "evaluate": "evaluation on held-out scenes"}
-TINY_OPTICS = ["optics.pupil_pitch_m=2.0e-5", "optics.focal_n=160"]
+# the dry run's physics: smoke optics, no far-PSF laser halo (seconds per mask; tests/sensor/test_laser_halo.py)
+TINY_PHYSICS = ["optics.pupil_pitch_m=2.0e-5", "optics.focal_n=160", "sensor.laser_halo=false"]
 PLANS = {
     "gpu": dict(models=("sgan_b", "sgan_e", "sgan_f"), widths=("cpu", "paper"), image=256, padded=384,
                 batches=(1, 8), modes=("float32", "bf16", "bf16+compile"), repeats=20, joint=["preset=paper"],
@@ -57,7 +58,7 @@ PLANS = {
     # even the tiny network takes minutes of C++ builds)
     "dry": dict(models=("sgan_b", "sgan_f"), widths=("tiny",), image=48, padded=64, batches=(1, 2),
                 modes=("float32", "bf16"), repeats=2, joint=["model.size=tiny", "data.image_size=48",
-                "data.padded_size=64", "data.batch_size=2", *TINY_OPTICS], joint_warmup=1, joint_repeats=1,
+                "data.padded_size=64", "data.batch_size=2", *TINY_PHYSICS], joint_warmup=1, joint_repeats=1,
                 psf_samples=(192,), psf_repeats=1,
                 train=dict(model="sgan_b", size="tiny", image=48, padded=64, batch=2, amp=None, steps=4),
                 eval=["evaluate.stages=[H1]", "evaluate.tuning_size=2", "evaluate.max_scenes=2"],
@@ -210,7 +211,7 @@ def step_train(p: dict, dev: torch.device, work: Path, out: Path, budget: float)
            f"device={dev}", "trainer.first_fraction=1.0", "trainer.image_every=0", f"hydra.run.dir={run}"]
     if "steps" in t:  # dry run: a fixed number of steps
         cmd += [f"trainer.steps={t['steps']}", "trainer.val_every=2", "trainer.checkpoint_every=2",
-                "evaluate.stages=[H1]", "evaluate.tuning_size=2", "evaluate.max_scenes=2", *TINY_OPTICS]
+                "evaluate.stages=[H1]", "evaluate.tuning_size=2", "evaluate.max_scenes=2", *TINY_PHYSICS]
     else:  # as many steps as the budget holds at a constant learning rate (the schedule would need the count)
         train_s = max(budget - 120, 60)  # the run's own final evaluation and checkpoint
         cmd += ["trainer.steps=10000000", f"trainer.time_budget_s={train_s:.0f}", "trainer.val_every=500",

@@ -222,30 +222,26 @@ def _tree(folder) -> dict:
     return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
-def test_another_experiments_folder_is_refused_and_left_byte_identical(tmp_path):
+CHOOSE = "choose another folder with hydra.run.dir=PATH (or leave hydra.run.dir unset: every run gets a new one)"
+
+
+@pytest.mark.parametrize("args,refusal", [
+    (("+experiment=evaluate", "checkpoint=x"),  # another experiment
+     "holds the results of +experiment=psf (metrics.json, mtf.png); +experiment=evaluate never writes into another "
+     f"experiment's folder: {CHOOSE}"),
+    (("+experiment=psf", "debug=smoke"),  # the same one, which does not resume: a rerun would overwrite it
+     f"holds a finished +experiment=psf run (metrics.json, mtf.png); psf does not resume, and a rerun would "
+     f"overwrite it: {CHOOSE}"),
+], ids=["another_experiment", "same_without_resume"])
+def test_an_earlier_runs_folder_is_refused_and_left_byte_identical(tmp_path, args, refusal):
     run_dir = tmp_path / "run"
     _earlier_run(run_dir, "psf")
     before = _tree(run_dir)
-    proc = run_codesign("+experiment=evaluate", "checkpoint=x", f"hydra.run.dir={run_dir}")
+    proc = run_codesign(*args, f"hydra.run.dir={run_dir}")
     assert proc.returncode == 2
-    assert proc.stderr.strip().splitlines()[-1] == (
-        f"codesign: configuration error: hydra.run.dir = '{run_dir}': holds the results of +experiment=psf "
-        f"(metrics.json, mtf.png); +experiment=evaluate never writes into another experiment's folder: choose "
-        f"another folder with hydra.run.dir=PATH (or leave hydra.run.dir unset: every run gets a new one)")
+    assert proc.stderr.strip().splitlines()[-1] == \
+        f"codesign: configuration error: hydra.run.dir = '{run_dir}': {refusal}"
     assert _tree(run_dir) == before  # no .hydra/ rewritten, no log line appended
-
-
-def test_a_finished_run_of_an_experiment_without_resume_is_not_overwritten(tmp_path):
-    run_dir = tmp_path / "run"
-    _earlier_run(run_dir, "psf")
-    before = _tree(run_dir)
-    proc = run_codesign("+experiment=psf", "debug=smoke", f"hydra.run.dir={run_dir}")
-    assert proc.returncode == 2
-    assert proc.stderr.strip().splitlines()[-1].endswith(
-        "holds a finished +experiment=psf run (metrics.json, mtf.png); psf does not resume, and a rerun would "
-        "overwrite it: choose another folder with hydra.run.dir=PATH (or leave hydra.run.dir unset: every run "
-        "gets a new one)")
-    assert _tree(run_dir) == before
 
 
 def test_the_same_training_experiment_may_continue_on_its_folder(tmp_path):
