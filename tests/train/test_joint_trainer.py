@@ -149,23 +149,24 @@ def _params(tr) -> list[torch.Tensor]:
 
 
 def test_seeded_runs_reproduce_and_resume_continues_exactly(tmp_path):
-    halo = "sensor.laser_halo=true"  # the far PSF's refresh schedule and source values travel in the checkpoint
-    a = joint_trainer(tmp_path / "a", halo)
+    # the far PSF's refresh schedule and source values travel in the checkpoint (a 640-pixel sensor: a small far plane)
+    halo = ["sensor.laser_halo=true", "sensor.resolution=640"]
+    a = joint_trainer(tmp_path / "a", *halo)
     for _ in range(4):
         a.train_step()
-    b = joint_trainer(tmp_path / "b", halo)
+    b = joint_trainer(tmp_path / "b", *halo)
     for _ in range(4):
         b.train_step()
     for x, y in zip(_params(a), _params(b)):
         torch.testing.assert_close(x, y, rtol=1e-5, atol=1e-6)
     # resume: 2 steps, checkpoint, a fresh trainer loads it and does the other 2
-    c = joint_trainer(tmp_path / "c", halo)
+    c = joint_trainer(tmp_path / "c", *halo)
     c.train_step()
     c.train_step()
     path = c.save()
     from codesign.train.checkpoint import load_checkpoint
 
-    d = joint_trainer(tmp_path / "d", halo, seed=5)  # different init: everything must come from the checkpoint
+    d = joint_trainer(tmp_path / "d", *halo, seed=5)  # different init: everything must come from the checkpoint
     d.load_state_dict(load_checkpoint(path))
     assert d.step == 2 and d.opt_g.param_groups[2]["lr"] == c.opt_g.param_groups[2]["lr"]
     d.train_step()
