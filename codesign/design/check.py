@@ -84,13 +84,18 @@ def phase_sampling(mask, spec, band, tolerance: float = PHASE_SAMPLING_TOLERANCE
     same on a grid ``mask.fine_factor`` times finer (a phase that varies faster than the grid samples gives an
     aliased PSF, typically a low LSR with light pushed out of the window, that a finer grid does not reproduce).
     Cheap (one PSF on the fine grid); every experiment reports it."""
-    design = evaluate_on(spec, mask, band, dtype)
-    fine = evaluate_on(fine_grid(spec, mask), mask, band, dtype)
+    return sampling_of(evaluate_on(spec, mask, band, dtype), evaluate_on(fine_grid(spec, mask), mask, band, dtype),
+                       tolerance)
+
+
+def sampling_of(design: dict, fine: dict, tolerance: float = PHASE_SAMPLING_TOLERANCE) -> dict:
+    """``phase_sampling`` from the design and fine evaluations (``evaluate_on``) a caller already has, e.g. the
+    "design" and "fine" entries of ``verify_design``."""
     dev = {f"{k}_fine_deviation": fine[k] / design[k] - 1 if design[k] else float("inf")
            for k in ("lsr", "window_energy", "mtf_mean")}
     worst = max(abs(v) for v in dev.values())
     return {**dev, "max_deviation": worst, "tolerance": tolerance, "resolved": worst <= tolerance,
-            "pupil_n": spec.grid_n, "fine_pupil_n": fine["pupil_n"]}
+            "pupil_n": design["pupil_n"], "fine_pupil_n": fine["pupil_n"]}
 
 
 def warn_unresolved(check: dict, log, what: str = "the mask") -> None:
@@ -104,12 +109,16 @@ def warn_unresolved(check: dict, log, what: str = "the mask") -> None:
                     100 * check["tolerance"])
 
 
-def sampling_report(mask, spec, band, log, what: str = "the mask", dtype=torch.float32) -> dict:
-    """``phase_sampling`` of ``mask``, warned about when unresolved, as the metrics.json entries every experiment
+def report_sampling(check: dict, log, what: str = "the mask") -> dict:
+    """A ``phase_sampling`` result, warned about when unresolved, as the metrics.json entries every experiment
     writes: phase_resolved (bool) and phase_sampling (the figures)."""
-    check = phase_sampling(mask, spec, band, dtype=dtype)
     warn_unresolved(check, log, what)
     return {"phase_resolved": check["resolved"], "phase_sampling": check}
+
+
+def sampling_report(mask, spec, band, log, what: str = "the mask", dtype=torch.float32) -> dict:
+    """``report_sampling`` of ``phase_sampling(mask, ...)``."""
+    return report_sampling(phase_sampling(mask, spec, band, dtype=dtype), log, what)
 
 
 def camera_sampling_report(camera, cfg, log, what: str | None = None) -> dict:

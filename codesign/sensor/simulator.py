@@ -167,7 +167,7 @@ class SensorSimulator(torch.nn.Module):
         """
         n, ks, pitch = level.n_sensor, self.footprint_size(level), level.pitch
         f = self.optics.focal_length_m
-        halo = state.halo if self.sensor.laser_halo else None  # its light reaches the sensor from anywhere
+        halo = state.halo  # its light reaches the sensor from anywhere (None: sensor.laser_halo is off)
         todo = []  # (sample, first row, first col, laser position in pixels, footprint outside the sensor)
         for i in range(alpha_l.shape[0]):
             if float(alpha_l[i]) == 0.0 and self.skip_unneeded:

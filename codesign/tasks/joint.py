@@ -16,7 +16,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from codesign.config.runtime import check_seed, logging_spec, to_container
-from codesign.design.check import camera_sampling_report, verify_design
+from codesign.design.check import camera_sampling_report, report_sampling, sampling_of, verify_design
 from codesign.design.limits import MTFLimit
 from codesign.design.lsr_constraint import CodesignSpec, LSRConstraint
 from codesign.design.merit import metrics_spec
@@ -151,7 +151,8 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         psf0 = system.uncoded_psf().cpu().numpy()
     learned = _mask_outputs(monitor, system, camera.mask, run_dir, "learned", psf0)
     recheck = _recheck(camera.mask, reference, system.spec, ms.mtf_band)
-    sampling = camera_sampling_report(camera, cfg, log, "the learned mask")
+    verified = recheck["recheck"]["learned"]  # its design and fine-grid evaluations answer the sampling question
+    sampling = report_sampling(sampling_of(verified["design"], verified["fine"]), log, "the learned mask")
     base = _mask_outputs(monitor, system, reference, run_dir, "published", psf0)
     rings = _save_learned_mask(camera.mask, system.spec, run_dir, learned)
     freqs = monitor.radial.freqs.cpu().numpy()

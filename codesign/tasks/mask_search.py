@@ -13,7 +13,7 @@ import torch
 from omegaconf import DictConfig
 
 from codesign.config.runtime import resolve_dtype, to_container
-from codesign.design.check import sampling_report, verify_design
+from codesign.design.check import report_sampling, sampling_of, sampling_report, verify_design
 from codesign.design.figures import evaluations_figure
 from codesign.design.limits import MTFLimit
 from codesign.design.merit import metrics_spec
@@ -126,7 +126,8 @@ def _outputs(run_dir: Path, s: SearchSpec, ms, system, mask, published, base, ba
                     "fine and a window twice as wide differ by up to %.1f%% (tolerance %.0f%%): part of its gain is "
                     "the simulation's, not the optics' (metrics.json: check)", 100 * check["max_deviation"],
                     100 * s.check_tolerance)
-    sampling = sampling_report(mask.freeze(), spec, ms.mtf_band, log, "the best design")
+    sampling = report_sampling(sampling_of(check["design"], check["fine"]), log, "the best design") if check \
+        else sampling_report(mask.freeze(), spec, ms.mtf_band, log, "the best design")
     quantized = quantized_figures(mask, monitor, rest, (2, 4, 8, 16))
     figures = {k: values[k] for k in ("lsr", "lsr_smooth", "lsr_sampled", "mtf_mean", "window_energy", "lsr_limit",
                                       "lsr_over_limit", "restorability")}
