@@ -14,10 +14,11 @@ from tests.conftest import REPO_ROOT
 CONF = REPO_ROOT / "conf"
 EXPERIMENT_FILES = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
 # the options of every group: YAML files under conf/ and the nodes the spec dataclasses registered
-# (the codesign and search blocks belong to the joint and mask_search experiments, which include them)
+# (the codesign and search blocks belong to the joint and mask_search experiments, which include them; the
+# material options to export and tolerance: test_material_options_compose_with_the_fabrication_experiments)
 ROOT_GROUPS = ("optics", "mask", "sensor", "model", "data", "trainer", "metrics", "logging", "evaluate")
 STORED = {(group, name.removesuffix(".yaml")) for group in ROOT_GROUPS for name in ConfigStore.instance().list(group)}
-GROUP_OPTIONS = sorted({(d.name, p.stem) for d in CONF.iterdir() if d.is_dir() and d.name not in ("experiment", "hydra")
+GROUP_OPTIONS = sorted({(d.name, p.stem) for d in CONF.iterdir() if d.is_dir() and d.name not in ("experiment", "hydra", "material")
                         for p in d.glob("*.yaml")} | STORED)
 
 
@@ -33,6 +34,17 @@ def test_every_group_option_composes_with_every_experiment(experiment):
             cfg = compose("config", overrides=[f"+experiment={experiment}", f"{group}={option}"])
             OmegaConf.to_container(cfg, resolve=True)
             assert cfg.task == experiment, (group, option)
+
+
+@pytest.mark.parametrize("experiment", ["export", "tolerance"])
+def test_material_options_compose_with_the_fabrication_experiments(experiment):
+    from codesign.fab.materials import Material
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        for path in sorted((CONF / "material").glob("*.yaml")):
+            cfg = compose("config", overrides=[f"+experiment={experiment}", f"material={path.stem}"])
+            material = Material.from_config(OmegaConf.to_container(cfg.material, resolve=True))
+            assert material.name == path.stem and material.index(633e-9) > 1
 
 
 def test_presets_size_the_run_and_trainers_only_schedule_it():

@@ -169,11 +169,11 @@ def test_every_group_option_composes(group, option):
     prefix = "+" if group == "experiment" else ""
     overrides = [f"{prefix}{group}={option}"]
     if group != "experiment":
-        overrides.append("+experiment=psf")
+        overrides.append("+experiment=export" if group == "material" else "+experiment=psf")  # export's own group
     if group != "debug":
         overrides.append("debug=smoke")
     cfg = _compose(overrides)
-    assert cfg.task == (option if group == "experiment" else "psf")
+    assert cfg.task == (option if group == "experiment" else "export" if group == "material" else "psf")
     assert apply_debug_overrides(cfg)
     spec = OpticsSpec.from_config(OmegaConf.to_container(cfg.optics, resolve=True))
     assert spec.pupil_pitch_m == pytest.approx(2e-5)

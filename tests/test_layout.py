@@ -10,7 +10,8 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent / "codesign"
 # The packages in data-flow order (README.md's Layout): a package may import itself and those listed before it.
 # "core" is codesign/errors.py and codesign/spec_base.py.
-ORDER = ("core", "config", "io", "data", "optics", "sensor", "camera", "models", "design", "train", "tasks")
+ORDER = ("core", "config", "io", "data", "optics", "sensor", "camera", "models", "design", "fab", "train",
+         "tasks")
 ENTRY = "codesign.__main__"
 
 

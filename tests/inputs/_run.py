@@ -29,7 +29,9 @@ def _camera_without_optics(build):
 
 def stop_before_work(monkeypatch) -> None:
     """Replace the first expensive step of every experiment with the sentinel."""
+    import codesign.tasks.export as export
     import codesign.tasks.joint as joint
+    import codesign.tasks.tolerance as tolerance
     import codesign.tasks.psf as psf
     import codesign.tasks.baseline as restoration
     import codesign.tasks.evaluate as evaluate
@@ -45,6 +47,8 @@ def stop_before_work(monkeypatch) -> None:
     monkeypatch.setattr(joint, "_train", _work)
     monkeypatch.setattr(search.MaskSearch, "run", _work)
     monkeypatch.setattr(restore, "build_camera", _camera_without_optics(restore.build_camera))
+    monkeypatch.setattr(export, "OpticalSystem", _work)
+    monkeypatch.setattr(tolerance, "OpticalSystem", _work)
 
 
 def compose_cfg(*overrides: str):

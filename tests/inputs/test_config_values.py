@@ -98,6 +98,19 @@ ROWS = [
     ("joint", "+init.foo=1", "init.foo = 1: unknown key; allowed: checkpoint"),
     ("joint", "init.checkpoint=/nonexistent/ck.pt", "init.checkpoint = '/nonexistent/ck.pt': no such checkpoint file"),
     ("joint", "metrics.mtf_band=[0.5,0.2]", f"metrics.mtf_band = [0.5, 0.2]: {MTF_BAND}, beyond which the MTF is 0)"),
+    # ---- fabrication export and tolerance --------------------------------------------------------------------
+    ("export", "export.levels=1", "export.levels = 1: must be an integer >= 2 and <= 256"),
+    ("export", "export.size_m=0.002", "export.size_m = 0.002: the plate must hold the aperture's support "
+     "(0.00398 m): must be >= 0.004 m at export.pitch_m = 8e-06, or null"),
+    ("export", "material=custom material.coefficients=[0.5]",
+     "material.coefficients = [0.5]: give n = 0.5 at 0.633 um: a mask material needs n > 1"),
+    ("export", "material.formula=abbe", "material.formula = 'abbe': must be one of sellmeier, cauchy, constant"),
+    ("export", "mask.init=/nonexistent.json", "mask.init = '/nonexistent.json': must be null or the path of a mask "
+     "record (best_mask.json of +experiment=mask_search, learned_mask.json of joint, mask.json of psf); no such "
+     "file"),
+    ("tolerance", "tolerance.samples=0", "tolerance.samples = 0: must be an integer >= 1 and <= 1e+06"),
+    ("tolerance", "tolerance.lsr_ceiling=published", "tolerance.lsr_ceiling = 'published': must be auto or a "
+     "number > 0"),
 ]
 
 
@@ -143,6 +156,6 @@ def test_cli_unknown_experiment_lists_the_available_ones(tmp_path):
     proc = run_codesign("+experiment=psff", f"hydra.run.dir={tmp_path / 'run'}")
     assert proc.returncode == 1  # Hydra's own composition error, before codesign runs
     assert "Could not find 'experiment/psff'" in proc.stderr
-    assert re.search(r"Available options in 'experiment':\s+baseline\s+evaluate\s+joint\s+mask_search\s+psf\s+"
-                     r"restore\s+simulate", proc.stderr), proc.stderr
+    assert re.search(r"Available options in 'experiment':\s+baseline\s+evaluate\s+export\s+joint\s+"
+                     r"mask_search\s+psf\s+restore\s+simulate\s+tolerance", proc.stderr), proc.stderr
     assert "Traceback" not in proc.stderr and not (tmp_path / "run").exists()

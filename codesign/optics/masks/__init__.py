@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib
 import logging
+import os
 import pkgutil
 from typing import Any, Mapping
 
@@ -102,6 +103,22 @@ def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix:
                            prefix=prefix)
 
 
+def config_of_design(cfg: Mapping[str, Any], prefix: str = "mask") -> dict:
+    """The mask config that builds the design ``cfg`` names: with ``init`` a record of another family than the
+    configured one (e.g. a spline best_mask.json under the default mask=halfring), that family's defaults and the
+    record; otherwise ``cfg`` itself. For experiments that take a finished design of any family (export,
+    tolerance); the others keep refusing a family mismatch, where it is more likely a mistake."""
+    cfg = dict(cfg)
+    init = cfg.get("init")
+    if not isinstance(init, (str, os.PathLike)) or init in ("published", "zero", "defocus"):
+        return cfg
+    record = load_record(init, f"{prefix}.init", f"must be null or {RECORD_PATH}")
+    kind = cfg.get("basis") if cfg.get("kind") == "freeform" else cfg.get("kind")
+    if record["kind"] == kind:
+        return cfg
+    return {**FAMILIES[record["kind"]].Spec.defaults(), "kind": record["kind"], "init": init}
+
+
 def record_phase(record: dict, grid, aperture_diameter_m: float) -> torch.Tensor:
     """The (n, n) phase of a loaded record's mask on ``grid`` (a pixel record designed on another grid: its plate
     sampled there, cell by cell)."""
@@ -158,5 +175,5 @@ for _kind in families():
 register("mask", "freeform", dict(FREEFORM_DEFAULTS))
 
 __all__ = ["Mask", "MaskSpec", "HalfRingMask", "PixelPhaseMask", "ZernikeMask", "SpiralMask", "SplineMask", "FAMILIES",
-           "build_mask", "families", "load_record", "published_halfring", "published_mask_config", "quantize",
-           "record_phase", "PUBLISHED_R", "PUBLISHED_THETA", "RECORD_PATH"]
+           "build_mask", "config_of_design", "families", "load_record", "published_halfring", "published_mask_config",
+           "quantize", "record_phase", "PUBLISHED_R", "PUBLISHED_THETA", "RECORD_PATH"]

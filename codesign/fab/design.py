@@ -1,0 +1,50 @@
+"""What export and tolerance share: their settings validated before any work, and the design's plate."""
+from __future__ import annotations
+
+import torch
+from omegaconf import DictConfig
+
+from codesign.config.runtime import resolve_dtype, to_container
+from codesign.fab.materials import Material
+from codesign.fab.surface import ExportSpec, Plate, fab_grid
+from codesign.fab.writers import FULL_SCALE
+from codesign.optics import OpticsSpec, build_mask
+from codesign.optics.masks import config_of_design
+
+
+def setup(cfg: DictConfig) -> tuple:
+    """Every setting validated before any work: (optics, export, material, mask config, dtype)."""
+    spec = OpticsSpec.from_config(to_container(cfg.optics))
+    ex = ExportSpec.from_config(to_container(cfg.get("export")))
+    material = Material.from_config(to_container(cfg.get("material")))
+    material.index(spec.wavelength_m)
+    ex.plate_n(spec)
+    mask_cfg = config_of_design(to_container(cfg.mask))
+    dtype = resolve_dtype("precision", cfg.get("precision"))
+    return spec, ex, material, mask_cfg, dtype
+
+
+def make_plate(mask_cfg: dict, spec: OpticsSpec, ex: ExportSpec, material: Material) -> Plate:
+    """The design's plate: its phase evaluated on the fabrication grid, wrapped, quantized, as heights."""
+    n = ex.plate_n(spec)
+    grid = fab_grid(spec, ex.pitch_m, n)
+    with torch.no_grad():
+        phase = build_mask(mask_cfg, grid, spec.aperture_diameter_m).freeze().phase()
+    return Plate.from_phase(phase, grid, spec.wavelength_m, material.index(spec.wavelength_m), ex.levels)
+
+
+def plate_sidecar(plate: Plate, ex: ExportSpec, material: Material, mask_cfg: dict, spec: OpticsSpec) -> dict:
+    """What a shop needs besides the heights: grid, levels, material, wavelength, depths, the image scale."""
+    inside = plate.height[plate.inside]
+    return {
+        "units": "metres", "pitch_m": plate.pitch, "n": plate.n, "size_m": plate.n * plate.pitch,
+        "origin": "pixel (n // 2, n // 2) on the optical axis; row = v, column = u; heights above the unetched "
+                  "surface (0 = not etched; outside the aperture's support 0)",
+        "levels": plate.n_levels, "level_step_m": plate.step_m,
+        **material.summary(spec.wavelength_m), "wavelength_m": spec.wavelength_m,
+        "full_wave_depth_m": plate.full_wave_depth_m, "max_depth_m": float(inside.max()) if inside.numel() else 0.0,
+        "aperture_diameter_m": spec.aperture_diameter_m,
+        "metres_per_count": plate.full_wave_depth_m / FULL_SCALE,
+        "design": {k: mask_cfg.get(k) for k in ("kind", "init", "preset") if mask_cfg.get(k) is not None},
+        "export": {"pitch_m": ex.pitch_m, "size_m": ex.size_m, "levels": ex.levels},
+    }

@@ -1,0 +1,82 @@
+"""Figures of a fabricated plate: height map, a profile, and its PSF and MTF next to the ideal design's; and the
+tolerance analysis's LSR distributions per error source."""
+from __future__ import annotations
+
+import numpy as np
+
+from codesign.io.plots import plt
+
+
+def export_figure(height: np.ndarray, inside: np.ndarray, pitch_m: float, psfs: dict[str, np.ndarray],
+                  focal_pitch_m: float, mtf: dict[str, np.ndarray], freqs: np.ndarray, band: tuple[float, float],
+                  phase_error: np.ndarray, pupil_pitch_m: float, title: str):
+    """Top: height map [um], its central row and column over the central fifth, the radial MTFs; bottom: the two
+    PSFs (log) of ``psfs`` (name -> (m, m)) and the exported minus the ideal phase on the pupil grid (wrapped,
+    NaN outside the aperture)."""
+    n = height.shape[0]
+    ext = np.array([-n / 2, n / 2, -n / 2, n / 2]) * pitch_m * 1e3
+    fig, axes = plt.subplots(2, 3, figsize=(15, 8.4))
+    ax = axes[0, 0]
+    im = ax.imshow(np.where(inside, height * 1e6, np.nan), cmap="viridis", extent=ext, origin="lower",
+                   interpolation="nearest")
+    fig.colorbar(im, ax=ax, label="height [um]")
+    ax.set(xlabel="u [mm]", ylabel="v [mm]", title="surface height")
+    ax = axes[0, 1]
+    coords = (np.arange(n) - n // 2) * pitch_m * 1e3
+    c, k = n // 2, max(n // 10, 2)
+    part = slice(c - k, c + k + 1)
+    ax.step(coords[part], np.where(inside[c], height[c], np.nan)[part] * 1e6, where="mid", lw=0.8, label="row v = 0")
+    ax.step(coords[part], np.where(inside[:, c], height[:, c], np.nan)[part] * 1e6, where="mid", lw=0.8,
+            label="column u = 0")
+    ax.set(xlabel="position [mm]", ylabel="height [um]", title="profiles through the axis (central fifth)")
+    ax.legend()
+    ax = axes[0, 2]
+    for name, y in mtf.items():
+        ax.plot(freqs, y, "--" if name == "uncoded" else "-", label=name)
+    ax.axvspan(band[0], band[1], color="0.9", zorder=0, label="summary band")
+    ax.set(xlim=(0, 1.05), ylim=(1e-4, 1.05), yscale="log", xlabel="nu / cutoff", ylabel="radial mean MTF",
+           title="MTF")
+    ax.legend(fontsize=8)
+    names = list(psfs)
+    m = psfs[names[0]].shape[0]
+    fext = np.array([-m / 2, m / 2, -m / 2, m / 2]) * focal_pitch_m * 1e3
+    vmax = np.log10(max(float(p.max()) for p in psfs.values()))
+    for ax, name in zip(axes[1], names):
+        im = ax.imshow(np.log10(np.maximum(psfs[name], 10 ** (vmax - 7))), cmap="inferno", extent=fext,
+                       origin="lower", vmin=vmax - 7, vmax=vmax)
+        ax.set(xlabel="x [mm]", ylabel="y [mm]", title=name)
+        fig.colorbar(im, ax=ax, label="log10 energy per pixel")
+    ax = axes[1, 2]
+    p = phase_error.shape[0]
+    pext = np.array([-p / 2, p / 2, -p / 2, p / 2]) * pupil_pitch_m * 1e3
+    im = ax.imshow(phase_error, cmap="twilight_shifted", extent=pext, origin="lower", vmin=-np.pi, vmax=np.pi,
+                   interpolation="nearest")
+    fig.colorbar(im, ax=ax, label="phase [rad]")
+    ax.set(xlabel="u [mm]", ylabel="v [mm]", title="exported - ideal phase (pupil grid)")
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def tolerance_figure(lsr: dict[str, np.ndarray], nominal: float, ceiling: float, title: str):
+    """Histogram of the LSR of the Monte Carlo samples of each error source (name -> (N,)), with the nominal
+    design's LSR and the yield ceiling."""
+    names = list(lsr)
+    cols = 3
+    rows = -(-len(names) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.6 * cols, 3.4 * rows), squeeze=False)
+    hi = max(float(np.max(v)) for v in lsr.values())
+    lo = min(float(np.min(v)) for v in lsr.values())
+    bins = np.linspace(min(lo, nominal) * 0.98, max(hi, ceiling) * 1.02, 40)
+    for ax, name in zip(axes.flat, names):
+        v = lsr[name]
+        ax.hist(v, bins=bins, color="C0", alpha=0.8)
+        ax.axvline(nominal, color="k", lw=1, label="nominal")
+        ax.axvline(ceiling, color="C3", lw=1, ls="--", label="ceiling")
+        ax.set(title=f"{name}: yield {np.mean(v <= ceiling):.1%}", xlabel="LSR (sampled peak)", ylabel="samples")
+    axes.flat[0].legend(fontsize=8)
+    for ax in list(axes.flat)[len(names):]:
+        ax.axis("off")
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig

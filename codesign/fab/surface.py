@@ -1,0 +1,182 @@
+"""A design as a fabricated plate: its wrapped phase turned into surface heights in a material, optionally
+quantized to K etch levels, on a square fabrication grid; and the plate seen again by the pupil grid, with the
+plate shifted, rotated, its depth scaled or its levels perturbed (tolerance.py), at any wavelength.
+
+Physics: a surface step h in a material of index n delays the wave by (n - 1) h, i.e. the phase
+phi = 2 pi (n(lambda) - 1) h / lambda; a phase wrapped into [0, 2 pi) needs at most the full-wave depth
+lambda / (n - 1). K levels: heights k lambda / (K (n - 1)), k = 0..K-1 (the nearest level modulo 2 pi, the same
+rounding as a mask's ``levels``).
+
+Fabrication grid: n_f x n_f square pixels at pitch p_f; pixel centres at (i - n_f // 2) p_f, so pixel n_f // 2 lies
+on the optical axis (the pupil grid's convention), row = v, column = u. The plate is constant over each pixel; the
+pupil grid reads it by nearest pixel (its samples are point samples of the surface). Outside the aperture's
+support the height is 0 (the stop blocks that light).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+
+from codesign.errors import ConfigError, require_number
+from codesign.optics.grid import PupilGrid
+from codesign.optics.spec import OpticsSpec
+from codesign.spec_base import SpecMixin
+
+TWO_PI = 2 * math.pi
+MAX_FAB_N = 8192  # a 8192^2 float64 height map is 0.5 GB, and the design's phase on it several times that
+
+
+def height_of_phase(phase, wavelength_m: float, index: float):
+    """Surface height [m] that delays by ``phase`` [rad]: phase lambda / (2 pi (n - 1))."""
+    return phase * (wavelength_m / (TWO_PI * (index - 1)))
+
+
+def phase_of_height(height, wavelength_m: float, index: float):
+    """Phase [rad] of a surface height [m]: 2 pi (n - 1) h / lambda (the inverse of ``height_of_phase``)."""
+    return height * (TWO_PI * (index - 1) / wavelength_m)
+
+
+def wrap_phase(phase: torch.Tensor) -> torch.Tensor:
+    """``phase`` modulo 2 pi, in [0, 2 pi)."""
+    w = torch.remainder(phase, TWO_PI)
+    return torch.where(w >= TWO_PI, w - TWO_PI, w)  # remainder can round up to exactly 2 pi
+
+
+def level_index(wrapped: torch.Tensor, levels: int) -> torch.Tensor:
+    """The nearest of ``levels`` equally spaced phases k 2 pi / K to a wrapped phase, modulo 2 pi (int64, 0..K-1)."""
+    return torch.remainder(torch.round(wrapped / (TWO_PI / levels)).to(torch.int64), levels)
+
+
+@dataclass(frozen=True)
+class ExportSpec(SpecMixin):
+    """pitch_m: fabrication pixel pitch [m] (a laser writer's or e-beam's address grid; 2 um by default);
+    size_m: side of the square plate [m], null = the aperture's support plus one pixel each side; levels: number
+    of etch levels K (2..256), null = continuous (grayscale lithography, diamond turning)."""
+
+    pitch_m: float = 2e-6
+    size_m: float | None = None
+    levels: int | None = None
+    prefix: str = field(default="export", compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        p = self.prefix
+        require_number(f"{p}.pitch_m", self.pitch_m, lo=1e-8, hi=1e-3)
+        if self.size_m is not None:
+            require_number(f"{p}.size_m", self.size_m, lo=0, lo_open=True, hi=1.0)
+        if self.levels is not None:
+            object.__setattr__(self, "levels", require_number(f"{p}.levels", self.levels, lo=2, hi=256,
+                                                              integer=True))
+
+    def plate_n(self, optics: OpticsSpec) -> int:
+        """Pixels per side of the plate; ConfigError when it cannot hold the aperture or is too large."""
+        support = 2 * optics.aperture_support_radius_m
+        need = math.ceil(support / self.pitch_m) + 2
+        need += need % 2
+        n = need if self.size_m is None else int(round(self.size_m / self.pitch_m))
+        if n < need:
+            raise ConfigError(f"{self.prefix}.size_m", self.size_m,
+                              f"the plate must hold the aperture's support ({support:.4g} m): must be >= "
+                              f"{need * self.pitch_m:.4g} m at {self.prefix}.pitch_m = {self.pitch_m:g}, or null")
+        if n > MAX_FAB_N:
+            raise ConfigError(f"{self.prefix}.pitch_m", self.pitch_m,
+                              f"gives a plate of {n} x {n} pixels; at most {MAX_FAB_N} per side: raise "
+                              f"{self.prefix}.pitch_m to >= {support / (MAX_FAB_N - 2):.3g} m or lower "
+                              f"{self.prefix}.size_m")
+        return n
+
+
+def fab_grid(optics: OpticsSpec, pitch_m: float, n: int) -> PupilGrid:
+    """The pupil grid of the design's optics at the fabrication pitch and size (float64): the design's phase is
+    evaluated there exactly for every family (a pixel family's plate is resampled cell by cell)."""
+    spec = optics.replace(pupil_pitch_m=pitch_m, pupil_n=n, focal_n=8, focal_pitch_m=optics.focal_pitch_m,
+                          propagator="mft", fft_n=None)
+    return PupilGrid.from_spec(spec, dtype=torch.float64)
+
+
+@dataclass
+class Plate:
+    """A fabricated phase plate. height: (n, n) float64 heights [m]; levels: (n, n) int64 level indices or None
+    (continuous); inside: (n, n) bool, the aperture's support; pitch [m]; wavelength_m and index: the design
+    wavelength and the material's index there."""
+
+    height: torch.Tensor
+    levels: torch.Tensor | None
+    n_levels: int | None
+    inside: torch.Tensor
+    pitch: float
+    wavelength_m: float
+    index: float
+
+    @classmethod
+    def from_phase(cls, phase: torch.Tensor, grid: PupilGrid, wavelength_m: float, index: float,
+                   n_levels: int | None) -> "Plate":
+        """The plate of a design phase [rad] on the fabrication grid ``grid``: wrapped, quantized to
+        ``n_levels`` when given, as heights."""
+        inside = torch.zeros(grid.n * grid.n, dtype=torch.bool, device=phase.device)
+        inside[grid.support] = True
+        inside = inside.reshape(grid.n, grid.n)
+        wrapped = wrap_phase(phase.to(torch.float64))
+        levels = None
+        if n_levels is not None:
+            levels = torch.where(inside, level_index(wrapped, n_levels), torch.zeros_like(wrapped, dtype=torch.int64))
+            wrapped = levels.to(torch.float64) * (TWO_PI / n_levels)
+        height = torch.where(inside, height_of_phase(wrapped, wavelength_m, index), torch.zeros_like(wrapped))
+        return cls(height, levels, n_levels, inside, grid.pitch, wavelength_m, index)
+
+    @property
+    def n(self) -> int:
+        return self.height.shape[-1]
+
+    @property
+    def full_wave_depth_m(self) -> float:
+        """The depth of a 2 pi step at the design wavelength: lambda / (n - 1)."""
+        return self.wavelength_m / (self.index - 1)
+
+    @property
+    def step_m(self) -> float | None:
+        """Height of one etch level, or None for a continuous plate."""
+        return None if self.n_levels is None else self.full_wave_depth_m / self.n_levels
+
+    def pixel_index(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """Flat index of the plate pixel under plate coordinates (u, v) [m] (nearest pixel; clamped to the plate,
+        whose border pixels lie outside the aperture)."""
+        c = self.n // 2
+        col = torch.round(u / self.pitch).to(torch.int64) + c
+        row = torch.round(v / self.pitch).to(torch.int64) + c
+        return row.clamp(0, self.n - 1) * self.n + col.clamp(0, self.n - 1)
+
+    def heights_at(self, u: torch.Tensor, v: torch.Tensor, level_error: torch.Tensor | None = None) -> torch.Tensor:
+        """Heights [m] at plate coordinates (..., k) (nearest pixel). ``level_error``: (B, K) height errors [m] of
+        each level (B samples), added to the pixels of that level (a quantized plate only)."""
+        idx = self.pixel_index(u, v)
+        h = self.height.reshape(-1)[idx]
+        if level_error is not None:
+            lv = self.levels.reshape(-1)[idx]
+            h = h + torch.gather(level_error, -1, lv.reshape(lv.shape[0], -1)).reshape(lv.shape)
+        return h
+
+    def pupil_phase(self, grid: PupilGrid, wavelength_m: float | None = None, index: float | None = None,
+                    dtype=torch.float32) -> torch.Tensor:
+        """The phase (n, n) the pupil grid ``grid`` sees through the plate, perfectly aligned, at
+        ``wavelength_m`` (default: the design's) in a material of index ``index`` there."""
+        lam = self.wavelength_m if wavelength_m is None else wavelength_m
+        n = self.index if index is None else index
+        u = grid.u.to(torch.float64)[None, :].expand(grid.n, grid.n)
+        v = grid.v.to(torch.float64)[:, None].expand(grid.n, grid.n)
+        return phase_of_height(self.heights_at(u, v), lam, n).to(dtype)
+
+
+class PlatePhase:
+    """A fixed pupil phase seen through a plate, with the part of the Mask interface the figures of merit use
+    (``phase()``, ``plate_cell_m``): the pupil samples are point samples of the plate's surface."""
+
+    plate_cell_m = None
+    kind = "plate"
+
+    def __init__(self, phase: torch.Tensor):
+        self._phase = phase
+
+    def phase(self) -> torch.Tensor:
+        return self._phase

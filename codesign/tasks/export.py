@@ -1,0 +1,102 @@
+"""``+experiment=export mask.init=PATH``: a design (any family's record, or the configured mask such as the
+published preset) as a fabrication file: the wrapped phase as surface heights in ``material`` at the design
+wavelength, quantized to ``export.levels`` when set, on the ``export.pitch_m`` grid; and the design as exported,
+seen again by the pupil grid, scored against the ideal design (LSR, mtf_mean, the MTF limit, restorability)."""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+from codesign.design.limits import MTFLimit
+from codesign.design.merit import evaluate_mask, metrics_spec
+from codesign.design.setup import restorability_tools
+from codesign.fab.design import make_plate, plate_sidecar, setup
+from codesign.fab.figures import export_figure
+from codesign.fab.surface import PlatePhase
+from codesign.fab.writers import write_height_png, write_height_tiff
+from codesign.io import files as io
+from codesign.optics import OpticalSystem, build_mask
+
+log = logging.getLogger("codesign.export")
+
+ROOT_KEYS: tuple[str, ...] = ("precision", "export", "material")
+READS = ("optics", "mask", "sensor", "data", "metrics")
+OUTPUTS = ("metrics.json", "export.json", "height_m.npy", "height.png", "height.tif", "report.png")
+# the figures of the ideal and the exported design that metrics.json holds, each as ideal_* and exported_*
+FIGURES = ("lsr", "lsr_sampled", "mtf_mean", "psf_energy_in_window", "lsr_limit", "lsr_over_limit",
+           "restorability")
+
+
+def phase_difference(phase: torch.Tensor, reference: torch.Tensor, aperture: torch.Tensor) -> np.ndarray:
+    """phase - reference wrapped into [-pi, pi), NaN outside the aperture (for the report)."""
+    d = torch.remainder(phase.double() - reference.double() + torch.pi, 2 * torch.pi) - torch.pi
+    return torch.where(aperture > 0, d, torch.full_like(d, float("nan"))).cpu().numpy()
+
+
+def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
+    spec, ex, material, mask_cfg, dtype = setup(cfg)
+    ms = metrics_spec(cfg)
+    band, p = ms.mtf_band, ms.lsr_p
+    material.check_wavelength(spec.wavelength_m)
+    system = OpticalSystem(spec, dtype=dtype, device=device)
+    mask = build_mask(mask_cfg, system.grid, spec.aperture_diameter_m).freeze()
+    log.info("design: %s mask%s; plate %d x %d at %.3g m in %s (n = %.5f at %.4g nm), %s",
+             mask_cfg["kind"], f" from {mask_cfg['init']}" if mask_cfg.get("init") else "", ex.plate_n(spec),
+             ex.plate_n(spec), ex.pitch_m, material.name, material.index(spec.wavelength_m), spec.wavelength_m * 1e9,
+             f"{ex.levels} levels" if ex.levels else "continuous heights")
+    plate = make_plate(mask_cfg, spec, ex, material)
+    surface = PlatePhase(plate.pupil_phase(system.grid, dtype=dtype).to(device))
+
+    limit = MTFLimit(system, band)
+    rest = restorability_tools(cfg, system, mask, None)
+    values, arrays = {}, {}
+    for name, design in (("ideal", mask), ("exported", surface)):
+        v, arr = evaluate_mask(system, design, band, p)
+        v["lsr_limit"] = limit.lsr_limit(v["mtf_mean"], v["psf_energy_in_window"])
+        v["lsr_over_limit"] = v["lsr"] / v["lsr_limit"]
+        v["restorability"] = rest.score(design)
+        values[name], arrays[name] = v, arr
+    ideal, exported = values["ideal"], values["exported"]
+    sidecar = plate_sidecar(plate, ex, material, mask_cfg, spec)
+    metrics = {
+        **{f"{side}_{k}": values[side][k] for side in ("ideal", "exported") for k in FIGURES},
+        "lsr_change": exported["lsr"] / ideal["lsr"] - 1,
+        "mtf_mean_change": exported["mtf_mean"] / ideal["mtf_mean"] - 1,
+        "restorability_change_db": exported["restorability"] - ideal["restorability"],
+        **{k: sidecar[k] for k in ("pitch_m", "n", "size_m", "levels", "level_step_m", "material",
+                                   "refractive_index", "wavelength_m", "full_wave_depth_m", "max_depth_m")},
+        "mask_kind": mask_cfg["kind"], "precision": str(dtype).replace("torch.", ""),
+    }
+
+    height = plate.height.cpu().numpy()
+    io.save_npy(run_dir / "height_m.npy", height)
+    write_height_png(run_dir / "height.png", height, sidecar["metres_per_count"], sidecar)
+    write_height_tiff(run_dir / "height.tif", height, sidecar["metres_per_count"], plate.pitch, sidecar)
+    io.write_json(run_dir / "export.json", sidecar)
+    f, rad_ideal, rad0 = arrays["ideal"]["mtf_radial"].cpu().numpy()
+    rad_exp = arrays["exported"]["mtf_radial"][1].cpu().numpy()
+    label = f"{ex.levels} levels" if ex.levels else "continuous"
+    fig = export_figure(
+        height, plate.inside.cpu().numpy(), plate.pitch,
+        {f"ideal PSF, LSR {ideal['lsr']:.4g}": arrays["ideal"]["psf"].cpu().numpy(),
+         f"exported PSF ({label}), LSR {exported['lsr']:.4g}": arrays["exported"]["psf"].cpu().numpy()},
+        spec.focal_pitch_m, {"ideal": rad_ideal, f"exported ({label})": rad_exp, "uncoded": rad0}, f, band,
+        phase_difference(arrays["exported"]["phase"], arrays["ideal"]["phase"], system.grid.aperture),
+        spec.pupil_pitch_m,
+        f"{mask_cfg['kind']} design in {material.name} at {spec.wavelength_m * 1e9:.4g} nm: max depth "
+        f"{sidecar['max_depth_m'] * 1e6:.3f} um, pitch {plate.pitch * 1e6:.3g} um")
+    io.save_figure(run_dir / "report.png", fig)
+    io.write_json(run_dir / "metrics.json", metrics)
+    log.info("ideal: LSR %.4g, mtf_mean %.4g, %.2fx the limit, restorability %.2f dB", ideal["lsr"],
+             ideal["mtf_mean"], ideal["lsr_over_limit"], ideal["restorability"])
+    log.info("exported: LSR %.4g (%+.2f%%), mtf_mean %.4g (%+.2f%%), %.2fx the limit, restorability %.2f dB "
+             "(%+.2f dB); max depth %.4g um (full wave %.4g um)", exported["lsr"], 100 * metrics["lsr_change"],
+             exported["mtf_mean"], 100 * metrics["mtf_mean_change"], exported["lsr_over_limit"],
+             exported["restorability"], metrics["restorability_change_db"], sidecar["max_depth_m"] * 1e6,
+             plate.full_wave_depth_m * 1e6)
+    log.info("wrote %s", run_dir)
+    return float(np.float64(exported["lsr"]))
