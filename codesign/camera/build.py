@@ -1,6 +1,8 @@
 """A Camera from a composed configuration (the optics, mask, sensor and data blocks), every value validated first."""
 from __future__ import annotations
 
+import logging
+
 import torch
 from omegaconf import DictConfig, OmegaConf
 
@@ -8,8 +10,11 @@ from codesign.camera.camera import Camera
 from codesign.data.scenes import data_config
 from codesign.errors import ConfigError
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask
+from codesign.optics.measured import MEASURED_DEFAULTS, load_measured
 from codesign.sensor.simulator import SensorSimulator
 from codesign.sensor.spec import SensorSpec
+
+log = logging.getLogger("codesign.camera")
 
 
 def sensor_spec(cfg: DictConfig) -> SensorSpec:
@@ -29,9 +34,33 @@ def sensor_spec(cfg: DictConfig) -> SensorSpec:
 
 
 def build_camera(cfg: DictConfig, device, dtype=torch.float32) -> Camera:
-    """Optical system, mask (frozen) and sensor simulator of a composed config, as one Camera."""
+    """Optical system, mask (frozen) and sensor simulator of a composed config, as one Camera; with the measured
+    PSF of ``optics.psf_file`` in place of the computed one when it is set (its files checked first)."""
     optics = OpticsSpec.from_config(OmegaConf.to_container(cfg.optics, resolve=True))
+    measured = load_measured(optics)
     sensor = sensor_spec(cfg)
     system = OpticalSystem(optics, dtype=dtype, device=device)
     mask = build_mask(OmegaConf.to_container(cfg.mask, resolve=True), system.grid, optics.aperture_diameter_m)
-    return Camera(system, mask, SensorSimulator(sensor, optics), device)
+    if measured is not None:
+        log.info("optics.psf_file: the measured PSF %s (%d x %d px of %.3g m%s) replaces the %s mask's computed PSF%s",
+                 measured.path, measured.shape[1], measured.shape[0], measured.pitch_m,
+                 f", dark frame {measured.dark_path} subtracted" if measured.dark_path else "", mask.kind,
+                 "; sensor.laser_halo is off for it: the light beyond a measured frame is not known"
+                 if sensor.laser_halo else "")
+    return Camera(system, mask, SensorSimulator(sensor, optics), device, measured)
+
+
+def with_measured_psf(target: DictConfig, cfg: DictConfig, typed: frozenset[str] = frozenset()) -> DictConfig:
+    """``target`` (a checkpoint's configuration) with this run's measured-PSF keys (``optics.psf_*`` of ``cfg``)
+    when this run gives a PSF file or types one of them (``optics.psf_file=null`` restores the computed PSF of a
+    checkpoint fine-tuned on a measured one); else ``target`` as it is: its own measured PSF, if any."""
+    optics = cfg.get("optics")
+    if optics is None:
+        return target
+    typed_here = "optics" in typed or any(f"optics.{k}" in typed for k in MEASURED_DEFAULTS)
+    if optics.get("psf_file") is None and not typed_here:
+        return target
+    out = OmegaConf.create(OmegaConf.to_container(target, resolve=True))
+    for key, default in MEASURED_DEFAULTS.items():
+        out.optics[key] = optics.get(key, default)
+    return out

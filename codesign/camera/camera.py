@@ -5,10 +5,16 @@ The same object serves a frozen mask (training a restorer, evaluating, restoring
 (co-design): while the mask is frozen its optics are computed once and cached, keyed by the mask's parameter
 values; while it is trainable every call recomputes them with the mask's graph, so that one backward pass from a
 restoration loss reaches the mask parameters.
+
+A camera with a measured PSF (``optics.psf_file``, codesign/optics/measured.py) puts it in place of the mask's
+computed window PSF in every PSFState it makes, so that the kernels, the OTF of a Wiener stage and every simulated
+image use it; the mask stays frozen (its computed PSF registers the measured one and is reported beside it), and
+the laser's halo beyond the window, computed from the mask's far field, is left out.
 """
 from __future__ import annotations
 
 import copy
+import logging
 from dataclasses import dataclass
 
 import torch
@@ -16,6 +22,7 @@ import torch
 from codesign.errors import ConfigError
 from codesign.optics.far_field import far_psf
 from codesign.optics.masks import Mask
+from codesign.optics.measured import OUTSIDE_WARN, MeasuredPSF, Placement
 from codesign.optics.psf import OpticalSystem
 from codesign.sensor.halo import LaserHalo
 from codesign.sensor.kernels import otf_from_kernel
@@ -25,6 +32,8 @@ from codesign.sensor.simulator import (
     mask_state_key,
     psf_state,
 )
+
+log = logging.getLogger("codesign.camera")
 
 
 @dataclass
@@ -47,14 +56,19 @@ class Camera(torch.nn.Module):
 
     Args:
         system: the optical system (pupil grid, propagator); mask: any Mask built on ``system.grid``;
-        simulator: the sensor model (its optics spec must be ``system.spec``); device: where OTFs live.
+        simulator: the sensor model (its optics spec must be ``system.spec``); device: where OTFs live;
+        measured: a measured PSF that replaces the mask's computed one (the mask then stays frozen), or None.
     """
 
     def __init__(self, system: OpticalSystem, mask: Mask, simulator: SensorSimulator,
-                 device: torch.device | str = "cpu"):
+                 device: torch.device | str = "cpu", measured: MeasuredPSF | None = None):
         super().__init__()
         self.system, self.mask, self.simulator = system, mask, simulator
         self.device = torch.device(device)
+        self.measured = measured
+        self.placement: Placement | None = None  # the measured PSF on the window, at the last optics evaluation
+        self.design_psf: torch.Tensor | None = None  # the mask's computed window PSF it replaced there
+        self._warned: tuple | None = None
         self.mask_forward = mask  # called for the phase; a DistributedDataParallel wrapper may take its place
         self.trainable = False
         self._frozen: OpticsOutputs | None = None
@@ -95,9 +109,17 @@ class Camera(torch.nn.Module):
             raise ConfigError("data.padded_size", s.padded_size, f"must be >= data.image_size + PSF kernel - 1 = "
                               f"{s.image_size} + {k} - 1 = {need} at this pitch, so that deconvolution does not wrap")
 
+    @property
+    def halo_on(self) -> bool:
+        """Whether a laser's light beyond the window is simulated: sensor.laser_halo, and no measured PSF."""
+        return self.simulator.sensor.laser_halo and self.measured is None
+
     # ---- the mask ---------------------------------------------------------------------------------------------
     def set_trainable(self, flag: bool) -> None:
         """Let the mask's parameters take gradients (co-design) or freeze them (cached optics)."""
+        if flag and self.measured is not None:
+            raise ConfigError("optics.psf_file", self.measured.path, "a measured PSF fixes the optics: the mask "
+                              "cannot be trained through it (leave optics.psf_file null to co-design the mask)")
         self.trainable = bool(flag)
         for p in self.mask.parameters():
             p.requires_grad_(self.trainable)
@@ -111,9 +133,29 @@ class Camera(torch.nn.Module):
         """PSF state, network-pitch kernel and padded-grid OTF of a pupil phase; all carry the phase's graph.
         ``key``: the cache key of a frozen mask's values (the simulator then keeps the kernels for its images)."""
         state = psf_state(self.system, phase, self.mask.plate_cell_m)
-        state.halo = self._halo_source(key) if self.simulator.sensor.laser_halo else None
+        if self.measured is not None:
+            state = self._measured_state(state)
+        else:
+            state.halo = self._halo_source(key) if self.simulator.sensor.laser_halo else None
         kernel = self.simulator.kernel(state, key=key)
         return OpticsOutputs(state, kernel, otf_from_kernel(kernel, self.padded_size).to(self.device), key)
+
+    def _measured_state(self, design: PSFState) -> PSFState:
+        """The PSFState of the measured PSF, registered on the mask's computed one (``design``), which it replaces;
+        the uncoded normalizers are the optical system's (the LSR of a measured PSF is its peak / h0(0)). No halo:
+        the light beyond a measured frame is not known."""
+        psf = design.psf.detach()
+        placed = self.measured.place(self.system.spec, psf.to(torch.float64).cpu().numpy())
+        self.design_psf, self.placement = psf, placed
+        if placed.outside > OUTSIDE_WARN and self._warned != (placed.shift, round(placed.outside, 6)):
+            self._warned = (placed.shift, round(placed.outside, 6))
+            spec = self.system.spec
+            log.warning("optics.psf_file: %.2f%% of the measured frame's light falls beyond the %d x %d optics window "
+                        "(%.3g mm) and is lost to the window PSF (the scene's share returns as the uniform veil, the "
+                        "laser's is dropped); a larger optics.focal_n keeps it", 100 * placed.outside, spec.focal_n,
+                        spec.focal_n, spec.focal_extent_m * 1e3)
+        return PSFState(psf=torch.from_numpy(placed.psf).to(dtype=psf.dtype, device=psf.device),
+                        uncoded_peak=design.uncoded_peak, uncoded_energy=design.uncoded_energy, halo=None)
 
     def _halo_source(self, key: tuple | None):
         """A callable giving the LaserHalo of the mask, computed on first call (only a laser needs it). A frozen

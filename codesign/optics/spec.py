@@ -40,6 +40,15 @@ class OpticsSpec(SpecMixin):
             native pitch differs), or "auto" (the cheapest exact one by modelled cost, propagation.modelled_costs).
         fft_n: FFT size for the "fft" propagator (paper: 4096); None = the exact size when one exists, else the
             smallest fast size giving a native pitch <= focal_pitch / 2 (bilinear resampling then stays accurate).
+        psf_file: a measured PSF that replaces the computed one (a 16-bit PNG / TIFF frame or a .npy array; None:
+            the PSF is computed from the mask). Read, registered and resampled onto the window by
+            codesign/optics/measured.py (docs/measured_psf.md); the files are checked there, not here.
+        psf_pitch_m: the pixel pitch of ``psf_file`` at the sensor plane [m]; required with psf_file.
+        psf_dark_file: a dark frame subtracted from ``psf_file`` (same kind and size), or None.
+        psf_energy: the fraction of all the light through the aperture that the ``psf_file`` frame holds (the frame
+            is normalized to it; 1 = all of it; the computed window PSF holds psf_energy_in_window).
+        psf_centre: where the measured frame's centroid goes: "design" (the design mask's computed PSF's centroid),
+            "centroid" (the optical axis) or "frame" (no shift: the frame's centre pixel is the axis).
     """
 
     wavelength_m: float = 633e-9
@@ -52,6 +61,11 @@ class OpticsSpec(SpecMixin):
     focal_n: int = 640
     propagator: str = "auto"
     fft_n: int | None = None
+    psf_file: str | None = None
+    psf_pitch_m: float | None = None
+    psf_dark_file: str | None = None
+    psf_energy: float = 1.0
+    psf_centre: str = "design"
     prefix: str = field(default="optics", compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -102,6 +116,31 @@ class OpticsSpec(SpecMixin):
                 f"wider than the period lambda*f/pupil_pitch = {self.replica_period_m:.4g} m of the sampled pupil's "
                 f"spectrum, so it would alias: need pupil_pitch_m <= "
                 f"{self.wavelength_m * self.focal_length_m / self.focal_extent_m:.4g} m or a smaller focal_n")
+        self._check_measured()
+
+    def _check_measured(self) -> None:
+        """The measured-PSF keys' values (their files are read and checked by codesign/optics/measured.py)."""
+        p = self.prefix
+        for key in ("psf_file", "psf_dark_file"):
+            value = getattr(self, key)
+            if value is not None and (not isinstance(value, str) or not value.strip()):
+                raise ConfigError(f"{p}.{key}", value, "must be null or the path of a file (a measured PSF is a "
+                                  "16-bit PNG / TIFF frame or a .npy array of floats)")
+        if self.psf_file is None:
+            for key in ("psf_pitch_m", "psf_dark_file"):
+                if getattr(self, key) is not None:
+                    raise ConfigError(f"{p}.{key}", getattr(self, key), f"describes {p}.psf_file, which is null: "
+                                      f"give the measured PSF with {p}.psf_file=PATH, or leave {p}.{key} null")
+        elif self.psf_pitch_m is None:
+            raise ConfigError(f"{p}.psf_pitch_m", None, f"pitch missing: the pixel pitch of {p}.psf_file at the "
+                              f"sensor plane in m is needed to resample it onto the optics window, e.g. "
+                              f"{p}.psf_pitch_m={self.focal_pitch_m:g} for a frame taken with the sensor itself")
+        if self.psf_pitch_m is not None:
+            object.__setattr__(self, "psf_pitch_m", require_number(f"{p}.psf_pitch_m", self.psf_pitch_m, lo=0,
+                                                                   lo_open=True, hi=1e-2))
+        object.__setattr__(self, "psf_energy", require_number(f"{p}.psf_energy", self.psf_energy, lo=0,
+                                                              lo_open=True, hi=1))
+        require_choice(f"{p}.psf_centre", self.psf_centre, ("design", "centroid", "frame"))
 
     # ---- derived quantities -------------------------------------------------------------------------------
     @property

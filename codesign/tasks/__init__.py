@@ -27,6 +27,8 @@ from codesign.config.runtime import (
 )
 from codesign.errors import ConfigError, OutputWriteError
 from codesign.io import files as io
+from codesign.optics.measured import MEASURED_DEFAULTS, load_measured
+from codesign.optics.spec import OpticsSpec
 from codesign.tasks import rundir
 from codesign.train import distributed
 from codesign.train.trainer import TrainingInterrupted
@@ -37,7 +39,8 @@ log = logging.getLogger("codesign")
 # Every module of this package but these is an experiment: codesign.tasks.NAME runs +experiment=NAME through its
 # run(cfg, run_dir, device), reads the root keys COMMON_KEYS + its ROOT_KEYS, writes the fixed file names OUTPUTS
 # (checked before any work), continues a killed run on its own folder when it sets RESUMES (rundir.py refuses any
-# other folder holding results), and trains under torchrun when it sets DISTRIBUTED.
+# other folder holding results), trains under torchrun when it sets DISTRIBUTED, and takes a measured PSF
+# (optics.psf_file, checked here before any work; refused for the others) when it sets MEASURED_PSF.
 # Modules are imported only when their experiment runs (+experiment=psf never loads networks or nlopt).
 _NOT_EXPERIMENTS = ("rundir",)
 EXPERIMENTS: tuple[str, ...] = tuple(sorted(m.name for m in pkgutil.iter_modules(__path__)
@@ -78,6 +81,30 @@ def check_root_keys(cfg: DictConfig, task: str) -> None:
     if extra:
         raise ConfigError(extra[0], cfg.get(extra[0]), f"unknown key for +experiment={task}; allowed: "
                           f"{', '.join(allowed)}")
+
+
+def check_measured_psf(cfg: DictConfig, task: str) -> None:
+    """optics.psf_file: refused by an experiment that does not set MEASURED_PSF (it computes the PSF of its mask);
+    else the optics.psf_* keys and their files checked now, before any work, and the paths made absolute (a
+    checkpoint's configuration then finds them from any folder)."""
+    optics = cfg.get("optics")
+    if optics is None:
+        return
+    path = optics.get("psf_file")
+    takes = getattr(task_module(task), "MEASURED_PSF", False)
+    if path is not None and not takes:
+        takers = ", ".join(n for n in EXPERIMENTS if getattr(task_module(n), "MEASURED_PSF", False))
+        raise ConfigError("optics.psf_file", path, f"+experiment={task} computes the PSF of its mask and takes no "
+                          f"measured one (a measured PSF replaces the computed one in {takers}): leave it null")
+    if not takes or all(optics.get(k, v) == v for k, v in MEASURED_DEFAULTS.items()):
+        return
+    # the optics.psf_* values (a pitch without a file, too), then the files
+    measured = load_measured(OpticsSpec.from_config(OmegaConf.to_container(optics, resolve=True)))
+    if measured is None:
+        return
+    OmegaConf.update(cfg, "optics.psf_file", str(Path(measured.path).resolve()), merge=False)
+    if measured.dark_path is not None:
+        OmegaConf.update(cfg, "optics.psf_dark_file", str(Path(measured.dark_path).resolve()), merge=False)
 
 
 def experiment_function(name: str) -> Callable:
@@ -131,6 +158,7 @@ def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None
         root = run_spec(cfg)
         seed = root.seed
         check_logging(cfg)
+        check_measured_psf(cfg, task)
         threads = set_threads(root.threads)
         device = resolve_device(root.device, ctx.local_rank if ctx.enabled else None)
         deterministic = set_deterministic(root.deterministic, device)

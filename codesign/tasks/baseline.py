@@ -9,6 +9,7 @@ from omegaconf import DictConfig
 
 from codesign.config.runtime import check_seed, logging_spec, to_container
 from codesign.design.check import camera_sampling_report
+from codesign.design.measured import measured_psf_report
 from codesign.io import files as io
 from codesign.io.tensorboard import open_writer, tensorboard_enabled
 from codesign.train import distributed
@@ -16,31 +17,37 @@ from codesign.train.checkpoint import CHECKPOINT_NAME
 from codesign.train.data import SimulatedData
 from codesign.train.evaluation import eval_settings, run_evaluation
 from codesign.train.memory import check_training_fits
-from codesign.train.resume import resume_if_possible
+from codesign.train.resume import load_initial_weights, resume_if_possible
 from codesign.train.setup import build_model, distributed_metrics, run_metrics
-from codesign.train.spec import TrainerSpec
+from codesign.train.spec import InitSpec, TrainerSpec
 from codesign.train.trainer import RestorationTrainer, init_weights
 
 log = logging.getLogger("codesign.restoration")
 
 
 # Root keys this experiment reads besides the common ones (conf/experiment/baseline.yaml); any other is refused.
-ROOT_KEYS: tuple[str, ...] = ()
+# init.checkpoint: start the network from a trained checkpoint's weights (fine-tuning, e.g. on a measured PSF).
+ROOT_KEYS: tuple[str, ...] = ("init",)
 # The fixed names it writes in its run dir: each is checked to be writable before any work.
 OUTPUTS = ("metrics.json", "checkpoint.pt", "evaluation.csv")
 RESUMES = True  # a killed run started again on its folder continues from its checkpoint
 DISTRIBUTED = True  # trains networks: runs data-parallel under torchrun
+MEASURED_PSF = True  # optics.psf_file replaces the computed PSF (codesign/optics/measured.py)
 
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     seed = check_seed(cfg)
     spec = TrainerSpec.from_config(to_container(cfg.trainer))
     ev = eval_settings(cfg)  # every evaluation setting checked before training starts
     log_every = logging_spec(cfg).log_every
+    init = InitSpec.from_config(to_container(cfg.get("init")) or {})
     model = build_model(cfg)
     init_weights(model)
+    # fine-tuning: the weights of a trained checkpoint (a resumed run then loads its own checkpoint over them)
+    warm = load_initial_weights(model, init.checkpoint, cfg) if init.checkpoint else {}
     ctx = distributed.current()
     data = SimulatedData(cfg, device, seed, ctx)
-    sampling = camera_sampling_report(data.camera, cfg, log) if ctx.is_main else {}
+    sampling = {**camera_sampling_report(data.camera, cfg, log), **measured_psf_report(data.camera, cfg, log)} \
+        if ctx.is_main else {}
     memory = check_training_fits(model, data, spec, device, "baseline")  # before any training
     trainer = RestorationTrainer(model, data, spec, run_dir, device, to_container(cfg), None, seed, ctx)
     resume_if_possible(trainer, cfg, run_dir)
@@ -56,7 +63,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     if not ctx.is_main:  # rank 0 evaluates and writes
         return None
     first, last = (history[0], history[-1]) if history else ({}, {})
-    metrics = {**common, **sampling, **memory, **distributed_metrics(trainer), "steps": trainer.step,
+    metrics = {**common, **sampling, **warm, **memory, **distributed_metrics(trainer), "steps": trainer.step,
                "seconds": seconds,
                "skipped_updates": trainer.skipped, "undone_updates": trainer.rollbacks, **trainer.divergence(),
                "vgg_loss": model.loss_status,

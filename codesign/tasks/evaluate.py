@@ -8,8 +8,10 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from codesign.camera import with_measured_psf
 from codesign.config.runtime import check_seed, explicit_keys
 from codesign.design.check import camera_sampling_report
+from codesign.design.measured import measured_psf_report
 from codesign.errors import ConfigError
 from codesign.io import files as io
 from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
@@ -24,12 +26,14 @@ log = logging.getLogger("codesign.evaluate")
 ROOT_KEYS: tuple[str, ...] = ("checkpoint",)
 # The fixed names it writes in its run dir: each is checked to be writable before any work.
 OUTPUTS = ("metrics.json", "evaluation.csv")
+MEASURED_PSF = True  # optics.psf_file replaces the computed PSF (codesign/optics/measured.py)
 
 def merged_eval_config(cfg: DictConfig, ckpt_cfg: DictConfig, typed: frozenset[str]) -> DictConfig:
     """The checkpoint's physics, model and data split, with the scene-source keys typed on this command line
-    (``typed``: e.g. data.scenes, data.folder) and this run's ``evaluate`` block. Untyped data keys keep the
-    checkpoint's values, so the test split is the one held out during training."""
-    merged = OmegaConf.create(OmegaConf.to_container(ckpt_cfg, resolve=True))
+    (``typed``: e.g. data.scenes, data.folder), this run's measured PSF (optics.psf_*, when it gives one) and its
+    ``evaluate`` block. Untyped data keys keep the checkpoint's values, so the test split is the one held out
+    during training."""
+    merged = with_measured_psf(OmegaConf.create(OmegaConf.to_container(ckpt_cfg, resolve=True)), cfg, typed)
     source_typed = bool({"data", "data.scenes", "data.folder"} & typed)  # scenes and folder go together
     for key in ("scenes", "folder", "test_fraction", "split_seed", "cache_mb"):
         if f"data.{key}" in typed or "data" in typed or (key in ("scenes", "folder") and source_typed):
@@ -64,7 +68,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     apply_checkpoint_mask(data.camera.mask, state, path)
     data.camera.invalidate()
     metrics = {**run_metrics(merged, model, device), "checkpoint": str(path), "steps": int(state["step"]),
-               **camera_sampling_report(data.camera, merged, log)}
+               **camera_sampling_report(data.camera, merged, log), **measured_psf_report(data.camera, merged, log)}
     metrics.update(run_evaluation(ev, model, generators, data, run_dir, seed))
     io.write_json(run_dir / "metrics.json", metrics)
     log_summary(open_writer(run_dir, tensorboard_enabled(cfg)), {**model.summary(), "checkpoint": str(path)},

@@ -15,8 +15,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from codesign.camera import build_camera, field_of_view
+from codesign.camera import build_camera, field_of_view, with_measured_psf
+from codesign.config.runtime import explicit_keys
 from codesign.design.check import camera_sampling_report
+from codesign.design.measured import measured_psf_report
 from codesign.errors import ConfigError
 from codesign.io import files as io
 from codesign.io.images import read_counts, save_png16
@@ -27,10 +29,11 @@ log = logging.getLogger("codesign.restore")
 # Root keys this experiment reads besides the common ones (conf/experiment/restore.yaml); any other is refused.
 ROOT_KEYS: tuple[str, ...] = ("input", "checkpoint")
 # The common groups it reads (besides ALWAYS_READ in codesign/tasks/__init__.py): none; optics, sensor, model and
-# data are the checkpoint's.
+# data are the checkpoint's (but a measured PSF, optics.psf_*, given on this command line).
 READS = ()
 # The fixed names it writes in its run dir: each is checked to be writable before any work.
 OUTPUTS = ("metrics.json",)
+MEASURED_PSF = True  # optics.psf_file replaces the computed PSF (codesign/optics/measured.py)
 
 SUFFIXES = (".png", ".tif", ".tiff")
 
@@ -79,16 +82,19 @@ def run(cfg, run_dir: Path, device: torch.device) -> float:
     if not cfg.get("checkpoint"):
         raise ConfigError("checkpoint", cfg.get("checkpoint"), "give the trained model: checkpoint=PATH")
     model, generators, ckpt_cfg, state = load_trained(cfg.checkpoint, device)
+    ckpt_cfg = with_measured_psf(ckpt_cfg, cfg, explicit_keys())  # the Wiener stage's OTF then is the measured PSF's
     try:
         camera = build_camera(ckpt_cfg, device, torch.float32)
     except ConfigError as err:  # the checkpoint's own settings: say so, not just the key
+        if err.key.startswith("optics.psf_"):  # a measured PSF's file (this run's, or the checkpoint's own)
+            raise
         raise ConfigError("checkpoint", str(cfg.checkpoint), f"its stored configuration is not valid in this "
                           f"version of codesign: {err}") from None
     apply_checkpoint_mask(camera.mask, state, cfg.checkpoint)
     sensor = camera.sensor
     # every file checked before any work
     images = validate(files, sensor.image_size, sensor.saturation_dn, sensor.padded_size)
-    sampling = camera_sampling_report(camera, ckpt_cfg, log)
+    sampling = {**camera_sampling_report(camera, ckpt_cfg, log), **measured_psf_report(camera, ckpt_cfg, log)}
     otf = camera.otf
     n, p = sensor.image_size, sensor.padded_size
     m = (p - n) // 2

@@ -18,6 +18,7 @@ from codesign.config.runtime import check_seed, resolve_dtype
 from codesign.data.params import fixed_scene_params, sample_scene_params
 from codesign.data.scenes import build_scene_source
 from codesign.design.check import camera_sampling_report
+from codesign.design.measured import measured_psf_figure, measured_psf_report
 from codesign.errors import ConfigError, require_number, require_numbers, unknown_keys
 from codesign.io import files as io
 from codesign.io.images import save_png16
@@ -29,8 +30,10 @@ log = logging.getLogger("codesign.simulate")
 ROOT_KEYS: tuple[str, ...] = ("precision", "simulate")
 # The common groups it reads (besides ALWAYS_READ in codesign/tasks/__init__.py).
 READS = ("optics", "mask", "sensor", "data", "metrics")
-# The fixed names it writes in its run dir: each is checked to be writable before any work.
-OUTPUTS = ("metrics.json", "sensor_grid_linear.png", "sensor_grid_log.png")
+# The fixed names it writes in its run dir: each is checked to be writable before any work (measured_psf.png: with
+# a measured PSF only).
+OUTPUTS = ("metrics.json", "sensor_grid_linear.png", "sensor_grid_log.png", "measured_psf.png")
+MEASURED_PSF = True  # optics.psf_file replaces the computed PSF (codesign/optics/measured.py)
 CAPTURES = "captures"  # the 16-bit sensor captures alone: a folder +experiment=restore takes as input=DIR
 
 SIMULATE_KEYS = ("scenes", "alpha_l", "laser_angle_rad", "params", "timing_repeats")
@@ -96,6 +99,8 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
              sim.sensor.path, sim.sensor.image_size, sim.sensor.image_size, sim.sensor.coarse_pitch_m,
              sim.sensor.bin_factor, sim.scene_size, sim.coarse.ksize)
     sampling = camera_sampling_report(camera, cfg, log)
+    curves: dict = {}
+    measured = measured_psf_report(camera, cfg, log, curves)
     optics = camera.frozen_optics()
     state, key = optics.state, optics.key
     seed = check_seed(cfg)
@@ -133,10 +138,13 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     full = sim.sensor.gain_dn_per_e * sim.sensor.full_well_e
     io.save_figure(run_dir / "sensor_grid_linear.png", _grid_figure(grid, names, alphas, False, full))
     io.save_figure(run_dir / "sensor_grid_log.png", _grid_figure(grid, names, alphas, True, full))
+    if measured:
+        io.save_figure(run_dir / "measured_psf.png", measured_psf_figure(
+            curves, f"measured PSF {Path(measured['measured_psf']).name} against the design {camera.mask.kind} mask"))
     lsr = float(state.psf.max()) / state.uncoded_peak
     bsr_window = float(state.psf.sum()) / state.uncoded_energy
     metrics.update({
-        **sampling, "seconds_per_image": seconds, "images_per_second": 1.0 / seconds, "batch_size": batch,
+        **sampling, **measured, "seconds_per_image": seconds, "images_per_second": 1.0 / seconds, "batch_size": batch,
         "sensor_path": sim.sensor.path, "lsr_sampled": lsr,
         # uniform-background ratio of the simulated image: 1 with the out-of-window veil (energy conservation),
         # else the window's (sum h / sum h0); the window's value is always reported

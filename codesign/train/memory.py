@@ -78,7 +78,7 @@ def training_estimate(model, camera, batch: int, ema: bool = False) -> dict:
         "simulation": batch * camera.simulator.coarse.n_fft ** 2 * SIMULATION_BYTES,
         "base": BASE_BYTES,
     }
-    if camera.sensor.laser_halo:
+    if camera.halo_on:  # sensor.laser_halo, and no measured PSF (which has no halo)
         from codesign.optics.far_field import far_spec
 
         parts["laser_halo"] = far_spec(camera.system.spec, camera.sensor.side_m).focal_n ** 2 * HALO_BYTES

@@ -9,6 +9,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from codesign.config.runtime import to_container
 from codesign.errors import ConfigError
+from codesign.optics.measured import MEASURED_DEFAULTS
 from codesign.train.checkpoint import (
     CHECKPOINT_NAME,
     check_trained,
@@ -31,7 +32,7 @@ RESUME_MUST_MATCH = ("model", "optics", "mask", "sensor", "data.image_size", "da
 def check_resume_config(saved: dict, cfg: DictConfig, key: str, extra_keys: tuple = (), path="checkpoint") -> None:
     """A checkpoint (``path``) resumed under a different model, physics or data geometry is a ConfigError naming
     the file and the keys."""
-    saved_cfg, current = OmegaConf.create(saved), OmegaConf.create(to_container(cfg))
+    saved_cfg, current = OmegaConf.create(_with_added_keys(saved)), OmegaConf.create(to_container(cfg))
     differ = []
     for dotted in RESUME_MUST_MATCH + tuple(extra_keys):
         if _plain(OmegaConf.select(saved_cfg, dotted)) != _plain(OmegaConf.select(current, dotted)):
@@ -66,8 +67,9 @@ def resume_if_possible(trainer, cfg: DictConfig, run_dir: Path, extra_keys: tupl
 # What a network's starting weights must share with the run they start (init.checkpoint): the network itself, and
 # the physics and image geometry it learned to invert. The mask, the batch, the scenes and the loss weights
 # (model.loss: pretraining on the reconstruction terms alone, then adding the adversarial ones) may differ.
+# A network trained on the computed PSF may be fine-tuned on a measured one (optics.psf_*), and back.
 INIT_MUST_MATCH = ("model", "optics", "sensor", "data.image_size", "data.padded_size")
-INIT_MAY_DIFFER = ("model.loss",)
+INIT_MAY_DIFFER = ("model.loss",) + tuple(f"optics.{k}" for k in MEASURED_DEFAULTS)
 
 
 def load_initial_weights(model, path, cfg: DictConfig, key: str = "init.checkpoint") -> dict:
@@ -93,6 +95,15 @@ def load_initial_weights(model, path, cfg: DictConfig, key: str = "init.checkpoi
     mask = OmegaConf.select(saved, "mask.kind")
     log.info("network weights from %s (step %d, trained on mask %s)", path, int(state["step"]), mask)
     return {"init_checkpoint": str(path), "init_steps": int(state["step"]), "init_mask_kind": mask}
+
+
+def _with_added_keys(saved: dict) -> dict:
+    """A checkpoint's configuration with the optics keys added since it may have been written (the measured PSF's,
+    optics.psf_*) at their defaults: what it was trained with."""
+    optics = saved.get("optics") if isinstance(saved, dict) else None
+    if not isinstance(optics, dict):
+        return saved
+    return {**saved, "optics": {**MEASURED_DEFAULTS, **optics}}
 
 
 def _plain(value):

@@ -93,9 +93,10 @@ register("trainer", "default", spec_node(TrainerSpec))
 
 @dataclass(frozen=True)
 class InitSpec(SpecMixin):
-    """A warm start (``init.*`` of +experiment=joint): checkpoint: a training checkpoint whose network weights the
-    run starts from (trained on another mask; the same model, optics, sensor and image sizes; null = fresh
-    weights). The mask comes from mask / mask.init, never from this checkpoint."""
+    """A warm start (``init.*`` of +experiment=joint and baseline): checkpoint: a training checkpoint whose network
+    weights the run starts from (trained on another mask or PSF; the same model, optics, sensor and image sizes, the
+    measured-PSF keys optics.psf_* aside; null = fresh weights). The mask comes from mask / mask.init, never from
+    this checkpoint."""
 
     checkpoint: str | None = None
     prefix: str = field(default="init", compare=False, repr=False)

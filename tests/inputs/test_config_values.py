@@ -51,7 +51,8 @@ ROWS = [
      "optics, mask, sensor, model, data, trainer, metrics, logging, evaluate, debug, precision, timing_repeats"),
     ("psf", "deterministic=maybe", "deterministic = 'maybe': must be auto, true or false"),
     ("baseline", "+checkpoint=x", "checkpoint = 'x': unknown key for +experiment=baseline; allowed: task, seed, "
-     "device, threads, deterministic, optics, mask, sensor, model, data, trainer, metrics, logging, evaluate, debug"),
+     "device, threads, deterministic, optics, mask, sensor, model, data, trainer, metrics, logging, evaluate, debug, "
+     "init"),
     # ---- simulate and data ---------------------------------------------------------------------------------
     ("simulate", "simulate.alpha_l=5", "simulate.alpha_l = 5: must be a list of laser strengths >= 0"),
     ("simulate", "simulate.laser_angle_rad=5", "simulate.laser_angle_rad = 5: must be [n_u, n_v] in radians"),
