@@ -135,8 +135,7 @@ class Camera(torch.nn.Module):
         state = psf_state(self.system, phase, self.mask.plate_cell_m)
         if self.measured is not None:
             state = self._measured_state(state)
-        else:
-            state.halo = self._halo_source(key) if self.simulator.sensor.laser_halo else None
+        state.halo = self._halo_source(key) if self.halo_on else None
         kernel = self.simulator.kernel(state, key=key)
         return OpticsOutputs(state, kernel, otf_from_kernel(kernel, self.padded_size).to(self.device), key)
 

@@ -57,26 +57,16 @@ def measured_psf_report(camera, cfg, log, curves: dict | None = None) -> dict:
 
 def measured_psf_figure(curves: dict, title: str):
     """The design and the measured window PSF (log scale, one colour scale) and their radial MTFs."""
-    from codesign.io.plots import plt
+    from codesign.io.plots import log_psf_panel, mtf_panel, plt, window_extent_mm
 
-    design, measured, pitch = curves["design"], curves["measured"], curves["pitch_m"]
-    m = design.shape[0]
-    ext = np.array([-m / 2, m / 2, -m / 2, m / 2]) * pitch * 1e3
+    design, measured = curves["design"], curves["measured"]
+    ext = window_extent_mm(design.shape[0], curves["pitch_m"])
     vmax = np.log10(max(float(design.max()), float(measured.max())))
     fig, axes = plt.subplots(1, 3, figsize=(16.5, 4.6))
     for ax, img, name in ((axes[0], design, "design (computed)"), (axes[1], measured, "measured")):
-        im = ax.imshow(np.log10(np.maximum(img, 10 ** (vmax - 7))), cmap="inferno", extent=ext, origin="lower",
-                       vmin=vmax - 7, vmax=vmax)
-        ax.set(xlabel="x [mm]", ylabel="y [mm]", title=f"{name}: LSR {float(img.max()) / curves['h0']:.3g}")
-        fig.colorbar(im, ax=ax, label="log10 energy per pixel")
-    ax = axes[2]
-    ax.plot(curves["freqs"], curves["mtf_design"], label="design")
-    ax.plot(curves["freqs"], curves["mtf_measured"], label="measured")
-    ax.axvspan(*curves["band"], color="0.9", zorder=0, label="summary band")
-    ax.set(xlim=(0, 1.05), ylim=(1e-4, 1.05), yscale="log", xlabel="normalized frequency nu / (W_a / lambda f)",
-           ylabel="radial mean MTF", title="MTF")
-    ax.grid(alpha=0.3)
-    ax.legend()
+        log_psf_panel(fig, ax, img, ext, vmax, f"{name}: LSR {float(img.max()) / curves['h0']:.3g}")
+    mtf_panel(axes[2], curves["freqs"], {"design": curves["mtf_design"], "measured": curves["mtf_measured"]},
+              curves["band"], "MTF")
     fig.suptitle(title)
     fig.tight_layout()
     return fig

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from codesign.io.plots import plt
+from codesign.io.plots import log_psf_panel, mtf_panel, plt, window_extent_mm
 
 
 def export_figure(height: np.ndarray, inside: np.ndarray, pitch_m: float, psfs: dict[str, np.ndarray],
@@ -14,7 +14,7 @@ def export_figure(height: np.ndarray, inside: np.ndarray, pitch_m: float, psfs: 
     PSFs (log) of ``psfs`` (name -> (m, m)) and the exported minus the ideal phase on the pupil grid (wrapped,
     NaN outside the aperture)."""
     n = height.shape[0]
-    ext = np.array([-n / 2, n / 2, -n / 2, n / 2]) * pitch_m * 1e3
+    ext = window_extent_mm(n, pitch_m)
     fig, axes = plt.subplots(2, 3, figsize=(15, 8.4))
     ax = axes[0, 0]
     im = ax.imshow(np.where(inside, height * 1e6, np.nan), cmap="viridis", extent=ext, origin="lower",
@@ -30,27 +30,15 @@ def export_figure(height: np.ndarray, inside: np.ndarray, pitch_m: float, psfs: 
             label="column u = 0")
     ax.set(xlabel="position [mm]", ylabel="height [um]", title="profiles through the axis (central fifth)")
     ax.legend()
-    ax = axes[0, 2]
-    for name, y in mtf.items():
-        ax.plot(freqs, y, "--" if name == "uncoded" else "-", label=name)
-    ax.axvspan(band[0], band[1], color="0.9", zorder=0, label="summary band")
-    ax.set(xlim=(0, 1.05), ylim=(1e-4, 1.05), yscale="log", xlabel="nu / cutoff", ylabel="radial mean MTF",
-           title="MTF")
-    ax.legend(fontsize=8)
+    mtf_panel(axes[0, 2], freqs, mtf, band, "MTF", dashed=("uncoded",), legend_size=8)
     names = list(psfs)
-    m = psfs[names[0]].shape[0]
-    fext = np.array([-m / 2, m / 2, -m / 2, m / 2]) * focal_pitch_m * 1e3
+    fext = window_extent_mm(psfs[names[0]].shape[0], focal_pitch_m)
     vmax = np.log10(max(float(p.max()) for p in psfs.values()))
     for ax, name in zip(axes[1], names):
-        im = ax.imshow(np.log10(np.maximum(psfs[name], 10 ** (vmax - 7))), cmap="inferno", extent=fext,
-                       origin="lower", vmin=vmax - 7, vmax=vmax)
-        ax.set(xlabel="x [mm]", ylabel="y [mm]", title=name)
-        fig.colorbar(im, ax=ax, label="log10 energy per pixel")
+        log_psf_panel(fig, ax, psfs[name], fext, vmax, name)
     ax = axes[1, 2]
-    p = phase_error.shape[0]
-    pext = np.array([-p / 2, p / 2, -p / 2, p / 2]) * pupil_pitch_m * 1e3
-    im = ax.imshow(phase_error, cmap="twilight_shifted", extent=pext, origin="lower", vmin=-np.pi, vmax=np.pi,
-                   interpolation="nearest")
+    im = ax.imshow(phase_error, cmap="twilight_shifted", extent=window_extent_mm(phase_error.shape[0], pupil_pitch_m),
+                   origin="lower", vmin=-np.pi, vmax=np.pi, interpolation="nearest")
     fig.colorbar(im, ax=ax, label="phase [rad]")
     ax.set(xlabel="u [mm]", ylabel="v [mm]", title="exported - ideal phase (pupil grid)")
     fig.suptitle(title)

@@ -8,9 +8,13 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 
+def window_extent_mm(m: int, pitch_m: float) -> np.ndarray:
+    """imshow extent [mm] of an m x m focal window (or pupil grid) at ``pitch_m``, centred on the axis."""
+    return np.array([-m / 2, m / 2, -m / 2, m / 2]) * pitch_m * 1e3
+
+
 def phase_figure(phase: np.ndarray, aperture: np.ndarray, pitch_m: float, title: str):
-    n = phase.shape[0]
-    ext = np.array([-n / 2, n / 2, -n / 2, n / 2]) * pitch_m * 1e3
+    ext = window_extent_mm(phase.shape[0], pitch_m)
     shown = np.where(aperture > 1e-3, phase, np.nan)
     fig, ax = plt.subplots(figsize=(5, 4.2))
     im = ax.imshow(shown, cmap="twilight", extent=ext, origin="lower", vmin=-np.pi, vmax=np.pi)
@@ -19,31 +23,40 @@ def phase_figure(phase: np.ndarray, aperture: np.ndarray, pitch_m: float, title:
     return fig
 
 
+def log_psf_panel(fig, ax, img: np.ndarray, extent: np.ndarray, vmax: float, title: str) -> None:
+    """A PSF on a log scale over the seven decades below 10^vmax, with its colour bar."""
+    im = ax.imshow(np.log10(np.maximum(img, 10.0 ** (vmax - 7))), cmap="inferno", extent=extent, origin="lower",
+                   vmin=vmax - 7, vmax=vmax)
+    ax.set(xlabel="x [mm]", ylabel="y [mm]", title=title)
+    fig.colorbar(im, ax=ax, label="log10 energy per pixel")
+
+
+def mtf_panel(ax, freqs: np.ndarray, curves: dict[str, np.ndarray], band: tuple[float, float], title: str,
+              dashed: tuple[str, ...] = ("analytic",), legend_size=None) -> None:
+    """Radial MTFs (name -> curve; dashed where the name holds one of ``dashed``) on a log axis, the summary band
+    shaded."""
+    for name, y in curves.items():
+        ax.plot(freqs, y, "--" if any(d in name for d in dashed) else "-", label=name)
+    ax.axvspan(band[0], band[1], color="0.9", zorder=0, label="summary band")
+    ax.set(xlim=(0, 1.05), ylim=(1e-4, 1.05), yscale="log", xlabel="normalized frequency nu / (W_a / lambda f)",
+           ylabel="radial mean MTF", title=title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=legend_size)
+
+
 def psf_figure(psf: np.ndarray, psf0: np.ndarray, pitch_m: float, title: str):
-    m = psf.shape[0]
-    ext = np.array([-m / 2, m / 2, -m / 2, m / 2]) * pitch_m * 1e3
-    floor = max(float(psf0.max()) * 1e-9, 1e-30)
+    ext = window_extent_mm(psf.shape[0], pitch_m)
     vmax = np.log10(float(psf0.max()))
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
     for ax, img, name in ((axes[0], psf0, "uncoded h0"), (axes[1], psf, "coded h")):
-        im = ax.imshow(np.log10(np.maximum(img, floor)), cmap="inferno", extent=ext, origin="lower",
-                       vmin=vmax - 7, vmax=vmax)
-        ax.set(xlabel="x [mm]", ylabel="y [mm]", title=name)
-        fig.colorbar(im, ax=ax, label="log10 energy per pixel")
+        log_psf_panel(fig, ax, img, ext, vmax, name)
     fig.suptitle(title)
     return fig
 
 
 def mtf_figure(freqs: np.ndarray, curves: dict[str, np.ndarray], band: tuple[float, float], title: str):
     fig, ax = plt.subplots(figsize=(6, 4))
-    for name, y in curves.items():
-        style = "--" if "analytic" in name else "-"
-        ax.plot(freqs, y, style, label=name)
-    ax.axvspan(band[0], band[1], color="0.9", zorder=0, label="summary band")
-    ax.set(xlim=(0, 1.05), ylim=(1e-4, 1.05), yscale="log", xlabel="normalized frequency nu / (W_a / lambda f)",
-           ylabel="radial mean MTF", title=title)
-    ax.grid(alpha=0.3)
-    ax.legend()
+    mtf_panel(ax, freqs, curves, band, title)
     return fig
 
 

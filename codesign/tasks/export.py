@@ -99,4 +99,4 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
              exported["restorability"], metrics["restorability_change_db"], sidecar["max_depth_m"] * 1e6,
              plate.full_wave_depth_m * 1e6)
     log.info("wrote %s", run_dir)
-    return float(np.float64(exported["lsr"]))
+    return exported["lsr"]
