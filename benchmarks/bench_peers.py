@@ -3,7 +3,9 @@
 The field is the published half-ring mask's A exp(i phi) (computed once by codesign in float64), propagated onto
 the 640 x 640 window at the 5.4 um sensor pitch, lambda f of Table 1, at 384 and 1024 samples across the aperture,
 float32 and float64, 1 and 2 threads. Each thread count runs in its own process (``worker``), whose BLAS / OpenMP
-thread pools are set before numpy loads; inside it the libraries take turns on the same field, in blocks of a few
+thread pools are set in its environment before Python starts (numpy's OpenBLAS reads them once, when it loads, and
+``benchmarks.common`` loads torch and with it numpy: set later, a 1-thread cell ran prysm's and poppy's matrix
+products on 2 threads); inside it the libraries take turns on the same field, in blocks of a few
 calls (one call at a time let the previous library's spinning BLAS threads slow the next: codesign's chirp-z
 measured 69 ms instead of 14), three rounds, the median of every timed call. Each library's intensity is
 normalized by its own propagation of the aperture alone (the uncoded peak), so the sampled LSR and the PSF compare
@@ -40,6 +42,7 @@ THREADS = (1, 2)
 DTYPES = ("float32", "float64")
 FOCAL_N = 640
 PEERS = ("hcipy", "prysm", "poppy")
+THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 
 
 def _import_peer(name: str):
@@ -126,15 +129,18 @@ def _propagators(spec, dtype_name: str) -> dict:
 
 
 def worker(argv: list[str] | None = None) -> dict:
-    """One thread count: ``python -m benchmarks.bench_peers worker --threads T --samples 384,1024 --repeats R``;
-    prints one JSON line. Thread pools are fixed before numpy is imported."""
+    """One thread count: ``OMP_NUM_THREADS=T OPENBLAS_NUM_THREADS=T MKL_NUM_THREADS=T NUMEXPR_NUM_THREADS=T
+    python -m benchmarks.bench_peers worker --threads T --samples 384,1024 --repeats R`` (measure() sets them);
+    prints one JSON line."""
     ap = argparse.ArgumentParser(prog="python -m benchmarks.bench_peers worker")
     ap.add_argument("--threads", type=int, required=True)
     ap.add_argument("--samples", required=True)
     ap.add_argument("--repeats", type=int, default=5)
     a = ap.parse_args(argv)
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
-        os.environ[var] = str(a.threads)
+    wrong = {v: os.environ.get(v) for v in THREAD_VARS if os.environ.get(v) != str(a.threads)}
+    if wrong:
+        raise SystemExit(f"bench_peers worker --threads {a.threads}: the thread pools must be set before Python "
+                         f"starts ({', '.join(f'{k}={v}' for k, v in wrong.items())}); run it through measure()")
     import numpy as np
     import torch
 
@@ -216,7 +222,8 @@ def measure(scale: str) -> dict:
         print(f"  peers: {t} thread(s), {samples} samples across", flush=True)
         out["threads"][str(t)] = run_isolated("benchmarks.bench_peers",
                                               ["worker", "--threads", str(t), "--samples", samples,
-                                               "--repeats", str(REPEATS[scale])])
+                                               "--repeats", str(REPEATS[scale])],
+                                              env={v: str(t) for v in THREAD_VARS})
     return out
 
 

@@ -42,10 +42,12 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def run_isolated(module: str, args: list[str]) -> dict:
-    """Run ``python -m module args`` in a fresh process (clean peak-memory reading); it prints one JSON line."""
+def run_isolated(module: str, args: list[str], env: dict[str, str] | None = None) -> dict:
+    """Run ``python -m module args`` in a fresh process (clean peak-memory reading); it prints one JSON line.
+    ``env``: variables added to this process's environment for the child (e.g. thread-pool sizes, which BLAS
+    libraries read once, when they load)."""
     out = subprocess.run([sys.executable, "-m", module, *args], capture_output=True, text=True,
-                         cwd=Path(__file__).resolve().parent.parent)
+                         cwd=Path(__file__).resolve().parent.parent, env={**os.environ, **(env or {})})
     if out.returncode != 0:
         raise RuntimeError(f"python -m {module} {' '.join(args)} failed ({out.returncode}):\n{out.stderr[-4000:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])

@@ -122,3 +122,16 @@ def test_peers_section_skips_a_missing_peer_with_a_line_saying_so():
     rep = bench_peers.report(data)
     assert 'Not installed, skipped: hcipy, prysm, poppy (pip install -e ".[peers]")' in rep.notes[0]
     assert "| 384 | 1 | float32 | codesign (czt) | 10.0 | 1.00 |" in rep.tables[0]
+
+
+def test_peers_worker_refuses_thread_pools_set_after_python_started(monkeypatch):
+    """numpy's BLAS reads its thread count once, when it loads: a worker whose environment does not hold the cell's
+    thread count would time peers' matrix products on every core (measure() sets it for the child process)."""
+    from benchmarks import bench_peers
+
+    for var in bench_peers.THREAD_VARS:
+        monkeypatch.setenv(var, "1")
+    monkeypatch.delenv("MKL_NUM_THREADS")
+    with pytest.raises(SystemExit, match=r"^bench_peers worker --threads 1: the thread pools must be set before "
+                                         r"Python starts \(MKL_NUM_THREADS=None\); run it through measure\(\)$"):
+        bench_peers.worker(["--threads", "1", "--samples", "384"])

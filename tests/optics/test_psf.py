@@ -6,11 +6,20 @@ import math
 import pytest
 import torch
 
-from codesign.optics import OpticalSystem, OpticsSpec, RadialMTF, airy_psf, circular_mtf, metrics
+from codesign.optics import (
+    OpticalSystem,
+    OpticsSpec,
+    RadialMTF,
+    airy_psf,
+    circular_mtf,
+    metrics,
+    propagation,
+)
 from codesign.optics.grid import axis_coords
 from codesign.optics.masks import published_halfring
 from codesign.optics.propagation import (
     choose_propagator,
+    czt_length,
     exact_fft_size,
     modelled_costs,
     next_fast_len,
@@ -215,6 +224,40 @@ def test_czt_equals_fft_on_the_same_window_and_is_batched():
     assert float((a - b).abs().max() / a.abs().max()) <= 1e-12
     for i in range(3):
         torch.testing.assert_close(czt.psf(phases[i]), b[i], rtol=1e-13, atol=1e-18)
+
+
+def test_czt_length_is_the_smallest_5_smooth_size_holding_the_taps():
+    def smooth5(k: int) -> bool:
+        for p in (2, 3, 5):
+            while k % p == 0:
+                k //= p
+        return k == 1
+
+    for n, m in ((402, 640), (1066, 640), (202, 160), (13, 20), (1, 1)):
+        length = czt_length(n, m)
+        assert smooth5(length) and length >= n + m - 1
+        assert not any(smooth5(k) for k in range(n + m - 1, length))
+    assert (czt_length(402, 640), czt_length(1066, 640)) == (1080, 1728)  # next_fast_len (radix 7): 1050, 1715
+
+
+def test_czt_in_row_blocks_equals_one_batch_with_gradients(monkeypatch):
+    """The CPU blocks (CZT_ROWS_PER_THREAD) only regroup rows: a batch of phases through blocks of 3 rows per
+    thread (uneven last block, blocks across the batch's fields) equals one block, forward and backward."""
+    spec = OpticsSpec.with_samples_across(40, focal_n=50)
+    czt = OpticalSystem(spec, dtype=torch.float64, method="czt")
+    phases = torch.stack([_phases(czt)["random"], _phases(czt)["halfring"]]).requires_grad_(True)
+    weights = torch.rand(50, 50, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    results = []
+    for rows in (3, 10_000):
+        monkeypatch.setattr(propagation, "CZT_ROWS_PER_THREAD", rows)
+        psf = czt.psf(phases)
+        (grad,) = torch.autograd.grad((psf * weights).sum(), phases)
+        results.append((psf, grad))
+    assert all(2 * k % (3 * torch.get_num_threads()) for k in (czt.grid.n, 50))  # short last blocks, both passes
+    torch.testing.assert_close(results[0][0], results[1][0], rtol=1e-13, atol=1e-18)
+    torch.testing.assert_close(results[0][1], results[1][1], rtol=1e-11, atol=1e-16)
+    mft = OpticalSystem(spec, dtype=torch.float64, method="mft").psf(phases.detach())
+    assert float((results[0][0].detach() - mft).abs().max() / mft.max()) <= 1e-12
 
 
 def test_czt_in_float32_matches_the_float64_mft():
