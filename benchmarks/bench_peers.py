@@ -42,6 +42,10 @@ THREADS = (1, 2)
 DTYPES = ("float32", "float64")
 FOCAL_N = 640
 PEERS = ("hcipy", "prysm", "poppy")
+# Seconds of rest before each library's block: thread pools spin a while after their last call (OpenMP, OpenBLAS)
+# and, on 2 cores, slow whichever library runs next (codesign's chirp-z at 384 samples, 2 threads, float64: 25-31 ms
+# right after the peers' blocks, 12 ms alone; OpenBLAS's threads spin ~0.1 s by default).
+SETTLE_S = 0.2
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 
 
@@ -178,6 +182,7 @@ def worker(argv: list[str] | None = None) -> dict:
             times = {label: [] for label in props}
             for _ in range(ROUNDS):  # interleaved: the libraries take turns, a block of repeats each
                 for label, (fn, _, _) in props.items():
+                    time.sleep(SETTLE_S)  # the previous library's idle threads stop spinning first
                     with torch.no_grad():
                         fn(inputs[label]["coded"])  # the block's first call wakes this library's thread pool
                         for _ in range(a.repeats):
@@ -247,7 +252,9 @@ def report(data: dict) -> Report:
     missing = [p for p in PEERS if versions.get(p) is None]
     rep.notes.append(
         "The published half-ring field A exp(i phi), propagated onto the 640 x 640 window at 5.4 um (forward "
-        "intensity only, median of the repeats, libraries interleaved in one process per thread count). Ratio: the "
+        "intensity only, median of the repeats, libraries interleaved in one process per thread count, a "
+        f"{SETTLE_S:g} s rest before each library's block so that the previous one's idle threads have stopped "
+        "spinning). Ratio: the "
         "library's time over codesign's (auto propagator) in the same cell; agreement: the largest difference of "
         "the PSF normalized by the library's own uncoded peak, relative to codesign's peak. The last column: "
         "codesign's forward + backward to the phase against a peer's finite-difference gradient over the 10 "
