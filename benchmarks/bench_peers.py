@@ -189,8 +189,9 @@ def worker(argv: list[str] | None = None) -> dict:
                             t0 = time.perf_counter()
                             fn(inputs[label]["coded"])
                             times[label].append(time.perf_counter() - t0)
-            fb = _codesign_forward_backward(spec, phase, dtype_name, a.repeats, torch, OpticalSystem, metrics)
-            chain = _codesign_chain(spec, dtype_name, a.repeats, torch, OpticalSystem)
+            system = OpticalSystem(spec, dtype=torch.float32 if dtype_name == "float32" else torch.float64)
+            fb = _codesign_forward_backward(system, phase, a.repeats, metrics)
+            chain = _codesign_chain(system, a.repeats)
             base = next(label for label in props if label.startswith("codesign ("))
             for label in props:
                 diff = np.abs(results[label]["psf"] - results[base]["psf"]).max() / results[base]["psf"].max()
@@ -207,22 +208,20 @@ def worker(argv: list[str] | None = None) -> dict:
     return result
 
 
-def _codesign_chain(spec, dtype_name, repeats, torch, OpticalSystem) -> float:
+def _codesign_chain(system, repeats) -> float:
     """Median seconds of the whole differentiable chain, forward + backward: the 10 half-ring parameters -> phase
     (exact Bessel harmonics) -> field -> PSF -> smooth LSR (codesign.design.merit.time_forward_backward)."""
     from codesign.design.merit import time_forward_backward
     from codesign.optics.masks import HalfRingMask
 
-    system = OpticalSystem(spec, dtype=torch.float32 if dtype_name == "float32" else torch.float64)
-    fwd, bwd = time_forward_backward(system, HalfRingMask(system.grid, spec.aperture_diameter_m), 16.0, repeats)
+    mask = HalfRingMask(system.grid, system.spec.aperture_diameter_m)
+    fwd, bwd = time_forward_backward(system, mask, 16.0, repeats)
     return fwd + bwd
 
 
-def _codesign_forward_backward(spec, phase, dtype_name, repeats, torch, OpticalSystem, metrics) -> float:
+def _codesign_forward_backward(system, phase, repeats, metrics) -> float:
     """Median seconds of phase -> field -> PSF -> smooth LSR and its gradient to the phase (auto propagator)."""
-    dtype = torch.float32 if dtype_name == "float32" else torch.float64
-    system = OpticalSystem(spec, dtype=dtype)
-    ph = phase.to(dtype)
+    ph = phase.to(system.dtype)
     runs = []
     for i in range(repeats + 1):
         p = ph.clone().requires_grad_(True)
