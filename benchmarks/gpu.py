@@ -21,6 +21,7 @@ errors are the CUDA-only defects docs/gpu.md lists. A joint run warm-started fro
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import math
 import os
@@ -44,6 +45,7 @@ RESULTS = REPO / "benchmarks" / "results" / "gpu"
 DOCS = REPO / "docs" / "gpu.md"
 SCENES = REPO.parent / "shared" / "data" / "scenes"
 ALPHAS = ("0", "1e3", "1e6")
+NOTES = "notes.md"  # findings written by hand beside the results; render() includes them
 STEPS = {"tests": "tests on the device", "speed": "speed table", "train": "training with the published mask",
          "evaluate": "evaluation on held-out scenes"}
 # the dry run's physics: smoke optics, no far-PSF laser halo (seconds per mask; tests/sensor/test_laser_halo.py)
@@ -52,8 +54,8 @@ PLANS = {
     "gpu": dict(models=("sgan_b", "sgan_e", "sgan_f"), widths=("cpu", "paper"), image=256, padded=384,
                 batches=(1, 8), modes=("float32", "bf16", "bf16+compile"), repeats=20, joint=["preset=paper"],
                 joint_warmup=2, joint_repeats=5, psf_samples=(384, 1024), psf_repeats=10,
-                train=dict(model="sgan_b", size="cpu", image=256, padded=384, batch=16, amp="bf16"),
-                eval=[], shares=dict(tests=0.12, speed=0.28, evaluation=0.10)),
+                train=dict(model="sgan_b", size="cpu", image=256, padded=384, batch=16, amp="bf16", reserve_s=75),
+                eval=[], shares=dict(tests=0.12, speed=0.2, evaluation=0.12), floors=dict(tests=120, speed=60)),
     # every step at tiny sizes on a CPU; compile is left to tests/train/test_train_options.py (a CPU compile of
     # even the tiny network takes minutes of C++ builds)
     "dry": dict(models=("sgan_b", "sgan_f"), widths=("tiny",), image=48, padded=64, batches=(1, 2),
@@ -62,7 +64,7 @@ PLANS = {
                 psf_samples=(192,), psf_repeats=1,
                 train=dict(model="sgan_b", size="tiny", image=48, padded=64, batch=2, amp=None, steps=4),
                 eval=["evaluate.stages=[H1]", "evaluate.tuning_size=2", "evaluate.max_scenes=2"],
-                shares=dict(tests=0.4, speed=0.3, evaluation=0.1)),
+                shares=dict(tests=0.4, speed=0.3, evaluation=0.1), floors=dict(tests=240, speed=300)),
 }
 
 
@@ -115,39 +117,55 @@ def _otf(padded: int, dev: torch.device) -> torch.Tensor:
     return otf_from_kernel(k / k.sum(), padded).to(dev)
 
 
+def inference_passes(p: dict) -> list[tuple[str, str, tuple[str, ...], tuple[int, ...]]]:
+    """(model, width, modes, batches) in the order they are timed: every eager cell first, then the compiled ones at
+    the largest batch only, SGAN-F (the paper's speed claim) and the paper width first: a torch.compile costs tens
+    of seconds per network and shape, so a short budget drops the least wanted compiled cells, not eager ones."""
+    eager = tuple(m for m in p["modes"] if "compile" not in m)
+    compiled = tuple(m for m in p["modes"] if "compile" in m)
+    out = [(name, width, eager, tuple(p["batches"])) for name in p["models"] for width in p["widths"]]
+    if compiled:
+        out += [(name, width, compiled, (max(p["batches"]),))
+                for name in sorted(p["models"], key=lambda n: n != "sgan_f") for width in reversed(p["widths"])]
+    return out
+
+
 def inference_cells(p: dict, dev: torch.device, budget: float) -> list[dict]:
     """images/s and peak memory of every (model, width, mode, batch) while the budget lasts."""
     from codesign.config.runtime import to_container
     from codesign.models import build_restorer, parameter_count
 
     t_end, rows, otf = time.perf_counter() + budget, [], _otf(p["padded"], dev)
-    for name in p["models"]:
-        for width in p["widths"]:
-            try:
-                model = build_restorer(to_container(compose([f"model={name}", f"model.size={width}"]).model))
-                model.check_input_size(p["padded"])
-                model = model.to(dev)
-            except Exception as e:  # noqa: BLE001 - recorded: a defect to list, not a reason to stop
-                rows.append({"model": name, "width": width, "error": f"build: {type(e).__name__}: {e}"[:400]})
-                continue
-            params = sum(parameter_count(g) for g in model.generators())
-            for mode in p["modes"]:
-                gens = model.generators()
-                if "compile" in mode:
-                    gens = [g if getattr(g, "no_compile", False) else torch.compile(g) for g in gens]
-                for batch in p["batches"]:
-                    row = {"model": name, "width": width, "mode": mode, "batch": batch, "params": params}
-                    if time.perf_counter() > t_end:
-                        rows.append({**row, "error": "not run: speed budget spent"})
-                        continue
-                    rows.append({**row, **_time_cell(model, gens, otf, p, batch, mode, dev)})
-                    r = rows[-1]
-                    said = r["error"][:120] if "error" in r else f"{r['images_per_s']:9.1f} images/s" + (
-                        f", peak {r['peak_mib']:8.0f} MiB" if r["peak_mib"] else "")
-                    print(f"  {name} {width:5s} {mode:13s} batch {batch}: {said}", flush=True)
-            model = gens = None
-            if dev.type == "cuda":
-                torch.cuda.empty_cache()
+    for name, width, modes, batches in inference_passes(p):
+        cells = [{"model": name, "width": width, "mode": mode, "batch": batch} for mode in modes for batch in batches]
+        if time.perf_counter() > t_end:
+            rows += [{**c, "error": "not run: speed budget spent"} for c in cells]
+            continue
+        try:
+            model = build_restorer(to_container(compose([f"model={name}", f"model.size={width}"]).model))
+            model.check_input_size(p["padded"])
+            model = model.to(dev)
+        except Exception as e:  # noqa: BLE001 - recorded: a defect to list, not a reason to stop
+            rows.append({"model": name, "width": width, "error": f"build: {type(e).__name__}: {e}"[:400]})
+            continue
+        params = sum(parameter_count(g) for g in model.generators())
+        for mode in modes:
+            gens = model.generators()
+            if "compile" in mode:
+                gens = [g if getattr(g, "no_compile", False) else torch.compile(g) for g in gens]
+            for batch in batches:
+                row = {"model": name, "width": width, "mode": mode, "batch": batch, "params": params}
+                if time.perf_counter() > t_end:
+                    rows.append({**row, "error": "not run: speed budget spent"})
+                    continue
+                rows.append({**row, **_time_cell(model, gens, otf, p, batch, mode, dev)})
+                r = rows[-1]
+                said = r["error"][:120] if "error" in r else f"{r['images_per_s']:9.1f} images/s" + (
+                    f", peak {r['peak_mib']:8.0f} MiB" if r["peak_mib"] else "")
+                print(f"  {name} {width:5s} {mode:13s} batch {batch}: {said}", flush=True)
+        model = gens = None
+        if dev.type == "cuda":
+            torch.cuda.empty_cache()
     return rows
 
 
@@ -213,9 +231,9 @@ def step_train(p: dict, dev: torch.device, work: Path, out: Path, budget: float)
         cmd += [f"trainer.steps={t['steps']}", "trainer.val_every=2", "trainer.checkpoint_every=2",
                 "evaluate.stages=[H1]", "evaluate.tuning_size=2", "evaluate.max_scenes=2", *TINY_PHYSICS]
     else:  # as many steps as the budget holds at a constant learning rate (the schedule would need the count)
-        train_s = max(budget - 120, 60)  # the run's own final evaluation and checkpoint
+        train_s = max(budget - t["reserve_s"], 60)  # start-up, the run's own short evaluation, the checkpoint
         cmd += ["trainer.steps=10000000", f"trainer.time_budget_s={train_s:.0f}", "trainer.val_every=500",
-                "trainer.checkpoint_every=2000", "evaluate.stages=[H1]"]
+                "trainer.checkpoint_every=2000", "evaluate.stages=[H1]", "evaluate.max_scenes=2"]
     if t.get("amp"):
         cmd += [f"trainer.amp={t['amp']}", "trainer.channels_last=true"]
     print(f"  training: {' '.join(cmd[2:])}", flush=True)
@@ -224,9 +242,22 @@ def step_train(p: dict, dev: torch.device, work: Path, out: Path, budget: float)
     keep = ("variant", "size", "parameters_generators", "parameters_critics", "steps", "seconds", "image_size",
             "padded_size", "skipped_updates")
     res = {"exit": rc, "wall_seconds": sec, "command": "python -m " + " ".join(cmd[2:]),
-           **{k: metrics[k] for k in keep if k in metrics}, "checkpoint": str(run / "checkpoint.pt")}
+           **{k: metrics[k] for k in keep if k in metrics}}
+    if (run / "checkpoint.pt").is_file():
+        res.update(keep_weights(run / "checkpoint.pt", out / "checkpoint.pt"))
     print(f"  training: exit {rc}, {res.get('steps', '?')} steps in {sec:.0f} s", flush=True)
     return res
+
+
+def keep_weights(src: Path, dst: Path) -> dict:
+    """The trained checkpoint without its optimizer, scheduler and RNG states: what +experiment=evaluate, restore
+    and init.checkpoint read, at a third of the size (the cpu-width SGAN-B: about 10 MiB, which a results folder
+    and a device tool's returned files hold)."""
+    from codesign.train.checkpoint import TRAINED_ENTRIES, load_checkpoint, save_checkpoint
+
+    state = load_checkpoint(src)
+    save_checkpoint(dst, {k: state[k] for k in (*TRAINED_ENTRIES, "mask") if k in state})
+    return {"checkpoint": dst.name, "checkpoint_mib": round(dst.stat().st_size / 2**20, 2)}
 
 
 def step_evaluate(p: dict, dev: torch.device, checkpoint: str, scenes: Path | None, work: Path, out: Path,
@@ -288,7 +319,17 @@ def main(argv=None) -> int:
                     "results of the others in --out's gpu.json are kept (a device allowing 10 minutes per command "
                     "runs the campaign in two calls)")
     ap.add_argument("--checkpoint", type=Path, default=None, help="for --only evaluate: the trained checkpoint")
+    ap.add_argument("--render", action="store_true", help="run nothing: write gpu.md (and docs/gpu.md for GPU "
+                    "results) again from --out's gpu.json, e.g. results a device run wrote elsewhere, copied here")
     a = ap.parse_args(argv)
+    if a.render:
+        out = a.out or RESULTS
+        if not (out / "gpu.json").is_file():
+            ap.error(f"--render: {out / 'gpu.json'} does not exist")
+        res = json.loads((out / "gpu.json").read_text())
+        publish(res, out, res["dry_run"])
+        print(f"rendered {out / 'gpu.md'}" + ("" if res["dry_run"] else f" and {DOCS}"))
+        return 0
     steps = [s.strip() for s in (a.only or ",".join(STEPS)).split(",") if s.strip()]
     if not steps or any(s not in STEPS for s in steps):
         ap.error(f"--only {a.only!r}: allowed steps: {', '.join(STEPS)} (comma-separated)")
@@ -329,33 +370,37 @@ def main(argv=None) -> int:
             print(f"[{i}/{n}] {STEPS[step]}", flush=True)
             t0 = time.perf_counter()
             if step == "tests":
-                res["tests"] = step_tests(dev, out, budget.share(p["shares"]["tests"], 240))
+                res["tests"] = step_tests(dev, out, budget.share(p["shares"]["tests"], p["floors"]["tests"]))
             elif step == "speed":
-                res["speed"] = step_speed(p, dev, budget.share(p["shares"]["speed"], 300))
+                res["speed"] = step_speed(p, dev, budget.share(p["shares"]["speed"], p["floors"]["speed"]))
+                if dev.type == "cuda":  # the paper-width cells' cached blocks: the training process needs them
+                    gc.collect()
+                    torch.cuda.empty_cache()
             elif step == "train":
                 reserve = p["shares"]["evaluation"] * budget.total if "evaluate" in steps else 0.0
                 res["train"] = step_train(p, dev, work, out, budget.left() - reserve)
-                ckpt = Path(res["train"]["checkpoint"])
-                if ckpt.is_file() and not a.dry_run and ckpt.stat().st_size < 100 * 2**20:
-                    shutil.copyfile(ckpt, out / "checkpoint.pt")  # kept with the results (docs/gpu.md)
-                    res["train"]["checkpoint"] = str(out / "checkpoint.pt")
             else:
-                ckpt = a.checkpoint or Path(res.get("train", {}).get("checkpoint", ""))
+                ckpt = a.checkpoint or out / res.get("train", {}).get("checkpoint", "checkpoint.pt")
                 res["evaluation"] = step_evaluate(p, dev, str(ckpt), scenes, work, out, max(budget.left(), 60)) \
                     if ckpt.is_file() else {"exit": None, "error": f"no checkpoint ({ckpt}): the training failed "
                                                                    "or was not run (train.log; --checkpoint PATH)"}
             res.setdefault("seconds", {})[step] = time.perf_counter() - t0
-    res["joint_from_trained"] = ("not run: the campaign has no warm-started joint step yet (init.checkpoint exists: "
-                                 "python -m codesign +experiment=joint init.checkpoint=CKPT, same sizes)")
-    write_json(out / "gpu.json", res)
-    fig = inference_figure(res["speed"]["inference"], out / "inference.png") if "speed" in res else None
-    write_text(out / "gpu.md", render(res, out, fig, ""))
-    if not a.dry_run:
-        write_text(DOCS, render(res, out, fig, os.path.relpath(out, DOCS.parent) + "/"))
+            publish(res, out, a.dry_run)  # after every step: a campaign cut short keeps what it measured
     print(f"done in {sum(res['seconds'][s] for s in steps) / 60:.1f} min: {out / 'gpu.json'}"
           + ("" if a.dry_run else f", {DOCS}"))
     ran = [{"evaluate": "evaluation"}.get(s, s) for s in steps if s != "speed"]
     return 1 if any(res[k].get("exit") != 0 for k in ran) else 0
+
+
+def publish(res: dict, out: Path, dry_run: bool) -> None:
+    """gpu.json, the throughput figure and gpu.md in ``out``; docs/gpu.md too for a GPU run."""
+    res.setdefault("joint_from_trained", "not run: the campaign has no warm-started joint step yet (init.checkpoint "
+                   "exists: python -m codesign +experiment=joint init.checkpoint=CKPT, same sizes)")
+    write_json(out / "gpu.json", res)
+    fig = inference_figure(res["speed"]["inference"], out / "inference.png") if "speed" in res else None
+    write_text(out / "gpu.md", render(res, out, fig, ""))
+    if not dry_run:
+        write_text(DOCS, render(res, out, fig, os.path.relpath(out, DOCS.parent) + "/"))
 
 
 def _fmt(v, spec=".2f") -> str:
@@ -446,8 +491,10 @@ def render(res: dict, out: Path, fig: Path | None, prefix: str) -> str:
             lines += ["Not run yet.", ""]
             continue
         lines += [f"*{_machine_line(machines[step])}*" if step in machines else "", ""] + body(res[key])
-    lines += [f"Joint run from the trained network: {res['joint_from_trained']}.", "", RUNNING]
-    return "\n".join(lines)
+    lines += [f"Joint run from the trained network: {res['joint_from_trained']}.", ""]
+    if (out / NOTES).is_file():  # what a person read in the figures: kept across re-renders
+        lines += [(out / NOTES).read_text().strip(), ""]
+    return "\n".join(lines + [RUNNING])
 
 
 RUNNING = """## Running it
@@ -467,8 +514,15 @@ setuptools (the build backend of the editable install). On the node, from the ch
     python -m benchmarks.gpu --budget-min 25 --scenes /path/to/the/12/photographs
 
 Everything it measures lands in benchmarks/results/gpu/ (gpu.json, tests.log, train.log, evaluate.log, the
-figures, and checkpoint.pt when under 100 MB) and this page. `python -m benchmarks.gpu --dry-run --out DIR`
-rehearses every step at tiny sizes on a CPU (tests/test_gpu_campaign.py runs it).
+figures, and checkpoint.pt: the trained network's weights and config, 10.4 MiB at the cpu width) and this page;
+gpu.json is written after every step, so a campaign cut short keeps what it measured. `python -m benchmarks.gpu
+--dry-run --out DIR` rehearses every step at tiny sizes on a CPU (tests/test_gpu_campaign.py runs it).
+
+Where the node's results come back as files (a device tool that runs one command on a copy of the checkout):
+`--out DIR` writes the 8 files into DIR; copied into benchmarks/results/gpu/ here, `python -m benchmarks.gpu
+--render` writes this page from them (with benchmarks/results/gpu/notes.md, the findings written by hand). The
+first run fitted one 10-minute call: the install (24 s) and `--budget-min 8.3` (6.6 min). `python -m
+benchmarks.gpu_profile --out DIR` adds the profiler's view of the restoration's inference.
 """
 
 

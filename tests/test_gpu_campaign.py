@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from benchmarks import gpu
+from codesign.train.checkpoint import check_trained, load_checkpoint
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -41,6 +42,28 @@ def test_dry_run_runs_every_step_and_writes_its_own_folder(tmp_path):
     for name in ("inference.png", "restorations_1e6.png", "tests.log", "train.log", "evaluate.log"):
         assert (tmp_path / name).is_file(), name
     assert (gpu.DOCS.read_bytes() if gpu.DOCS.is_file() else None) == docs_before
+    # the trained network travels as weights and config alone, which evaluate / restore / init.checkpoint read
+    assert res["train"]["checkpoint"] == "checkpoint.pt"
+    state = load_checkpoint(tmp_path / "checkpoint.pt")
+    check_trained(state, "checkpoint.pt", "checkpoint")
+    assert set(state) == {"model", "step", "config"} and state["step"] == 4
+    # --render writes the page again from gpu.json alone, with the findings written by hand beside it
+    (tmp_path / gpu.NOTES).write_text("## Findings\n\nA defect, fixed.\n")
+    (tmp_path / "gpu.md").unlink()
+    assert gpu.main(["--render", "--out", str(tmp_path)]) == 0
+    again = (tmp_path / "gpu.md").read_text()
+    assert again.replace("## Findings\n\nA defect, fixed.\n\n", "") == md and "A defect, fixed." in again
+    assert (gpu.DOCS.read_bytes() if gpu.DOCS.is_file() else None) == docs_before
+
+
+def test_compiled_cells_come_last_sgan_f_and_paper_width_first_at_the_largest_batch():
+    passes = gpu.inference_passes(gpu.PLANS["gpu"])
+    eager = [(m, w) for m, w, modes, batches in passes if modes == ("float32", "bf16") and batches == (1, 8)]
+    compiled = [(m, w) for m, w, modes, batches in passes if modes == ("bf16+compile",)]
+    assert len(eager) == len(compiled) == 6 and len(passes) == 12 and passes[:6] == [p for p in passes
+                                                                                    if "float32" in p[2]]
+    assert compiled[:2] == [("sgan_f", "paper"), ("sgan_f", "cpu")]
+    assert all(batches == (8,) for _, _, modes, batches in passes if "bf16+compile" in modes)
 
 
 @pytest.mark.parametrize("args,message", [
@@ -49,6 +72,7 @@ def test_dry_run_runs_every_step_and_writes_its_own_folder(tmp_path):
                                                           "evaluate (comma-separated)"),
     (["--dry-run", "--out", "X", "--budget-min", "0.5"], "--budget-min 0.5: must be between 1 and 600"),
     (["--dry-run", "--out", "X", "--checkpoint", "nowhere.pt"], "--checkpoint nowhere.pt: no such file"),
+    (["--render", "--out", "nowhere"], "--render: nowhere/gpu.json does not exist"),
 ])
 def test_bad_arguments_are_refused_before_any_work(args, message, capsys):
     with pytest.raises(SystemExit) as stop:

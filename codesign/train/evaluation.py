@@ -57,7 +57,7 @@ def remove_black_level(batch: dict, full_well_e: float) -> torch.Tensor:
     """The normalized sensor image minus its read-noise offset mu_r / e_sat (DN / (G e_sat) = e / e_sat), on the
     sensor's field only (the zero padding stays zero): the calibration any classical pipeline starts with."""
     s = batch["sensor"]
-    offset = batch["read_noise_mean_e"].to(s.dtype).view(-1, 1, 1, 1) / full_well_e
+    offset = batch["read_noise_mean_e"].to(s.device, s.dtype).view(-1, 1, 1, 1) / full_well_e
     return s - offset * (s != 0)
 
 
