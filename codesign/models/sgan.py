@@ -17,6 +17,7 @@ import torch.nn.functional as F
 from codesign.config.store import register, spec_node
 from codesign.models import losses
 from codesign.models.discriminators import PatchDiscriminator
+from codesign.models.fill import push_pull_fill, valid_pixels
 from codesign.models.losses import LossWeights
 from codesign.models.restorer import Restorer, TrainContext
 from codesign.models.spec import ModelSpec
@@ -44,21 +45,26 @@ def pyramid(x: torch.Tensor) -> list[torch.Tensor]:
     return [downsample2(x), x]
 
 
-def pre_restore(g1: nn.Module, sensor: torch.Tensor, residual: bool) -> torch.Tensor:
+def pre_restore(g1: nn.Module, sensor: torch.Tensor, residual: bool, base: str = "sensor") -> torch.Tensor:
+    """I_b^ = G1(s, x, y), or with ``residual`` a correction added to the sensor image (``base`` "sensor") or to
+    the sensor image with its saturated and padded pixels filled from their surroundings ("filled")."""
     out = g1(torch.cat([sensor, coordinates(sensor)], 1))
-    return sensor + out if residual else out
+    if not residual:
+        return out
+    return (sensor if base == "sensor" else push_pull_fill(sensor, valid_pixels(sensor))) + out
 
 
-def sandwich(generators, sensor: torch.Tensor, otf: torch.Tensor, g1_residual: bool) -> dict:
-    """G2(G_v(G1(s, x, y), h)) with the given (g1, gv, g2) modules (the model's own, or e.g. EMA copies)."""
+def sandwich(generators, sensor: torch.Tensor, otf: torch.Tensor, spec: ModelSpec) -> dict:
+    """G2(G_v(G1(s, x, y), h)) with the given (g1, gv, g2) modules (the model's own, or e.g. EMA copies); the
+    residual paths as ``spec`` says (g1_residual, g1_base, g2_residual: G2's outputs correct I_b^)."""
     p = sensor.shape[-1]
     if sensor.shape[-2] != p or tuple(otf.shape[-2:]) != (p, p // 2 + 1):
         raise ValueError(f"sensor must be (B, 1, P, P) with an OTF of shape (P, P // 2 + 1); got sensor "
                          f"{tuple(sensor.shape)} and OTF {tuple(otf.shape)}")
     g1, gv, g2 = generators
-    i_b = pre_restore(g1, sensor, g1_residual)
+    i_b = pre_restore(g1, sensor, spec.g1_residual, spec.g1_base)
     features = gv(i_b, otf)
-    b = g2(features)
+    b = g2(features, i_b if spec.g2_residual else None)
     return {"i_b": i_b, "features": features, "b": b, "restored": b[1]}
 
 
@@ -79,14 +85,19 @@ class Refiner(nn.Module):
         out = self.body(head(x))
         return out if self.skip is None else out + self.skip(features)
 
-    def forward(self, features: torch.Tensor) -> list[torch.Tensor]:
+    def forward(self, features: torch.Tensor, base: torch.Tensor | None = None) -> list[torch.Tensor]:
+        """[coarse, fine] estimates; ``base`` (B, 1, P, P): added to them (downsampled for the coarse one), so that
+        G2 learns a correction to it (model.g2_residual)."""
         small = downsample2(features)
         coarse = self._scale(self.heads[0], small, small)
+        if base is not None:
+            coarse = coarse + downsample2(base)
         fine_in = features
         if self.coarse_to_fine:
             up = F.interpolate(coarse, size=features.shape[-2:], mode="bicubic", align_corners=False)
             fine_in = torch.cat([features, up], 1)
-        return [coarse, self._scale(self.heads[1], fine_in, features)]
+        fine = self._scale(self.heads[1], fine_in, features)
+        return [coarse, fine if base is None else fine + base]
 
 
 class SGAN(Restorer):
@@ -147,11 +158,11 @@ class SGAN(Restorer):
     def forward_with(self, generators, sensor: torch.Tensor, otf: torch.Tensor) -> dict:
         """sensor (B, 1, P, P); otf (P, P // 2 + 1) of the system PSF kernel at the network pitch. Returns i_b
         (B,1,P,P), features (B,N,P,P) after deconvolution, b = [b^0 (B,1,P/2,P/2), b^1 (B,1,P,P)], restored = b^1."""
-        return sandwich(generators, sensor, otf, self.spec.g1_residual)
+        return sandwich(generators, sensor, otf, self.spec)
 
     def pre_restore(self, sensor: torch.Tensor) -> torch.Tensor:
         """G1: (B, 1, P, P) normalized sensor image -> I_b^ (B, 1, P, P)."""
-        return pre_restore(self.g1, sensor, self.spec.g1_residual)
+        return pre_restore(self.g1, sensor, self.spec.g1_residual, self.spec.g1_base)
 
     def critic1(self, sensor: torch.Tensor, i_b: torch.Tensor):
         """D1(s, x, y, I_b) -> (patch scores, level features)."""

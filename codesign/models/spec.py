@@ -12,6 +12,7 @@ from codesign.errors import ConfigError, require_choice, require_list, require_n
 from codesign.spec_base import SpecMixin
 
 VARIANTS = ("sgan_b", "sgan_e", "sgan_f")
+G1_BASES = ("sensor", "filled")
 SIZES: dict[str, dict] = {
     "paper": {"stem_width": 64, "widths": (64, 128, 256, 512, 512, 512, 512), "d_widths": (64, 128, 256, 512)},
     "cpu": {"stem_width": 16, "widths": (16, 32, 64, 64), "d_widths": (16, 32, 64, 64)},
@@ -38,6 +39,10 @@ class ModelSpec(SpecMixin):
     g1_residual: G1 predicts a correction to its input, I_b^ = s + G1(s, x, y) (a global skip); g2_linear_skip:
     each G2 output adds a 1x1 convolution of its input features (a direct, linear Wiener-like readout). Neither is
     in the paper, which leaves these details open; both make the first thousand steps far more productive.
+    g2_residual: G2's outputs are corrections to I_b^ (downsampled for the coarse scale), so that the untrained
+    sandwich returns I_b^; g1_base: what G1's residual corrects, the sensor image (sensor) or the sensor image with
+    its saturated and padded pixels filled from their surroundings (filled, codesign/models/fill.py). Both off by
+    default: at the CPU budget neither keeps the network ahead of the sensor image (docs/models.md Sec. 10).
     """
 
     variant: str = "sgan_b"
@@ -54,6 +59,8 @@ class ModelSpec(SpecMixin):
     coarse_to_fine: bool = True
     g1_residual: bool = True
     g2_linear_skip: bool = True
+    g2_residual: bool = False
+    g1_base: str = "sensor"
     prefix: str = field(default="model", compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -74,8 +81,9 @@ class ModelSpec(SpecMixin):
             raise ConfigError(f"{p}.fe_kernel", self.fe_kernel, "must be odd (same-size convolution)")
         require_number(f"{p}.key_channels", self.key_channels, lo=1, hi=1024, integer=True)
         require_number(f"{p}.gamma_init", self.gamma_init, lo=1e-7, hi=1e6)
+        require_choice(f"{p}.g1_base", self.g1_base, G1_BASES)
         require_number(f"{p}.g2_head_layers", self.g2_head_layers, lo=1, hi=8, integer=True)
-        for key in ("attention", "coarse_to_fine", "g1_residual", "g2_linear_skip"):
+        for key in ("attention", "coarse_to_fine", "g1_residual", "g2_linear_skip", "g2_residual"):
             if not isinstance(getattr(self, key), bool):
                 raise ConfigError(f"{p}.{key}", getattr(self, key), "must be true or false")
 

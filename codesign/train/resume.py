@@ -79,7 +79,7 @@ def load_initial_weights(model, path, cfg: DictConfig, key: str = "init.checkpoi
     the checkpoint's step and mask family."""
     state = load_checkpoint(path, key)
     check_trained(state, path, key)
-    saved, current = OmegaConf.create(state["config"]), OmegaConf.create(to_container(cfg))
+    saved, current = OmegaConf.create(_with_added_keys(state["config"])), OmegaConf.create(to_container(cfg))
     for node in (saved, current):
         for dotted in INIT_MAY_DIFFER:
             parent, _, leaf = dotted.rpartition(".")
@@ -97,13 +97,22 @@ def load_initial_weights(model, path, cfg: DictConfig, key: str = "init.checkpoi
     return {"init_checkpoint": str(path), "init_steps": int(state["step"]), "init_mask_kind": mask}
 
 
+# SGAN keys added after checkpoints were written, at the values those checkpoints were trained with
+SGAN_ADDED = {"g2_residual": False, "g1_base": "sensor"}
+
+
 def _with_added_keys(saved: dict) -> dict:
-    """A checkpoint's configuration with the optics keys added since it may have been written (the measured PSF's,
-    optics.psf_*) at their defaults: what it was trained with."""
-    optics = saved.get("optics") if isinstance(saved, dict) else None
-    if not isinstance(optics, dict):
+    """A checkpoint's configuration with the keys added since it may have been written at the values it was
+    trained with: the optics keys of the measured PSF (optics.psf_*) and the SGAN's later residual options."""
+    if not isinstance(saved, dict):
         return saved
-    return {**saved, "optics": {**MEASURED_DEFAULTS, **optics}}
+    out = dict(saved)
+    if isinstance(saved.get("optics"), dict):
+        out["optics"] = {**MEASURED_DEFAULTS, **saved["optics"]}
+    model = saved.get("model")
+    if isinstance(model, dict) and model.get("kind") == "sgan":
+        out["model"] = {**SGAN_ADDED, **model}
+    return out
 
 
 def _plain(value):

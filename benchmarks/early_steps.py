@@ -1,0 +1,90 @@
+"""How the restoration of held-out photographs moves over the first training steps of the main job's network.
+
+Trains the network of ``+experiment=joint``'s CPU default (SGAN-B, cpu width, 96 px padded to 128, batch 4) with the
+published mask frozen, in this process, and at the chosen steps scores PSNR after the per-image gain/offset match
+on the held-out photographs at alpha_l = 0 and 1e6: the network, its G1 output I_b^, the sensor image, classical
+Wiener and Wiener after G1 (docs/models.md Sec. 10). Overrides are Hydra's, e.g. ``model.g2_residual=true``.
+
+    python -m benchmarks.early_steps --steps 40 --at 0,1,10,40 model.g2_residual=true model.g1_base=filled
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from benchmarks.common import compose, write_json
+
+SCENES = Path(__file__).resolve().parents[2] / "shared" / "data" / "scenes"
+MAIN_JOB = ["+experiment=baseline", "preset=joint_cpu", "trainer=joint_cpu", "logging.tensorboard=false"]
+
+
+def scores(model, trainer, data, held_out, scenes, seed: int) -> dict:
+    """PSNR aff. of every method at alpha_l = 0 and 1e6 (baselines tuned on the training distribution)."""
+    from codesign.train.evaluation import Evaluator, centre
+
+    ev = Evaluator(model, trainer.restoring_modules(), held_out)
+    ev.tune(data.validation_batch(8))
+    out = {}
+    for j, preset in enumerate(("laser_0", "laser_1e6")):
+        batch = held_out.preset_batch(scenes, preset, seed=seed + 1000 + j)
+        images = ev.restore_all(batch)
+        images["i_b"] = centre(ev._network(batch)["i_b"], ev.n)
+        table = ev.score(images, centre(batch["scene"], ev.n).clamp(0, 1))
+        out[preset] = {m: round(float(table[m]["psnr_affine"]), 2) for m in table}
+    return out
+
+
+def main(argv=None) -> int:
+    from codesign.config.runtime import to_container
+    from codesign.train.data import SimulatedData
+    from codesign.train.setup import build_model
+    from codesign.train.spec import TrainerSpec
+    from codesign.train.trainer import RestorationTrainer, init_weights
+
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.early_steps", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--steps", type=int, default=40, help="training steps (default 40)")
+    ap.add_argument("--at", default="0,1,10,40", help="steps at which to score (comma-separated)")
+    ap.add_argument("--scenes", type=Path, default=SCENES, help="held-out photographs (default ../shared/data/scenes)")
+    ap.add_argument("--out", type=Path, default=None, help="write the scores as JSON here")
+    ap.add_argument("overrides", nargs="*", help="Hydra overrides of the run")
+    a = ap.parse_args(argv)
+    at = sorted({int(v) for v in a.at.split(",") if v.strip()})
+    if a.steps < 0 or not at or at[0] < 0 or at[-1] > a.steps:
+        ap.error(f"--at {a.at!r}: steps between 0 and --steps {a.steps}")
+    if not a.scenes.is_dir():
+        ap.error(f"--scenes {a.scenes}: no such folder")
+    cfg = compose([*MAIN_JOB, *a.overrides])
+    held_cfg = compose([*MAIN_JOB, "data.scenes=folder", f"data.folder={a.scenes}", *a.overrides])
+    seed, dev = int(cfg.seed), torch.device("cpu")
+    torch.manual_seed(seed)
+    model = build_model(cfg)
+    init_weights(model)
+    data = SimulatedData(cfg, dev, seed)
+    held_out = SimulatedData(held_cfg, dev, seed, camera=data.camera)
+    spec = TrainerSpec.from_config(to_container(cfg.trainer)).replace(steps=max(a.steps, 1), val_every=0,
+                                                                      checkpoint_every=0, image_every=0)
+    run_dir = Path(tempfile.mkdtemp(prefix="codesign_early_"))  # the trainer's folder: nothing is kept
+    trainer = RestorationTrainer(model, data, spec, run_dir, dev, to_container(cfg), None, seed)
+    names = held_out.source.split_names("all")[:12]
+    scenes = held_out.source.fixed_batch(names, data.camera.scene_size)
+    t0, res = time.perf_counter(), {"overrides": a.overrides, "scenes": names, "steps": {}}
+    for step in range(a.steps + 1):
+        if step in at:
+            res["steps"][step] = scores(model, trainer, data, held_out, scenes, seed)
+            print(f"step {step:4d} ({time.perf_counter() - t0:5.0f} s): {json.dumps(res['steps'][step])}", flush=True)
+        if step < a.steps:
+            trainer.train_step()
+    if a.out:
+        write_json(a.out, res)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,40 @@
+"""Classical hole filling for the sensor image: saturated pixels (the laser footprint) and the zero padding around
+the sensor's field are replaced by a smooth continuation of the valid pixels around them (push-pull pyramid).
+
+Why in the network: G1 is the stage that inpaints the laser and outpaints the border (supplement Sec. 2). Starting
+its residual from the sensor image itself makes its first training steps spend themselves on those two jobs, with
+corrections as large as the image's own contrast, and the restoration of an unlasered image gets worse before it
+gets better (docs/models.md). Starting from the filled image, G1 corrects a reasonable estimate instead.
+
+Push: each level halves the resolution, averaging only valid pixels (a pixel of the coarser level is valid when any
+of its four children is). Pull: from the coarsest level up, every invalid pixel takes the bilinearly upsampled value
+of the level below. Valid pixels are returned unchanged; the result is differentiable in the image.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+SATURATED = 0.999  # the normalized sensor image reads exactly 1 at full well; partially saturated network pixels
+# (a k x k average of sensor pixels) just below it are kept as measured
+
+
+def valid_pixels(sensor: torch.Tensor, saturated: float = SATURATED) -> torch.Tensor:
+    """Pixels the sensor measured: inside the field (the padding is exactly 0) and below saturation."""
+    return (sensor > 0) & (sensor < saturated)
+
+
+def push_pull_fill(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """``x`` (B, C, H, W) with every pixel where ``valid`` is False replaced by a smooth continuation of the valid
+    ones (an image without any valid pixel is returned as it is)."""
+    levels = [(x, valid.to(x.dtype))]
+    while min(levels[-1][0].shape[-2:]) > 1 and bool((levels[-1][1] == 0).any()):
+        xv, v = levels[-1]
+        num = F.avg_pool2d(xv * v, 2, ceil_mode=True)
+        den = F.avg_pool2d(v, 2, ceil_mode=True)
+        levels.append((num / den.clamp_min(1e-12), (den > 0).to(x.dtype)))
+    filled = levels[-1][0]
+    for xv, v in reversed(levels[:-1]):
+        up = F.interpolate(filled, size=xv.shape[-2:], mode="bilinear", align_corners=False)
+        filled = v * xv + (1 - v) * up
+    return torch.where(valid.flatten(-2).any(-1)[..., None, None], filled, x)

@@ -1,0 +1,84 @@
+"""The sensor image's hole filling (saturated laser footprint, zero padding) and the SGAN's residual options that
+start from it: valid pixels untouched, holes filled from their surroundings, exact identities at initialization."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from codesign.models import SGAN, ModelSpec, otf_from_kernel
+from codesign.models.fill import push_pull_fill, valid_pixels
+from codesign.train.resume import _with_added_keys
+from codesign.train.trainer import init_weights
+
+
+def _capture(p: int = 48, n: int = 32) -> torch.Tensor:
+    """A padded normalized capture: a smooth ramp inside the n x n field, a saturated disc, zeros outside."""
+    y, x = torch.meshgrid(torch.linspace(0, 1, p), torch.linspace(0, 1, p), indexing="ij")
+    s = 0.2 + 0.5 * x + 0.1 * y
+    r2 = (x - 0.5) ** 2 + (y - 0.5) ** 2
+    s = torch.where(r2 < 0.01, torch.ones_like(s), s)
+    m = (p - n) // 2
+    field = torch.zeros(p, p, dtype=torch.bool)
+    field[m:m + n, m:m + n] = True
+    return torch.where(field, s, torch.zeros_like(s))[None, None].double()
+
+
+def test_valid_pixels_are_the_field_below_saturation():
+    s = _capture()
+    v = valid_pixels(s)
+    assert not bool(v[s == 0].any()) and not bool(v[s == 1].any()) and bool(v[(s > 0) & (s < 1)].all())
+
+
+def test_fill_keeps_valid_pixels_and_continues_a_ramp_into_the_holes():
+    s = _capture()
+    v = valid_pixels(s)
+    out = push_pull_fill(s, v)
+    assert torch.equal(out[v], s[v])  # measured pixels are returned exactly
+    holes = out[~v]
+    assert bool(torch.isfinite(holes).all())
+    lo, hi = float(s[v].min()), float(s[v].max())
+    assert lo - 1e-12 <= float(holes.min()) and float(holes.max()) <= hi + 1e-12  # an average: no overshoot
+    # inside the saturated disc the ramp (0.2 + 0.5 x + 0.1 y, ~0.5 at the centre) is continued, not the 1.0
+    p = s.shape[-1]
+    centre = out[0, 0, p // 2 - 2:p // 2 + 2, p // 2 - 2:p // 2 + 2]
+    assert float((centre - 0.5).abs().max()) < 0.08
+
+
+def test_fill_of_a_constant_is_the_constant_and_of_nothing_valid_is_the_input():
+    c = torch.full((2, 1, 20, 20), 0.3, dtype=torch.float64)
+    v = torch.rand(2, 1, 20, 20, generator=torch.Generator().manual_seed(0)) > 0.7
+    assert torch.allclose(push_pull_fill(c, v), c, atol=1e-15)
+    x = torch.rand(1, 1, 9, 9, dtype=torch.float64)
+    assert torch.equal(push_pull_fill(x, torch.zeros_like(x, dtype=torch.bool)), x)
+
+
+def test_fill_gradcheck():
+    s = _capture(16, 10).requires_grad_(True)
+    v = valid_pixels(s.detach())
+    assert torch.autograd.gradcheck(lambda t: push_pull_fill(t, v), (s,))
+
+
+@pytest.mark.parametrize("base", ["sensor", "filled"])
+def test_with_both_residual_paths_the_untrained_sandwich_returns_its_base(base):
+    """G1's and G2's output convolutions start at zero: I_b^ is the base and the restoration is I_b^ exactly."""
+    torch.manual_seed(0)
+    model = SGAN(ModelSpec(size="tiny", fe_features=4, g2_residual=True, g1_base=base))
+    init_weights(model)
+    s = _capture().float()
+    k = torch.rand(5, 5)
+    out = model(s, otf_from_kernel(k / k.sum(), s.shape[-1]))
+    want = s if base == "sensor" else push_pull_fill(s, valid_pixels(s))
+    assert torch.equal(out["i_b"], want) and torch.equal(out["restored"], want)
+
+
+def test_checkpoints_from_before_the_residual_options_read_as_trained():
+    saved = {"model": {"kind": "sgan", "variant": "sgan_b"}, "optics": {"focal_n": 160}}
+    model = _with_added_keys(saved)["model"]
+    assert model["g2_residual"] is False and model["g1_base"] == "sensor"
+    other = {"model": {"kind": "wiener_unet"}}
+    assert _with_added_keys(other)["model"] == {"kind": "wiener_unet"}
+
+
+def test_g1_base_is_checked():
+    with pytest.raises(Exception, match="model.g1_base"):
+        ModelSpec(g1_base="wiener")
