@@ -36,6 +36,8 @@ import traceback
 from pathlib import Path
 
 import torch
+from torch.autograd import DeviceType
+from torch.profiler import ProfilerActivity, profile
 
 from benchmarks.common import compose, cuda_sync, machine, markdown_table, peak_cuda_mib, run_logged, timeit, \
     write_json, write_text
@@ -186,6 +188,53 @@ def _time_cell(model, gens, otf, p: dict, batch: int, mode: str, dev: torch.devi
         return {"error": f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"[:400]}
 
 
+def profile_cell(model, x, otf, mode: str, repeats: int = 5) -> tuple[str, str]:
+    """(one summary line, the profiler's table) of ``model.restore`` on ``x`` in ``mode`` (float32 or bf16)."""
+    gens = model.generators()
+
+    def call():
+        with torch.no_grad(), torch.autocast("cuda", dtype=torch.bfloat16, enabled=mode == "bf16"):
+            model.restore(x, otf, gens)
+
+    for _ in range(3):
+        call()
+    torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    for _ in range(repeats):
+        call()
+    torch.cuda.synchronize()
+    wall = (time.perf_counter() - t0) / repeats
+    with profile(activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA]) as prof:
+        call()
+        torch.cuda.synchronize()
+    ka = prof.key_averages()
+    # the device's own events (kernels, copies): an operator's row repeats its kernels' time, so summing every row
+    # counts it twice (as the first campaign's prototype of this script did; docs/gpu.md uses the table's footer)
+    dev_rows = [e for e in ka if e.device_type == DeviceType.CUDA and not e.is_user_annotation]
+    busy_ms = sum(e.self_device_time_total for e in dev_rows) / 1e3
+    launches = sum(e.count for e in dev_rows)
+    line = f"wall {1e3 * wall:.1f} ms, GPU busy {busy_ms:.1f} ms, {launches} kernel calls"
+    return line, ka.table(sort_by="self_device_time_total", row_limit=18, max_name_column_width=60)
+
+
+def profile_inference(out: Path) -> None:
+    """--profile: where SGAN-F's inference time goes (cpu and paper widths, float32 and bf16, batch 1, 256 px padded
+    to 384): wall time against the GPU's busy time and kernel launches, and torch.profiler's table, in
+    profile_sgan_f.txt. The first run found the forward launch-bound (docs/gpu.md)."""
+    from codesign.config.runtime import to_container
+    from codesign.models import build_restorer
+
+    dev, parts = torch.device("cuda"), []
+    for width in ("cpu", "paper"):
+        model = build_restorer(to_container(compose(["model=sgan_f", f"model.size={width}"]).model)).to(dev)
+        x, otf = torch.rand(1, 1, 384, 384, device=dev), _otf(384, dev)
+        for mode in ("float32", "bf16"):
+            line, table = profile_cell(model, x, otf, mode)
+            parts += [f"== sgan_f {width} {mode} batch 1: {line}", table]
+            print(parts[-2], flush=True)
+    write_text(out / "profile_sgan_f.txt", "\n".join(parts) + "\n")
+
+
 def psf_chain(p: dict, dev: torch.device) -> list[dict]:
     from codesign.design.merit import time_forward_backward
     from codesign.optics import OpticalSystem, OpticsSpec
@@ -319,6 +368,8 @@ def main(argv=None) -> int:
                     "results of the others in --out's gpu.json are kept (a device allowing 10 minutes per command "
                     "runs the campaign in two calls)")
     ap.add_argument("--checkpoint", type=Path, default=None, help="for --only evaluate: the trained checkpoint")
+    ap.add_argument("--profile", action="store_true", help="run only the inference profile (CUDA): "
+                    "profile_sgan_f.txt in --out")
     ap.add_argument("--render", action="store_true", help="run nothing: write gpu.md (and docs/gpu.md for GPU "
                     "results) again from --out's gpu.json, e.g. results a device run wrote elsewhere, copied here")
     a = ap.parse_args(argv)
@@ -339,6 +390,12 @@ def main(argv=None) -> int:
     dev = torch.device(a.device or ("cpu" if a.dry_run else "cuda"))
     if not 1 <= a.budget_min <= 600:
         ap.error(f"--budget-min {a.budget_min:g}: must be between 1 and 600")
+    if a.profile and not a.dry_run:
+        if not torch.cuda.is_available():
+            ap.error(f"--profile: no CUDA device visible (torch {torch.__version__}): it profiles the GPU")
+        (a.out or RESULTS).mkdir(parents=True, exist_ok=True)
+        profile_inference(a.out or RESULTS)
+        return 0
     if dev.type == "cuda" and not torch.cuda.is_available():
         ap.error(f"no CUDA device visible (torch {torch.__version__}): run on a GPU node, or --dry-run on a CPU")
     if a.dry_run and a.out is None:
@@ -522,7 +579,7 @@ Where the node's results come back as files (a device tool that runs one command
 `--out DIR` writes the 8 files into DIR; copied into benchmarks/results/gpu/ here, `python -m benchmarks.gpu
 --render` writes this page from them (with benchmarks/results/gpu/notes.md, the findings written by hand). The
 first run fitted one 10-minute call: the install (24 s) and `--budget-min 8.3` (6.6 min). `python -m
-benchmarks.gpu_profile --out DIR` adds the profiler's view of the restoration's inference.
+benchmarks.gpu --profile --out DIR` adds the profiler's view of the restoration's inference.
 """
 
 

@@ -31,10 +31,11 @@ def test_every_registered_benchmark_is_a_module_with_a_run_function(name):
 
 def test_benchmarks_holds_the_suite_and_its_helpers_only():
     """No stand-alone studies beside the suite: __main__, common, one bench_<name>.py per registry entry, the GPU
-    campaign (gpu.py), which runs parts of entries on a GPU node as __main__ runs them all, and the co-design study
-    (codesign_study.py), which runs experiments, not timings."""
+    campaign (gpu.py), which runs parts of entries on a GPU node as __main__ runs them all, and the two studies that
+    run experiments, not timings: the co-design study (codesign_study.py) and the network's first training steps
+    (early_steps.py)."""
     modules = {p.name for p in BENCH_DIR.glob("*.py")}
-    allowed = {"__init__.py", "__main__.py", "common.py", "gpu.py", "codesign_study.py"} | \
+    allowed = {"__init__.py", "__main__.py", "common.py", "gpu.py", "codesign_study.py", "early_steps.py"} | \
         {f"bench_{n}.py" for n in BENCHMARKS}
     assert modules <= allowed, f"not part of the suite: {sorted(modules - allowed)}"
     assert not [p for p in BENCH_DIR.iterdir() if p.is_dir() and p.name not in ("results", "__pycache__")]

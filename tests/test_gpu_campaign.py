@@ -86,6 +86,9 @@ def test_without_a_gpu_the_campaign_points_to_the_dry_run(capsys):
         gpu.main([])
     assert (f"no CUDA device visible (torch {torch.__version__}): run on a GPU node, or --dry-run on a CPU"
             in capsys.readouterr().err)
+    with pytest.raises(SystemExit):
+        gpu.main(["--profile"])
+    assert f"--profile: no CUDA device visible (torch {torch.__version__}): it profiles the GPU" in capsys.readouterr().err
 
 
 def test_a_partial_run_keeps_the_other_steps_results(tmp_path):

@@ -81,12 +81,28 @@ def _train(tr, steps: int) -> list[dict]:
     return [tr.train_step() for _ in range(steps)]
 
 
+# The penalty terms (and the critic total they dominate) may spike in a single step and come back: on another
+# 2-core AMD EPYC (2026-11-26) the same seeded 100-step run had d2_gp 83,045 (critic_total 8.3e5) at step 36 alone,
+# below 1e3 before and after, with learning unaffected. A diverging critic does not come back. So these may exceed
+# their bound in at most SPIKES steps, each followed within RECOVERY steps by one under it, and never by SPIKE_CAP x.
+SPIKY, SPIKES, RECOVERY, SPIKE_CAP = ("d1_gp", "d2_gp", "critic_total"), 3, 2, 100.0
+
+
 def _check_finite_and_bounded(logs: list[dict]) -> None:
+    over: dict[str, list[int]] = {}
     for k, terms in enumerate(logs):
         for name, value in terms.items():
             assert math.isfinite(value), f"step {k}: {name} = {value}"
-            if name in BOUNDS:
-                assert abs(value) <= BOUNDS[name], f"step {k}: |{name}| = {abs(value):.4g} > {BOUNDS[name]:g}"
+            if name not in BOUNDS or abs(value) <= BOUNDS[name]:
+                continue
+            assert name in SPIKY and abs(value) <= SPIKE_CAP * BOUNDS[name], \
+                f"step {k}: |{name}| = {abs(value):.4g} > {BOUNDS[name]:g}"
+            over.setdefault(name, []).append(k)
+    for name, steps in over.items():
+        assert len(steps) <= SPIKES, f"|{name}| above {BOUNDS[name]:g} in {len(steps)} steps: {steps}"
+        for k in steps:
+            after = [abs(float(t[name])) for t in logs[k + 1:k + 1 + RECOVERY]]
+            assert not after or min(after) <= BOUNDS[name], f"|{name}| did not come back after step {k}: {after}"
 
 
 def _validation_rec(tr) -> tuple[float, float]:
@@ -258,3 +274,15 @@ def test_joint_mask_and_network_under_strong_lasers_stay_finite_and_feasible(tmp
         _check_learning(tr, before, logs)
     assert _weights_finite([tr.model, tr.mask])
     assert not all(torch.equal(a, b) for a, b in zip(start, snapshot(tr.mask)))  # the mask did move
+
+
+def test_the_bound_check_lets_a_single_penalty_spike_pass_and_catches_a_diverging_critic():
+    calm = {"d2_gp": 10.0, "critic_total": 100.0, "rec1": 0.1}
+    spike = {"d2_gp": 8e4, "critic_total": 8e5, "rec1": 0.1}
+    _check_finite_and_bounded([calm, spike, calm, calm])
+    for logs in ([calm, spike, spike, spike, calm],  # no recovery within two steps
+                 [calm, {**spike, "d2_gp": 2e6}, calm],  # beyond the cap
+                 [calm, {**calm, "rec1": 6.0}],  # a non-penalty term is never allowed a spike
+                 [calm, {**calm, "d2_gp": math.nan}]):
+        with pytest.raises(AssertionError):
+            _check_finite_and_bounded(logs)
