@@ -26,8 +26,8 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from benchmarks.common import (Report, compose, cuda_sync, machine, markdown_table, peak_cuda_mib, time_error_plot,
-                               timeit, write_json)
+from benchmarks.common import (Report, compose, cuda_sync, machine, markdown_table, peak_cuda_mib, restorer,
+                               time_error_plot, timeit, write_json)
 
 METHODS = ("sgan_b", "sgan_e", "sgan_f", "wiener_unet")  # model=<name>; each trained with the same budget
 ALPHAS = (0.0, 1e6)
@@ -106,8 +106,7 @@ def measure(scale: str) -> dict:
     from codesign.train.evaluation import Evaluator
     from codesign.camera import field_of_view as centre
     from codesign.train.data import SimulatedData
-    from codesign.config.runtime import to_container
-    from codesign.models import build_restorer, classical_wiener, otf_from_kernel, parameter_count
+    from codesign.models import classical_wiener, otf_from_kernel, parameter_count
 
     dev = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     p = plan(scale, dev)
@@ -145,7 +144,7 @@ def measure(scale: str) -> dict:
         x1 = F.pad(batches[ALPHAS[-1]]["sensor"][:1], [(padded - p["padded"]) // 2] * 4)
         otf = otf_from_kernel(data.camera.frozen_optics().kernel, padded).to(dev)
         for method in METHODS:
-            model = build_restorer(to_container(compose([f"model={method}", f"model.size={size}"]).model)).to(dev)
+            model = restorer(method, size).to(dev)
             model.check_input_size(padded)
             ms, mem = _timed(lambda: model.restore(x1, otf),
                              1 if size == "paper" and dev.type != "cuda" else p["repeats"], dev)

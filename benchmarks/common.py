@@ -192,6 +192,14 @@ def compose(overrides: list[str]):
         return hydra_compose("config", overrides=list(overrides))
 
 
+def restorer(kind: str, size: str):
+    """An untrained restoration network ``model=<kind>`` at ``model.size=<size>``, as the config builds it."""
+    from codesign.config.runtime import to_container
+    from codesign.models import build_restorer
+
+    return build_restorer(to_container(compose([f"model={kind}", f"model.size={size}"]).model))
+
+
 class SensorSetup(NamedTuple):
     """The default optics (conf/optics: 384 samples across, MFT) with the published half-ring mask frozen."""
 

@@ -32,10 +32,8 @@ def scores(model, trainer, data, held_out, scenes, seed: int) -> dict:
     ev.tune(data.validation_batch(8))
     out = {}
     for j, preset in enumerate(("laser_0", "laser_1e6")):
-        batch = held_out.preset_batch(scenes, preset, seed=seed + 1000 + j)
-        images = ev.restore_all(batch)
-        images["i_b"] = centre(ev._network(batch)["i_b"], ev.n)
-        table = ev.score(images, centre(batch["scene"], ev.n).clamp(0, 1))
+        batch, _, target, table = ev.score_preset(scenes, preset, seed + 1000 + j)
+        table.update(ev.score({"i_b": centre(ev._network(batch)["i_b"], ev.n)}, target))
         out[preset] = {m: round(float(table[m]["psnr_affine"]), 2) for m in table}
     return out
 

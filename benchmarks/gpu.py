@@ -39,8 +39,8 @@ import torch
 from torch.autograd import DeviceType
 from torch.profiler import ProfilerActivity, profile
 
-from benchmarks.common import compose, cuda_sync, machine, markdown_table, peak_cuda_mib, run_logged, timeit, \
-    write_json, write_text
+from benchmarks.common import cuda_sync, machine, markdown_table, peak_cuda_mib, restorer, run_logged, \
+    timeit, write_json, write_text
 
 REPO = Path(__file__).resolve().parent.parent
 RESULTS = REPO / "benchmarks" / "results" / "gpu"
@@ -134,8 +134,7 @@ def inference_passes(p: dict) -> list[tuple[str, str, tuple[str, ...], tuple[int
 
 def inference_cells(p: dict, dev: torch.device, budget: float) -> list[dict]:
     """images/s and peak memory of every (model, width, mode, batch) while the budget lasts."""
-    from codesign.config.runtime import to_container
-    from codesign.models import build_restorer, parameter_count
+    from codesign.models import parameter_count
 
     t_end, rows, otf = time.perf_counter() + budget, [], _otf(p["padded"], dev)
     for name, width, modes, batches in inference_passes(p):
@@ -144,7 +143,7 @@ def inference_cells(p: dict, dev: torch.device, budget: float) -> list[dict]:
             rows += [{**c, "error": "not run: speed budget spent"} for c in cells]
             continue
         try:
-            model = build_restorer(to_container(compose([f"model={name}", f"model.size={width}"]).model))
+            model = restorer(name, width)
             model.check_input_size(p["padded"])
             model = model.to(dev)
         except Exception as e:  # noqa: BLE001 - recorded: a defect to list, not a reason to stop
@@ -221,12 +220,9 @@ def profile_inference(out: Path) -> None:
     """--profile: where SGAN-F's inference time goes (cpu and paper widths, float32 and bf16, batch 1, 256 px padded
     to 384): wall time against the GPU's busy time and kernel launches, and torch.profiler's table, in
     profile_sgan_f.txt. The first run found the forward launch-bound (docs/gpu.md)."""
-    from codesign.config.runtime import to_container
-    from codesign.models import build_restorer
-
     dev, parts = torch.device("cuda"), []
     for width in ("cpu", "paper"):
-        model = build_restorer(to_container(compose(["model=sgan_f", f"model.size={width}"]).model)).to(dev)
+        model = restorer("sgan_f", width).to(dev)
         x, otf = torch.rand(1, 1, 384, 384, device=dev), _otf(384, dev)
         for mode in ("float32", "bf16"):
             line, table = profile_cell(model, x, otf, mode)

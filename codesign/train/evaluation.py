@@ -183,6 +183,16 @@ class Evaluator:
             table[name] = {k: float(v.mean()) for k, v in row.items()}
         return table
 
+    @torch.no_grad()
+    def score_preset(self, scenes: torch.Tensor, preset: str, seed: int, overrides: dict | None = None,
+                     per_scene: dict | None = None) -> tuple[dict, dict, torch.Tensor, dict]:
+        """(batch, restored images, target, table): ``scenes`` simulated under ``preset`` with noise ``seed``, every
+        method restored and scored against the centre of the scene (``per_scene``: as ``score``)."""
+        batch = self.data.preset_batch(scenes, preset, seed=seed, **(overrides or {}))
+        images = self.restore_all(batch)
+        target = centre(batch["scene"], self.n).clamp(0, 1)
+        return batch, images, target, self.score(images, target, per_scene)
+
 
 def conditions(laser_strengths=LASER_STRENGTHS, stages=tuple(ROBUSTNESS_STAGES)) -> list[str]:
     """Preset names: laser_0, laser_1e1 .. laser_1e6 (figure settings) then the robustness stages."""
@@ -196,11 +206,9 @@ def evaluate(evaluator: Evaluator, scenes: torch.Tensor, names: list[str], prese
     (input, every method, truth; for figures that compare runs)."""
     results, rows, per_scene, kept = {}, [], {}, {}
     for j, preset in enumerate(presets):
-        batch = evaluator.data.preset_batch(scenes, preset, seed=seed + 1000 + j, **(overrides or {}))
-        images = evaluator.restore_all(batch)
-        target = centre(batch["scene"], evaluator.n).clamp(0, 1)
         per_scene[preset] = {}
-        table = evaluator.score(images, target, per_scene[preset])
+        batch, images, target, table = evaluator.score_preset(scenes, preset, seed + 1000 + j, overrides,
+                                                              per_scene[preset])
         results[preset] = table
         for method, metrics in table.items():
             rows.append({"condition": preset, "method": method, **metrics})
