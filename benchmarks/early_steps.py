@@ -29,7 +29,7 @@ def scores(model, trainer, data, held_out, scenes, seed: int) -> dict:
     from codesign.train.evaluation import Evaluator, centre
 
     ev = Evaluator(model, trainer.restoring_modules(), held_out)
-    ev.tune(data.validation_batch(8))
+    ev.tune_per_condition(data.validation_scenes(8), seed + 104729)
     out = {}
     for j, preset in enumerate(("laser_0", "laser_1e6")):
         batch, _, target, table = ev.score_preset(scenes, preset, seed + 1000 + j)
@@ -50,7 +50,8 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=40, help="training steps (default 40)")
     ap.add_argument("--at", default="0,1,10,40", help="steps at which to score (comma-separated)")
     ap.add_argument("--scenes", type=Path, default=SCENES, help="held-out photographs (default ../shared/data/scenes)")
-    ap.add_argument("--out", type=Path, default=None, help="write the scores as JSON here")
+    ap.add_argument("--out", type=Path, default=None, help="write the scores as JSON here (after every scoring)")
+    ap.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
     ap.add_argument("overrides", nargs="*", help="Hydra overrides of the run")
     a = ap.parse_args(argv)
     at = sorted({int(v) for v in a.at.split(",") if v.strip()})
@@ -58,12 +59,21 @@ def main(argv=None) -> int:
         ap.error(f"--at {a.at!r}: steps between 0 and --steps {a.steps}")
     if not a.scenes.is_dir():
         ap.error(f"--scenes {a.scenes}: no such folder")
+    try:
+        dev = torch.device(a.device)
+    except RuntimeError:
+        ap.error(f"--device {a.device!r}: cpu, cuda or cuda:N")
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        ap.error(f"--device {a.device}: no CUDA device visible (torch {torch.__version__})")
+    if dev.type not in ("cpu", "cuda"):
+        ap.error(f"--device {a.device!r}: cpu, cuda or cuda:N")
     cfg = compose([*MAIN_JOB, *a.overrides])
     held_cfg = compose([*MAIN_JOB, "data.scenes=folder", f"data.folder={a.scenes}", *a.overrides])
-    seed, dev = int(cfg.seed), torch.device("cpu")
+    seed = int(cfg.seed)
     torch.manual_seed(seed)
     model = build_model(cfg)
-    init_weights(model)
+    init_weights(model)  # on the CPU: the same initial weights on every device
+    model = model.to(dev)
     data = SimulatedData(cfg, dev, seed)
     held_out = SimulatedData(held_cfg, dev, seed, camera=data.camera)
     spec = TrainerSpec.from_config(to_container(cfg.trainer)).replace(steps=max(a.steps, 1), val_every=0,
@@ -72,15 +82,16 @@ def main(argv=None) -> int:
     trainer = RestorationTrainer(model, data, spec, run_dir, dev, to_container(cfg), None, seed)
     names = held_out.source.split_names("all")[:12]
     scenes = held_out.source.fixed_batch(names, data.camera.scene_size)
-    t0, res = time.perf_counter(), {"overrides": a.overrides, "scenes": names, "steps": {}}
+    t0, res = time.perf_counter(), {"overrides": a.overrides, "device": str(dev), "scenes": names, "steps": {}}
     for step in range(a.steps + 1):
         if step in at:
             res["steps"][step] = scores(model, trainer, data, held_out, scenes, seed)
-            print(f"step {step:4d} ({time.perf_counter() - t0:5.0f} s): {json.dumps(res['steps'][step])}", flush=True)
+            res["seconds"] = round(time.perf_counter() - t0, 1)
+            print(f"step {step:4d} ({res['seconds']:5.0f} s): {json.dumps(res['steps'][step])}", flush=True)
+            if a.out:  # after every scoring: a run cut short keeps what it measured
+                write_json(a.out, res)
         if step < a.steps:
             trainer.train_step()
-    if a.out:
-        write_json(a.out, res)
     return 0
 
 

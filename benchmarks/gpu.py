@@ -2,11 +2,13 @@
 
   1. the CUDA test subset (``pytest tests/device --device cuda``),
   2. the speed table: SGAN-B/E/F inference at 256 px padded to 384, cpu and paper widths, float32 / bf16 /
-     bf16 + torch.compile, batch 1 and 8 (images/s, peak memory); the paper-preset joint step split into its
-     parts (benchmarks/bench_joint.py); the PSF chain (mask parameters -> PSF -> smooth LSR, forward + backward)
-     at the default and the paper's sampling,
-  3. a training run of the sandwich with the published mask (the rest of the budget, less the evaluation's share),
-  4. its evaluation on held-out photographs (default ../shared/data/scenes) against the sensor image and classical
+     batch 1 and 8 (images/s, peak memory); the paper-preset joint step split into its parts
+     (benchmarks/bench_joint.py); the PSF chain (mask parameters -> PSF -> smooth LSR, forward + backward) at the
+     default and the paper's sampling,
+  3. the compiled inference cells: torch.compile (kernel fusion) and its reduce-overhead mode (CUDA graphs: one
+     launch per network call; eager inference is launch-bound), float32, batch 8, SGAN-F and paper width first,
+  4. a training run of the sandwich with the published mask (the rest of the budget, less the evaluation's share),
+  5. its evaluation on held-out photographs (default ../shared/data/scenes) against the sensor image and classical
      Wiener at alpha_l = 0, 1e3, 1e6,
 
 and writes gpu.json, the figures and gpu.md into benchmarks/results/gpu/ and docs/gpu.md.
@@ -48,25 +50,28 @@ DOCS = REPO / "docs" / "gpu.md"
 SCENES = REPO.parent / "shared" / "data" / "scenes"
 ALPHAS = ("0", "1e3", "1e6")
 NOTES = "notes.md"  # findings written by hand beside the results; render() includes them
-STEPS = {"tests": "tests on the device", "speed": "speed table", "train": "training with the published mask",
+STEPS = {"tests": "tests on the device", "speed": "speed table", "compiled": "compiled inference cells",
+         "train": "training with the published mask",
          "evaluate": "evaluation on held-out scenes"}
 # the dry run's physics: smoke optics, no far-PSF laser halo (seconds per mask; tests/sensor/test_laser_halo.py)
 TINY_PHYSICS = ["optics.pupil_pitch_m=2.0e-5", "optics.focal_n=160", "sensor.laser_halo=false"]
 PLANS = {
     "gpu": dict(models=("sgan_b", "sgan_e", "sgan_f"), widths=("cpu", "paper"), image=256, padded=384,
-                batches=(1, 8), modes=("float32", "bf16", "bf16+compile"), repeats=20, joint=["preset=paper"],
+                batches=(1, 8), modes=("float32", "bf16"), compiled=("float32+compile", "float32+cudagraphs"), repeats=20, joint=["preset=paper"],
                 joint_warmup=2, joint_repeats=5, psf_samples=(384, 1024), psf_repeats=10,
                 train=dict(model="sgan_b", size="cpu", image=256, padded=384, batch=16, amp="bf16", reserve_s=75),
-                eval=[], shares=dict(tests=0.12, speed=0.2, evaluation=0.12), floors=dict(tests=120, speed=60)),
+                eval=[], shares=dict(tests=0.12, speed=0.2, compiled=0.15, evaluation=0.12),
+                floors=dict(tests=120, speed=60, compiled=60)),
     # every step at tiny sizes on a CPU; compile is left to tests/train/test_train_options.py (a CPU compile of
-    # even the tiny network takes minutes of C++ builds)
+    # even the tiny network takes minutes of C++ builds): the dry run's compiled step times nothing
     "dry": dict(models=("sgan_b", "sgan_f"), widths=("tiny",), image=48, padded=64, batches=(1, 2),
-                modes=("float32", "bf16"), repeats=2, joint=["model.size=tiny", "data.image_size=48",
+                modes=("float32", "bf16"), compiled=(), repeats=2, joint=["model.size=tiny", "data.image_size=48",
                 "data.padded_size=64", "data.batch_size=2", *TINY_PHYSICS], joint_warmup=1, joint_repeats=1,
                 psf_samples=(192,), psf_repeats=1,
                 train=dict(model="sgan_b", size="tiny", image=48, padded=64, batch=2, amp=None, steps=4),
                 eval=["evaluate.stages=[H1]", "evaluate.tuning_size=2", "evaluate.max_scenes=2"],
-                shares=dict(tests=0.4, speed=0.3, evaluation=0.1), floors=dict(tests=240, speed=300)),
+                shares=dict(tests=0.4, speed=0.3, compiled=0.0, evaluation=0.1),
+                floors=dict(tests=240, speed=300, compiled=0)),
 }
 
 
@@ -119,25 +124,32 @@ def _otf(padded: int, dev: torch.device) -> torch.Tensor:
     return otf_from_kernel(k / k.sum(), padded).to(dev)
 
 
-def inference_passes(p: dict) -> list[tuple[str, str, tuple[str, ...], tuple[int, ...]]]:
-    """(model, width, modes, batches) in the order they are timed: every eager cell first, then the compiled ones at
-    the largest batch only, SGAN-F (the paper's speed claim) and the paper width first: a torch.compile costs tens
-    of seconds per network and shape, so a short budget drops the least wanted compiled cells, not eager ones."""
-    eager = tuple(m for m in p["modes"] if "compile" not in m)
-    compiled = tuple(m for m in p["modes"] if "compile" in m)
-    out = [(name, width, eager, tuple(p["batches"])) for name in p["models"] for width in p["widths"]]
-    if compiled:
-        out += [(name, width, compiled, (max(p["batches"]),))
-                for name in sorted(p["models"], key=lambda n: n != "sgan_f") for width in reversed(p["widths"])]
-    return out
+def inference_passes(p: dict, compiled: bool = False) -> list[tuple[str, str, tuple[str, ...], tuple[int, ...]]]:
+    """(model, width, modes, batches) in the order they are timed: the eager cells, or the compiled ones at the
+    largest batch only, SGAN-F (the paper's speed claim) and the paper width first: a torch.compile costs tens of
+    seconds per network and shape, so a short budget drops the least wanted compiled cells."""
+    if not compiled:
+        return [(name, width, tuple(p["modes"]), tuple(p["batches"])) for name in p["models"] for width in p["widths"]]
+    if not p["compiled"]:
+        return []
+    return [(name, width, tuple(p["compiled"]), (max(p["batches"]),))
+            for name in sorted(p["models"], key=lambda n: n != "sgan_f") for width in reversed(p["widths"])]
 
 
-def inference_cells(p: dict, dev: torch.device, budget: float) -> list[dict]:
+def _compiled(g, mode: str):
+    """``g`` compiled for ``mode``: "+cudagraphs" is torch.compile's reduce-overhead mode (CUDA graphs replay the
+    whole network in one launch), "+compile" its default (fused kernels, one launch each)."""
+    if "compile" not in mode and "cudagraphs" not in mode or getattr(g, "no_compile", False):
+        return g
+    return torch.compile(g, mode="reduce-overhead" if "cudagraphs" in mode else None)
+
+
+def inference_cells(p: dict, dev: torch.device, budget: float, compiled: bool = False) -> list[dict]:
     """images/s and peak memory of every (model, width, mode, batch) while the budget lasts."""
     from codesign.models import parameter_count
 
     t_end, rows, otf = time.perf_counter() + budget, [], _otf(p["padded"], dev)
-    for name, width, modes, batches in inference_passes(p):
+    for name, width, modes, batches in inference_passes(p, compiled):
         cells = [{"model": name, "width": width, "mode": mode, "batch": batch} for mode in modes for batch in batches]
         if time.perf_counter() > t_end:
             rows += [{**c, "error": "not run: speed budget spent"} for c in cells]
@@ -151,9 +163,7 @@ def inference_cells(p: dict, dev: torch.device, budget: float) -> list[dict]:
             continue
         params = sum(parameter_count(g) for g in model.generators())
         for mode in modes:
-            gens = model.generators()
-            if "compile" in mode:
-                gens = [g if getattr(g, "no_compile", False) else torch.compile(g) for g in gens]
+            gens = [_compiled(g, mode) for g in model.generators()]
             for batch in batches:
                 row = {"model": name, "width": width, "mode": mode, "batch": batch, "params": params}
                 if time.perf_counter() > t_end:
@@ -179,7 +189,7 @@ def _time_cell(model, gens, otf, p: dict, batch: int, mode: str, dev: torch.devi
 
     try:
         peak_cuda_mib(dev, reset=True)
-        sec = timeit(call, p["repeats"], warmup=3 if "compile" in mode else 1, sync=cuda_sync(dev))
+        sec = timeit(call, p["repeats"], warmup=3 if "+" in mode else 1, sync=cuda_sync(dev))
         return {"ms_per_batch": 1e3 * sec, "images_per_s": batch / sec, "peak_mib": peak_cuda_mib(dev)}
     except Exception as e:  # noqa: BLE001 - out of memory, a compile failure: recorded, the campaign goes on
         if dev.type == "cuda":
@@ -429,6 +439,11 @@ def main(argv=None) -> int:
                 if dev.type == "cuda":  # the paper-width cells' cached blocks: the training process needs them
                     gc.collect()
                     torch.cuda.empty_cache()
+            elif step == "compiled":
+                speed = res.setdefault("speed", {"inference": []})
+                kept = [r for r in speed["inference"] if "+" not in r.get("mode", "")]
+                speed["inference"] = kept + inference_cells(
+                    p, dev, budget.share(p["shares"]["compiled"], p["floors"]["compiled"]), compiled=True)
             elif step == "train":
                 reserve = p["shares"]["evaluation"] * budget.total if "evaluate" in steps else 0.0
                 res["train"] = step_train(p, dev, work, out, budget.left() - reserve)
@@ -441,7 +456,7 @@ def main(argv=None) -> int:
             publish(res, out, a.dry_run)  # after every step: a campaign cut short keeps what it measured
     print(f"done in {sum(res['seconds'][s] for s in steps) / 60:.1f} min: {out / 'gpu.json'}"
           + ("" if a.dry_run else f", {DOCS}"))
-    ran = [{"evaluate": "evaluation"}.get(s, s) for s in steps if s != "speed"]
+    ran = [{"evaluate": "evaluation"}.get(s, s) for s in steps if s not in ("speed", "compiled")]
     return 1 if any(res[k].get("exit") != 0 for k in ran) else 0
 
 
@@ -471,7 +486,8 @@ def _speed_lines(res: dict, sp: dict, fig: Path | None, prefix: str) -> list[str
 
     plan = res["plan"]
     lines = [f"Restoration inference ({plan['image']} px images padded to {plan['padded']}, no gradient, median "
-             f"of {plan['repeats']} calls; a compiled cell after 3 warm-up calls):", ""]
+             f"of {plan['repeats']} calls; a compiled cell (+compile: torch.compile, +cudagraphs: its reduce-overhead "
+             "mode) after 3 warm-up calls):", ""]
     rows = [[r["model"], r["width"], r.get("mode", "-"), r.get("batch", "-"), r.get("params", "-"),
              _fmt(r.get("images_per_s"), ".1f"), _fmt(r.get("ms_per_batch"), ".2f"), _fmt(r.get("peak_mib"), ".0f"),
              r.get("error", "")] for r in sp["inference"]]
@@ -484,7 +500,7 @@ def _speed_lines(res: dict, sp: dict, fig: Path | None, prefix: str) -> list[str
                   f"{best['batch']}), {best['images_per_s'] / 25:.1f}x the paper's 25 FPS (goal: >= 100).", ""]
     if fig:
         lines += [f"![inference]({prefix}{fig.name})", ""]
-    j = sp["joint"]
+    j = sp.get("joint", {"overrides": [], "error": "not run (the speed step was not run)"})
     if "joint" in j:
         optics = sum(j["joint"].get(k, 0.0) for k in ("mask_to_psf", "psf_to_kernel_otf", "simulation"))
         lines += [f"Joint step (`+experiment=joint {' '.join(j['overrides'])}`: {j['model_size']}-width {j['model']}, "
@@ -500,7 +516,7 @@ def _speed_lines(res: dict, sp: dict, fig: Path | None, prefix: str) -> list[str
               markdown_table(["samples across", "grid", "window", "propagator", "forward ms", "backward ms",
                               "peak MiB"], [[r["samples_across"], r["grid_n"], r["focal_n"], r["propagator"],
                                              _fmt(r["forward_ms"]), _fmt(r["backward_ms"]), _fmt(r["peak_mib"], ".0f")]
-                                            for r in sp["psf"]]), ""]
+                                            for r in sp.get("psf", [])]), ""]
     return lines
 
 

@@ -56,20 +56,21 @@ def test_dry_run_runs_every_step_and_writes_its_own_folder(tmp_path):
     assert (gpu.DOCS.read_bytes() if gpu.DOCS.is_file() else None) == docs_before
 
 
-def test_compiled_cells_come_last_sgan_f_and_paper_width_first_at_the_largest_batch():
-    passes = gpu.inference_passes(gpu.PLANS["gpu"])
-    eager = [(m, w) for m, w, modes, batches in passes if modes == ("float32", "bf16") and batches == (1, 8)]
-    compiled = [(m, w) for m, w, modes, batches in passes if modes == ("bf16+compile",)]
-    assert len(eager) == len(compiled) == 6 and len(passes) == 12 and passes[:6] == [p for p in passes
-                                                                                    if "float32" in p[2]]
-    assert compiled[:2] == [("sgan_f", "paper"), ("sgan_f", "cpu")]
-    assert all(batches == (8,) for _, _, modes, batches in passes if "bf16+compile" in modes)
+def test_compiled_cells_sgan_f_and_paper_width_first_at_the_largest_batch():
+    plan = gpu.PLANS["gpu"]
+    eager, compiled = gpu.inference_passes(plan), gpu.inference_passes(plan, compiled=True)
+    assert len(eager) == len(compiled) == 6
+    assert all(modes == ("float32", "bf16") and batches == (1, 8) for _, _, modes, batches in eager)
+    assert all(modes == ("float32+compile", "float32+cudagraphs") and batches == (8,)
+               for _, _, modes, batches in compiled)
+    assert [(m, w) for m, w, _, _ in compiled[:2]] == [("sgan_f", "paper"), ("sgan_f", "cpu")]
+    assert gpu.inference_passes(gpu.PLANS["dry"], compiled=True) == []
 
 
 @pytest.mark.parametrize("args,message", [
     (["--dry-run"], "--dry-run needs --out DIR (its tiny-size figures must not replace the GPU results)"),
-    (["--dry-run", "--out", "X", "--only", "tests,fly"], "--only 'tests,fly': allowed steps: tests, speed, train, "
-                                                          "evaluate (comma-separated)"),
+    (["--dry-run", "--out", "X", "--only", "tests,fly"], "--only 'tests,fly': allowed steps: tests, speed, compiled, "
+                                                          "train, evaluate (comma-separated)"),
     (["--dry-run", "--out", "X", "--budget-min", "0.5"], "--budget-min 0.5: must be between 1 and 600"),
     (["--dry-run", "--out", "X", "--checkpoint", "nowhere.pt"], "--checkpoint nowhere.pt: no such file"),
     (["--render", "--out", "nowhere"], "--render: nowhere/gpu.json does not exist"),

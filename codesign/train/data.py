@@ -113,13 +113,18 @@ class SimulatedData:
         same scenes, parameters and noise every call, imaged through the camera's current mask (a joint run
         validates its network on the mask it has learned, and a resumed run sees the batch an uninterrupted one
         sees)."""
+        self.validation_scenes(size)
+        with torch.no_grad():
+            return self.simulate(*self._val_inputs, seed=self.seed + 104729)
+
+    def validation_scenes(self, size: int) -> torch.Tensor:
+        """The validation batch's ``size`` scenes: fixed crops of the training split (own generator)."""
         if self._val_inputs is None or self._val_inputs[0].shape[0] != size:
             gen = torch.Generator().manual_seed(self.seed + 7919)
             sampler = SceneSampler(self.source, "train", self.camera.scene_size, size, gen, flips=self.sampler.flips)
             scenes = sampler.sample()
             self._val_inputs = (scenes, self._params(size, gen))
-        with torch.no_grad():
-            return self.simulate(*self._val_inputs, seed=self.seed + 104729)
+        return self._val_inputs[0]
 
     def preset_batch(self, scenes: torch.Tensor, preset: str, seed: int, **overrides) -> dict:
         """Evaluation batch: every scene under the named preset (laser_1e3, E1, ...), optional overrides."""
