@@ -61,7 +61,7 @@ def test_compiled_cells_sgan_f_and_paper_width_first_at_the_largest_batch():
     eager, compiled = gpu.inference_passes(plan), gpu.inference_passes(plan, compiled=True)
     assert len(eager) == len(compiled) == 6
     assert all(modes == ("float32", "bf16") and batches == (1, 8) for _, _, modes, batches in eager)
-    assert all(modes == ("float32+compile", "float32+cudagraphs") and batches == (8,)
+    assert all(modes == ("float32+cudagraphs", "float32+compile") and batches == (8,)
                for _, _, modes, batches in compiled)
     assert [(m, w) for m, w, _, _ in compiled[:2]] == [("sgan_f", "paper"), ("sgan_f", "cpu")]
     assert gpu.inference_passes(gpu.PLANS["dry"], compiled=True) == []

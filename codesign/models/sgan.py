@@ -8,6 +8,7 @@
 """
 from __future__ import annotations
 
+import math
 from typing import Mapping
 
 import torch
@@ -22,7 +23,7 @@ from codesign.models.losses import LossWeights
 from codesign.models.restorer import Restorer, TrainContext
 from codesign.models.spec import ModelSpec
 from codesign.models.unet import ResUNet, UNetBody, make_head, zero_conv
-from codesign.models.wiener import DeconvModule
+from codesign.models.wiener import DeconvModule, wiener_filter
 
 
 def coordinates(like: torch.Tensor) -> torch.Tensor:
@@ -64,7 +65,7 @@ def sandwich(generators, sensor: torch.Tensor, otf: torch.Tensor, spec: ModelSpe
     g1, gv, g2 = generators
     i_b = pre_restore(g1, sensor, spec.g1_residual, spec.g1_base)
     features = gv(i_b, otf)
-    b = g2(features, i_b if spec.g2_residual else None)
+    b = g2(features, g2.base(i_b, otf) if spec.g2_residual else None)
     return {"i_b": i_b, "features": features, "b": b, "restored": b[1]}
 
 
@@ -80,6 +81,12 @@ class Refiner(nn.Module):
         self.body = UNetBody(spec.stem_width, spec.widths, 1, spec.generator_block, spec.attention,
                              spec.key_channels)
         self.skip = zero_conv(n, 1, 1) if spec.g2_linear_skip else None
+        # model.g2_base=wiener: the log noise-to-signal ratio of the classical Wiener filter G2's residual corrects
+        self.log_nsr = nn.Parameter(torch.tensor(math.log(spec.g2_base_nsr))) if spec.g2_base == "wiener" else None
+
+    def base(self, i_b: torch.Tensor, otf: torch.Tensor) -> torch.Tensor:
+        """What G2's outputs correct (model.g2_residual): I_b^, or its Wiener deconvolution with the system OTF."""
+        return i_b if self.log_nsr is None else wiener_filter(i_b, otf, 1.0, self.log_nsr.exp())
 
     def _scale(self, head: nn.Module, x: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
         out = self.body(head(x))

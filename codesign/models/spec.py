@@ -13,6 +13,7 @@ from codesign.spec_base import SpecMixin
 
 VARIANTS = ("sgan_b", "sgan_e", "sgan_f")
 G1_BASES = ("sensor", "filled")
+G2_BASES = ("i_b", "wiener")
 SIZES: dict[str, dict] = {
     "paper": {"stem_width": 64, "widths": (64, 128, 256, 512, 512, 512, 512), "d_widths": (64, 128, 256, 512)},
     "cpu": {"stem_width": 16, "widths": (16, 32, 64, 64), "d_widths": (16, 32, 64, 64)},
@@ -43,6 +44,9 @@ class ModelSpec(SpecMixin):
     sandwich returns I_b^; g1_base: what G1's residual corrects, the sensor image (sensor) or the sensor image with
     its saturated and padded pixels filled from their surroundings (filled, codesign/models/fill.py). Both off by
     default: at the CPU budget neither keeps the network ahead of the sensor image (docs/models.md Sec. 10).
+    g2_base: what G2's residual corrects: I_b^ itself (i_b) or its classical Wiener deconvolution with the system
+    OTF (wiener), whose noise-to-signal ratio is a learned scalar starting at g2_base_nsr; the untrained sandwich
+    then returns the classical pipeline's image (docs/models.md Sec. 10).
     """
 
     variant: str = "sgan_b"
@@ -61,6 +65,8 @@ class ModelSpec(SpecMixin):
     g2_linear_skip: bool = True
     g2_residual: bool = False
     g1_base: str = "sensor"
+    g2_base: str = "i_b"
+    g2_base_nsr: float = 3e-2
     prefix: str = field(default="model", compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -82,6 +88,11 @@ class ModelSpec(SpecMixin):
         require_number(f"{p}.key_channels", self.key_channels, lo=1, hi=1024, integer=True)
         require_number(f"{p}.gamma_init", self.gamma_init, lo=1e-7, hi=1e6)
         require_choice(f"{p}.g1_base", self.g1_base, G1_BASES)
+        require_choice(f"{p}.g2_base", self.g2_base, G2_BASES)
+        require_number(f"{p}.g2_base_nsr", self.g2_base_nsr, lo=1e-8, hi=1e4)
+        if self.g2_base != "i_b" and not self.g2_residual:
+            raise ConfigError(f"{p}.g2_base", self.g2_base, "needs model.g2_residual=true (it is what G2's residual "
+                              "corrects)")
         require_number(f"{p}.g2_head_layers", self.g2_head_layers, lo=1, hi=8, integer=True)
         for key in ("attention", "coarse_to_fine", "g1_residual", "g2_linear_skip", "g2_residual"):
             if not isinstance(getattr(self, key), bool):

@@ -161,8 +161,7 @@ class Evaluator:
             # tuned for structure (per-image gain/offset matched): a global gain fitted across images of
             # unknown alpha_b shrinks every candidate towards the mean and would make the choice arbitrary.
             # The criterion is the images' pooled squared error, not their mean PSNR: a flat crop (sky, a black
-            # border) is matched exactly by every candidate, and its unbounded PSNR, rounding noise, decided the
-            # mean (nsr 100 on a CPU, 1e-6 on a GPU for the same batch: Wiener 25.6 against 21.2 dB)
+            # border) is matched almost exactly by every candidate, and its near-unbounded PSNR would weigh most
             errors = [float((affine_match(centre(x, self.n), target) - target).square().mean())
                       for x in classical_wiener_sweep(y, self.data.otf, NSR_GRID)]
             best_nsr[name] = NSR_GRID[int(np.argmin(errors))]
@@ -293,7 +292,8 @@ def flat_summary(results: dict) -> dict:
 class EvaluateSpec(SpecMixin):
     """The ``evaluate`` block. split: test | train | all (of the data source: data.scenes / data.folder);
     max_scenes; laser_strengths: the paper's figure strengths evaluated (laser on axis); stages: robustness stages
-    (supplement table); tuning_size: training-split crops that, simulated under each condition, tune the baselines' nsr and gain for it;
+    (supplement table); tuning_size: training-split crops that, simulated under each condition, tune the
+    baselines' nsr and gain for it;
     batch_size: images per network pass (memory); laser_angle_rad: [n_u, n_v] to move the laser off axis in every
     condition, null = the presets (on axis); lpips_weights, dists_weights: paths of LPIPS (VGG16) / DISTS weights,
     null = reported as unavailable."""
@@ -347,8 +347,8 @@ def eval_settings(cfg) -> dict:
 
 
 def run_evaluation(ev: dict, model, generators, data, run_dir: Path, seed: int, keep: tuple[str, ...] = ()) -> dict:
-    """Tune the baselines per condition on training-split crops, then score every method on the chosen split. ``keep``: presets
-    whose images the result carries under "images" (not JSON: pop it before writing metrics)."""
+    """Tune the baselines per condition on training-split crops, then score every method on the chosen split.
+    ``keep``: presets whose images the result carries under "images" (not JSON: pop it before writing metrics)."""
     names = data.source.split_names(ev["split"])[: ev["max_scenes"]]
     if not names:
         raise ConfigError("evaluate.split", ev["split"], "has no scenes in this data source")

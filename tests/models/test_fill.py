@@ -7,6 +7,7 @@ import torch
 
 from codesign.models import SGAN, ModelSpec, otf_from_kernel
 from codesign.models.fill import push_pull_fill, valid_pixels
+from codesign.models.wiener import classical_wiener
 from codesign.train.resume import _with_added_keys
 from codesign.train.trainer import init_weights
 
@@ -74,7 +75,7 @@ def test_with_both_residual_paths_the_untrained_sandwich_returns_its_base(base):
 def test_checkpoints_from_before_the_residual_options_read_as_trained():
     saved = {"model": {"kind": "sgan", "variant": "sgan_b"}, "optics": {"focal_n": 160}}
     model = _with_added_keys(saved)["model"]
-    assert model["g2_residual"] is False and model["g1_base"] == "sensor"
+    assert model["g2_residual"] is False and model["g1_base"] == "sensor" and model["g2_base"] == "i_b"
     other = {"model": {"kind": "wiener_unet"}}
     assert _with_added_keys(other)["model"] == {"kind": "wiener_unet"}
 
@@ -82,3 +83,28 @@ def test_checkpoints_from_before_the_residual_options_read_as_trained():
 def test_g1_base_is_checked():
     with pytest.raises(Exception, match="model.g1_base"):
         ModelSpec(g1_base="wiener")
+
+
+def test_with_a_wiener_base_the_untrained_sandwich_returns_the_classical_pipeline():
+    """model.g2_base=wiener: G2 corrects the Wiener deconvolution of I_b^ (the learned nsr at its start value), so the
+    untrained network is the classical pipeline (the evaluation's g1_wiener) exactly; the nsr gets a gradient."""
+    torch.manual_seed(0)
+    model = SGAN(ModelSpec(size="tiny", fe_features=4, g2_residual=True, g1_base="filled", g2_base="wiener",
+                           g2_base_nsr=0.05))
+    init_weights(model)
+    s = _capture().float()
+    k = torch.rand(5, 5)
+    otf = otf_from_kernel(k / k.sum(), s.shape[-1])
+    out = model(s, otf)
+    filled = push_pull_fill(s, valid_pixels(s))
+    assert torch.equal(out["i_b"], filled)
+    assert torch.allclose(out["restored"], classical_wiener(filled, otf, 0.05), atol=1e-6)
+    out["restored"].square().mean().backward()
+    assert model.g2.log_nsr.grad is not None and float(model.g2.log_nsr.grad.abs()) > 0
+
+
+def test_g2_base_is_checked():
+    with pytest.raises(Exception, match="model.g2_base"):
+        ModelSpec(g2_base="wiener")  # needs model.g2_residual=true
+    with pytest.raises(Exception, match="model.g2_base"):
+        ModelSpec(g2_residual=True, g2_base="sensor")

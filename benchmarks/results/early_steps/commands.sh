@@ -14,3 +14,17 @@ for arm in default g2res filled; do
       hydra.run.dir=$d/eval
   cp $d/eval/metrics.json benchmarks/results/early_steps/${arm}_shared12.json
 done
+
+# After the per-condition tuning of the baselines (commit ed986ce): in-process arms of the filled base, 160 steps,
+# scored at chosen steps on the 12 photographs at alpha_l = 0 and 1e6 (docs/models.md Sec. 10, "Since then")
+R=benchmarks/results/early_steps
+F="model.g2_residual=true model.g1_base=filled"
+python -m benchmarks.early_steps --steps 160 --at 0,40,160 --out $R/filled.json $F
+python -m benchmarks.early_steps --steps 160 --at 0,40,160 --out $R/filled_ema0.999.json $F trainer.ema=0.999
+python -m benchmarks.early_steps --steps 160 --at 0,40,160 --out $R/filled_ema0.99.json $F trainer.ema=0.99
+python -m benchmarks.early_steps --steps 160 --at 0,10,40,160 --out $R/filled_wienerbase.json $F model.g2_base=wiener
+python -m benchmarks.early_steps --steps 160 --at 0,10,40,160 --out $R/filled_wienerbase_ema0.999.json $F \
+    model.g2_base=wiener trainer.ema=0.999
+# on the H100 (one device call, cut by its limit after step 400; Wiener there by the old rule)
+python -m benchmarks.early_steps --device cuda --steps 5000 --at 0,10,30,100,200,400,700,1000,1500,2000,3000,4000,5000 \
+    --out $R/gpu_filled_h100.json $F
