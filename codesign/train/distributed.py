@@ -79,10 +79,11 @@ def launch_setup(argv: list[str]) -> DistContext:
     if not ctx.enabled:
         return ctx
     if any(a in ("-m", "--multirun") or a.startswith("--multirun=") for a in argv):
-        if ctx.is_main:
-            print("codesign: configuration error: -m/--multirun cannot run under torchrun: run the sweep with a "
-                  "launcher (docs/scaling.md) and torchrun inside each job, or launch one torchrun per point",
-                  file=sys.stderr)
+        # every rank says it: torchrun stops the others when the first one exits, which can be before rank 0
+        # has got this far (a silent failure seen on a loaded 2-core machine)
+        print("codesign: configuration error: -m/--multirun cannot run under torchrun: run the sweep with a "
+              "launcher (docs/scaling.md) and torchrun inside each job, or launch one torchrun per point",
+              file=sys.stderr, flush=True)
         raise SystemExit(2)
     if torch.cuda.is_available():
         torch.cuda.set_device(ctx.local_rank)
