@@ -29,7 +29,7 @@ def scores(model, trainer, data, held_out, scenes, seed: int) -> dict:
     from codesign.train.evaluation import Evaluator, centre
 
     ev = Evaluator(model, trainer.restoring_modules(), held_out)
-    ev.tune_per_condition(data.validation_scenes(8), seed + 104729)
+    ev.tune_per_condition(data.validation_scenes(8), data.validation_noise_seed)
     out = {}
     for j, preset in enumerate(("laser_0", "laser_1e6")):
         batch, _, target, table = ev.score_preset(scenes, preset, seed + 1000 + j)

@@ -137,10 +137,15 @@ def inference_passes(p: dict, compiled: bool = False) -> list[tuple[str, str, tu
             for name in sorted(p["models"], key=lambda n: n != "sgan_f") for width in reversed(p["widths"])]
 
 
+def is_compiled(mode: str) -> bool:
+    """Whether a speed-table mode compiles the networks ("float32+compile", "float32+cudagraphs")."""
+    return "+" in mode
+
+
 def _compiled(g, mode: str):
     """``g`` compiled for ``mode``: "+cudagraphs" is torch.compile's reduce-overhead mode (CUDA graphs replay the
     whole network in one launch), "+compile" its default (fused kernels, one launch each)."""
-    if ("compile" not in mode and "cudagraphs" not in mode) or getattr(g, "no_compile", False):
+    if not is_compiled(mode) or getattr(g, "no_compile", False):
         return g
     return torch.compile(g, mode="reduce-overhead" if "cudagraphs" in mode else None)
 
@@ -190,7 +195,7 @@ def _time_cell(model, gens, otf, p: dict, batch: int, mode: str, dev: torch.devi
 
     try:
         peak_cuda_mib(dev, reset=True)
-        sec = timeit(call, p["repeats"], warmup=3 if "+" in mode else 1, sync=cuda_sync(dev))
+        sec = timeit(call, p["repeats"], warmup=3 if is_compiled(mode) else 1, sync=cuda_sync(dev))
         return {"ms_per_batch": 1e3 * sec, "images_per_s": batch / sec, "peak_mib": peak_cuda_mib(dev)}
     except Exception as e:  # noqa: BLE001 - out of memory, a compile failure: recorded, the campaign goes on
         if dev.type == "cuda":
@@ -442,7 +447,7 @@ def main(argv=None) -> int:
                     torch.cuda.empty_cache()
             elif step == "compiled":
                 speed = res.setdefault("speed", {"inference": []})
-                kept = [r for r in speed["inference"] if "+" not in r.get("mode", "")]
+                kept = [r for r in speed["inference"] if not is_compiled(r.get("mode", ""))]
                 speed["inference"] = kept + inference_cells(
                     p, dev, budget.share(p["shares"]["compiled"], p["floors"]["compiled"]), compiled=True)
             elif step == "train":

@@ -115,7 +115,12 @@ class SimulatedData:
         sees)."""
         self.validation_scenes(size)
         with torch.no_grad():
-            return self.simulate(*self._val_inputs, seed=self.seed + 104729)
+            return self.simulate(*self._val_inputs, seed=self.validation_noise_seed)
+
+    @property
+    def validation_noise_seed(self) -> int:
+        """The noise seed of the validation batch (and of the evaluation's baseline tuning on its scenes)."""
+        return self.seed + 104729
 
     def validation_scenes(self, size: int) -> torch.Tensor:
         """The validation batch's ``size`` scenes: fixed crops of the training split (own generator)."""

@@ -354,7 +354,7 @@ def run_evaluation(ev: dict, model, generators, data, run_dir: Path, seed: int, 
         raise ConfigError("evaluate.split", ev["split"], "has no scenes in this data source")
     scenes = data.source.fixed_batch(names, data.camera.scene_size)
     evaluator = Evaluator(model, generators, data, ev["perceptual"], ev["batch_size"])
-    evaluator.tune_per_condition(data.validation_scenes(ev["tuning"]), seed + 104729)
+    evaluator.tune_per_condition(data.validation_scenes(ev["tuning"]), data.validation_noise_seed)
     presets = conditions(ev["lasers"], ev["stages"])
     results, per_scene, kept = evaluate(evaluator, scenes, names, presets, seed, run_dir, ev["overrides"], keep)
     calib = evaluator.calib_by_condition
