@@ -118,29 +118,66 @@ def _forward(x: torch.Tensor, n_max: int, out: torch.Tensor, rows: dict[int, int
             out[rows[n + 1]].copy_(cur)
 
 
-def bessel_rows(x: torch.Tensor, orders) -> torch.Tensor:
+_RUN_IN_PLACE = 32768  # runs at least this long are evaluated in place, one recurrence each
+_MAX_RUNS = 64  # above this many contiguous runs of one regime, gather and scatter instead (unordered x)
+
+
+def _regime_runs(xd: torch.Tensor, x_hi: float) -> list[list[tuple[int, int]]] | None:
+    """For each regime (series, Miller, forward) the contiguous runs [a, b) of the flattened x that fall in it,
+    or None when x is too unordered for runs to pay. Ordered inputs (the half-ring's distinct radii times each
+    ring's radius: one ascending row per ring) split into a few runs, each evaluated in place on a view of the
+    table: no gather of x, no scatter of a part into the table, and each run's recurrence works in cache."""
+    label = (xd >= _X_SERIES).to(torch.int8) + (xd >= x_hi).to(torch.int8)
+    edges = torch.nonzero(label[1:] != label[:-1]).squeeze(-1) + 1
+    if edges.numel() >= _MAX_RUNS:
+        return None
+    bounds = [0] + edges.tolist() + [xd.numel()]
+    kinds = label[torch.tensor(bounds[:-1], device=xd.device)].tolist()
+    runs: list[list[tuple[int, int]]] = [[], [], []]
+    for kind, a, b in zip(kinds, bounds[:-1], bounds[1:]):
+        runs[kind].append((a, b))
+    return runs
+
+
+def bessel_rows(x: torch.Tensor, orders, out: torch.Tensor | None = None) -> torch.Tensor:
     """J_n(x) for each n of ``orders`` (distinct, >= 0), without autograd, in float64: shape (len(orders),
-    x.numel()), row i is J_{orders[i]} at the flattened x (rows contiguous: the recurrences write whole rows)."""
+    x.numel()), row i is J_{orders[i]} at the flattened x (rows contiguous: the recurrences write whole rows).
+    ``out``: a contiguous float64 tensor of that many elements to write into (a reused workspace)."""
     orders = [int(n) for n in orders]
     n_max = max(max(orders), 1)
     rows = {n: i for i, n in enumerate(orders)}
     xd = x.detach().to(torch.float64).reshape(-1)
-    out = torch.empty(len(orders), xd.numel(), dtype=torch.float64, device=xd.device)
+    if out is None:
+        out = torch.empty(len(orders), xd.numel(), dtype=torch.float64, device=xd.device)
+    else:
+        out = out.view(len(orders), xd.numel())
+    if xd.numel() == 0:
+        return out
     x_hi = _miller_limit(n_max)
-    for fn, mask in (
-        (_series, xd < _X_SERIES),
-        (_miller, (xd >= _X_SERIES) & (xd < x_hi)),
-        (_forward, xd >= x_hi),
-    ):
+    fns = (_series, _miller, _forward)
+    runs = _regime_runs(xd, x_hi)
+    if runs is not None:
+        for fn, spans in zip(fns, runs):
+            short = [(a, b) for a, b in spans if b - a < _RUN_IN_PLACE] if len(spans) > 1 else []
+            for a, b in spans:
+                if (a, b) not in short:
+                    fn(xd[a:b], n_max, out[:, a:b], rows)
+            if short:  # one recurrence over all short runs (~100 steps of Python overhead whatever the length),
+                # then slice copies back: still no index_put
+                part = torch.empty(len(orders), sum(b - a for a, b in short), dtype=torch.float64, device=xd.device)
+                fn(torch.cat([xd[a:b] for a, b in short]), n_max, part, rows)
+                at = 0
+                for a, b in short:
+                    out[:, a:b].copy_(part[:, at:at + b - a])
+                    at += b - a
+        return out
+    for fn, mask in zip(fns, ((xd < _X_SERIES), (xd >= _X_SERIES) & (xd < x_hi), xd >= x_hi)):
         idx = torch.nonzero(mask).squeeze(-1)
         if idx.numel() == 0:
             continue
-        if idx.numel() == xd.numel():  # one regime: fill the table itself
-            fn(xd, n_max, out, rows)
-        else:
-            part = torch.empty(len(orders), idx.numel(), dtype=torch.float64, device=xd.device)
-            fn(xd[idx], n_max, part, rows)
-            out[:, idx] = part
+        part = torch.empty(len(orders), idx.numel(), dtype=torch.float64, device=xd.device)
+        fn(xd[idx], n_max, part, rows)
+        out[:, idx] = part
     return out
 
 
@@ -183,15 +220,99 @@ class _BesselOrders(torch.autograd.Function):
         return grad_x.reshape(ctx.shape).to(grad_out.dtype), None
 
 
-def bessel_orders(x: torch.Tensor, orders) -> torch.Tensor:
-    """Differentiable J_n(x) for each order n of ``orders`` (distinct integers in [0, 200]), order-major: shape
-    (len(orders), *x.shape). What a caller that needs a few orders of a large x should use: only those rows (and
-    the neighbours their gradient needs) are stored. Accuracy and checks as ``bessel_j``."""
+class _Workspace:
+    """Reusable float64 tables for bessel_mix, keyed by shape and device. A table is handed out again only when
+    nothing else holds it (an autograd graph that saved it keeps it until its backward or its release), so reuse
+    can never overwrite values a pending backward needs. Why: at the paper's sampling the table is ~100 MB, and a
+    fresh allocation of that size is mapped afresh by the OS on every call; its page faults cost about as much as
+    the Bessel recurrences themselves (docs/optics.md)."""
+
+    def __init__(self, keep: int = 4):
+        self.keep = keep
+        self.tables: dict[tuple, torch.Tensor] = {}
+
+    def take(self, shape: tuple, device: torch.device) -> torch.Tensor:
+        key = (tuple(shape), str(device))
+        t = self.tables.pop(key, None)
+        if t is None or t._use_count() > 1:  # in use by a graph: leave it to that graph, make a new one
+            t = torch.empty(shape, dtype=torch.float64, device=device)
+        self.tables[key] = t  # most recently used last
+        while len(self.tables) > self.keep:
+            self.tables.pop(next(iter(self.tables)))
+        return t
+
+
+_WORKSPACE = _Workspace()
+
+
+class _BesselMix(torch.autograd.Function):
+    """out[k] = sum_r w[r, k] J_{orders[k]}(x[r]) from one float64 table of the orders and their neighbours."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, w: torch.Tensor, orders: tuple[int, ...]) -> torch.Tensor:
+        groups: dict[int, list[int] | slice] = {}
+        for k, n in enumerate(orders):
+            groups.setdefault(n, []).append(k)
+        for n, ks in groups.items():  # outputs of one order side by side: a view, not a gather
+            if ks == list(range(ks[0], ks[-1] + 1)):
+                groups[n] = slice(ks[0], ks[-1] + 1)
+        need = sorted(set(orders) | {m for n in groups for m in ((n - 1, n + 1) if n else (1,))})
+        at = {n: i for i, n in enumerate(need)}
+        table = _WORKSPACE.take((len(need), *x.shape), x.device)
+        bessel_rows(x, need, out=table)  # (T, R, U)
+        w64 = w.detach().to(torch.float64)
+        out = torch.empty(len(orders), x.shape[1], dtype=torch.float64, device=x.device)
+        for n, ks in groups.items():  # one (k_n, R) @ (R, U) product per distinct order: no copy of the table
+            out[ks] = w64[:, ks].T @ table[at[n]]
+        ctx.save_for_backward(table, w64)
+        ctx.groups, ctx.at, ctx.dtypes = groups, at, (x.dtype, w.dtype)
+        return out.to(x.dtype)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out: torch.Tensor):
+        """grad_w[r, k] = sum_u g[k] J_n(x[r]); grad_x[r] = sum_n (w[:, k_n] @ g[k_n])[r] J_n'(x[r]), J_0' = -J_1,
+        J_n' = (J_{n-1} - J_{n+1}) / 2."""
+        table, w64 = ctx.saved_tensors
+        at = ctx.at
+        g = grad_out.to(torch.float64)
+        grad_x = grad_w = None
+        if ctx.needs_input_grad[1]:
+            grad_w = torch.empty_like(w64)
+            for n, ks in ctx.groups.items():
+                grad_w[:, ks] = table[at[n]] @ g[ks].T
+            grad_w = grad_w.to(ctx.dtypes[1])
+        if ctx.needs_input_grad[0]:
+            grad_x = torch.zeros(table.shape[1:], dtype=torch.float64, device=table.device)
+            mixed, slope = torch.empty_like(grad_x), torch.empty_like(grad_x)
+            for n, ks in ctx.groups.items():
+                torch.matmul(w64[:, ks], g[ks], out=mixed)
+                if n == 0:
+                    grad_x.addcmul_(mixed, table[at[1]], value=-1.0)
+                else:
+                    torch.sub(table[at[n - 1]], table[at[n + 1]], out=slope)
+                    grad_x.addcmul_(mixed, slope, value=0.5)
+            grad_x = grad_x.to(ctx.dtypes[0])
+        return grad_x, grad_w, None
+
+
+def bessel_mix(x: torch.Tensor, weights: torch.Tensor, orders) -> torch.Tensor:
+    """Differentiable weighted sums of Bessel functions over the rows of x:
+    ``out[k, u] = sum_r weights[r, k] J_{orders[k]}(x[r, u])``, shape (len(orders), U), in x's dtype.
+
+    What a radial synthesis such as the half-ring's needs (Q0 and the A_m / B_m profiles: a few rings r, many
+    radii u): the sums are taken in float64 straight from one table of the distinct orders (and the neighbours
+    their derivatives need), so no (K, R, U) tensor of Bessel values is copied, cast or multiplied; the backward
+    reads the same table. Orders may repeat (several outputs of one order; fastest side by side), each in
+    [0, 200]. x: (R, U), values >= 0; weights: (R, K). Gradients to x and weights. Fastest when each row of x is ordered (see bessel_rows)."""
     orders = tuple(int(n) for n in orders)
-    if not orders or len(set(orders)) != len(orders) or min(orders) < 0 or max(orders) > 200:
-        raise ValueError(f"bessel_orders: orders must be distinct integers in [0, 200], got {orders!r}")
+    if not orders or min(orders) < 0 or max(orders) > 200:
+        raise ValueError(f"bessel_mix: orders must be integers in [0, 200], got {orders!r}")
+    if x.dim() != 2 or weights.dim() != 2 or weights.shape != (x.shape[0], len(orders)):
+        raise ValueError(f"bessel_mix: x must be (R, U) and weights (R, {len(orders)}) (one column per order); got "
+                         f"x {tuple(x.shape)}, weights {tuple(weights.shape)}")
     _check_x(x)
-    return _BesselOrders.apply(x, orders)
+    return _BesselMix.apply(x, weights, orders)
 
 
 def _check_x(x: torch.Tensor) -> None:

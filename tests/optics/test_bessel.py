@@ -6,7 +6,7 @@ import pytest
 import torch
 from scipy import special
 
-from codesign.optics.bessel import bessel_j, bessel_orders
+from codesign.optics.bessel import bessel_j, bessel_mix, bessel_rows
 
 N_MAX = 60
 
@@ -146,26 +146,66 @@ def test_bessel_accepts_n_max_200():
     assert np.abs(j.numpy() - ref).max() <= 1e-10
 
 
-def test_bessel_orders_equal_bessel_j_rows_bit_for_bit_and_their_gradients():
-    """The orders the half-ring phase uses (0 and odd 3..35), order-major, at arguments in all three regimes."""
-    orders = [0] + list(range(3, 36, 2))
-    x = torch.linspace(0.0, 300.0, 3000, dtype=torch.float64).reshape(3, 1000).requires_grad_(True)
-    got = bessel_orders(x, orders)
-    full = bessel_j(x, 35)
-    assert got.shape == (len(orders), 3, 1000)
-    assert torch.equal(got, full[..., orders].movedim(-1, 0))
-    w = torch.rand(len(orders), 3, 1000, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
-    (g1,) = torch.autograd.grad((got * w).sum(), x)
-    (g2,) = torch.autograd.grad((full[..., orders].movedim(-1, 0) * w).sum(), x)
-    torch.testing.assert_close(g1, g2, rtol=1e-12, atol=1e-15)
-    ref = np.stack([special.jv(n, x.detach().numpy()) for n in orders])
-    np.testing.assert_allclose(got.detach().numpy(), ref, rtol=0, atol=1e-10)
+def _mix_reference(x: torch.Tensor, w: torch.Tensor, orders) -> torch.Tensor:
+    """The same sums through bessel_j (whole orders 0..max, autograd through its gather and products)."""
+    full = bessel_j(x, max(max(orders), 1))  # (R, U, N + 1)
+    return torch.stack([(w[:, k, None] * full[..., n]).sum(0) for k, n in enumerate(orders)])
 
 
-def test_bessel_orders_gradcheck_and_input_checks():
-    x = torch.tensor([0.3, 2.0, 17.0, 40.0, 120.0], dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(lambda t: bessel_orders(t, (0, 5, 2)), (x,), eps=1e-6, atol=1e-9)
-    with pytest.raises(ValueError, match=r"orders must be distinct integers in \[0, 200\], got \(1, 1\)"):
-        bessel_orders(x, (1, 1))
+def test_bessel_mix_equals_the_weighted_sum_of_bessel_j_and_its_gradients():
+    """The half-ring's outputs (J_0, then each odd order 3..35 twice), ascending rows spanning the three regimes
+    (the in-place runs), the same rows shuffled (the gather/scatter path), and short rows (concatenated runs)."""
+    orders = [0] + list(range(3, 36, 2)) * 2
+    gen = torch.Generator().manual_seed(3)
+    w = torch.randn(3, len(orders), dtype=torch.float64, generator=gen)
+    rows = torch.linspace(0.0, 300.0, 40000, dtype=torch.float64) * torch.tensor([[1.0], [0.4], [0.07]])
+    for x0 in (rows, rows[:, torch.randperm(40000, generator=gen)], rows[:, ::400].contiguous()):
+        x = x0.clone().requires_grad_(True)
+        wt = w.clone().requires_grad_(True)
+        got = bessel_mix(x, wt, orders)
+        ref = _mix_reference(x, wt, orders)
+        assert got.shape == (len(orders), x.shape[1])
+        torch.testing.assert_close(got, ref, rtol=0, atol=1e-12)
+        g = torch.randn(got.shape, dtype=torch.float64, generator=gen)
+        for a, b in zip(torch.autograd.grad((got * g).sum(), (x, wt)), torch.autograd.grad((ref * g).sum(), (x, wt))):
+            torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(got[1].detach().numpy(), (w[:, 1, None].numpy() * special.jv(3, x0.numpy())).sum(0),
+                               rtol=0, atol=1e-10)
+
+
+def test_bessel_rows_runs_and_scatter_paths_agree_to_rounding():
+    """Same recurrences either way; only the last bit of a few elements may differ (vectorized and scalar tails
+    of the elementwise math differ in rounding)."""
+    x = torch.linspace(0.0, 200.0, 70001, dtype=torch.float64)
+    perm = torch.randperm(x.numel(), generator=torch.Generator().manual_seed(4))
+    ordered = bessel_rows(x, range(38))
+    shuffled = bessel_rows(x[perm], range(38))  # too many regime runs: the gather / scatter path
+    torch.testing.assert_close(ordered[:, perm], shuffled, rtol=0, atol=1e-17)
+
+
+def test_bessel_mix_gradcheck_and_input_checks():
+    x = torch.tensor([[0.3, 2.0, 17.0, 40.0, 120.0], [0.01, 0.9, 5.0, 26.0, 39.0]], dtype=torch.float64,
+                     requires_grad=True)
+    w = torch.tensor([[0.5, -1.0, 2.0], [1.5, 0.25, -0.75]], dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t, v: bessel_mix(t, v, (0, 5, 5)), (x, w), eps=1e-6, atol=1e-9)
+    with pytest.raises(ValueError, match=r"orders must be integers in \[0, 200\], got \(0, 201, 1\)"):
+        bessel_mix(x, w, (0, 201, 1))
+    with pytest.raises(ValueError, match=r"x must be \(R, U\) and weights \(R, 2\) \(one column per order\); got "
+                                         r"x \(2, 5\), weights \(2, 3\)"):
+        bessel_mix(x, w, (0, 1))
     with pytest.raises(ValueError, match=r"x must be >= 0 and not NaN"):
-        bessel_orders(torch.tensor([-1.0]), (0,))
+        bessel_mix(-x, w, (0, 1, 2))
+
+
+def test_bessel_mix_reuses_its_table_only_when_no_graph_holds_it():
+    """Two forwards before either backward: the second must not overwrite the table the first one's backward
+    reads (the workspace hands out a new table while a graph holds the old one)."""
+    x = torch.linspace(0.0, 80.0, 50000, dtype=torch.float64).reshape(2, 25000)
+    w1 = torch.tensor([[1.0, 0.5], [-0.25, 2.0]], dtype=torch.float64, requires_grad=True)
+    (alone,) = torch.autograd.grad(bessel_mix(x, w1, (3, 7)).sum(), w1)
+    first = bessel_mix(x, w1, (3, 7))
+    second = bessel_mix(x * 0.5, w1, (3, 7))  # same table shape, other values
+    (g_first,) = torch.autograd.grad(first.sum(), w1)
+    (g_second,) = torch.autograd.grad(second.sum(), w1)
+    assert torch.equal(g_first, alone)
+    assert not torch.allclose(g_second, alone)

@@ -37,7 +37,7 @@ from codesign.errors import (
     require_numbers,
 )
 from codesign.optics.atan2 import atan_of_ratio
-from codesign.optics.bessel import bessel_orders
+from codesign.optics.bessel import bessel_mix
 from codesign.optics.grid import PupilGrid
 from codesign.optics.masks.base import Mask, MaskSpec
 
@@ -97,27 +97,56 @@ class OctantSums:
         arg = orders.to(torch.float64)[:, None] * phi_r[None, :]
         alt = torch.where((orders // 2) % 2 == 0, 1.0, -1.0).to(torch.float64)[:, None]  # (-1)^m
         sin, cos = torch.sin(arg), torch.cos(arg)
-        # rows: the tables of P, -Q, P', -Q' (M, R each), applied to [A; A; -B; -B]-style profiles below
-        self.tables = torch.stack([sin, cos, alt * cos, alt * sin]).to(dtype)
+        # [s, j]: s pairs with A_m (0) or -B_m (1), j the unprimed / primed sum: [[P, P'], [-Q, -Q']] (2, 2, M, R)
+        self.tables = torch.stack([torch.stack([sin, alt * cos]), torch.stack([cos, alt * sin])]).to(dtype)
         # each sample's radius index through its representative (same radius), and where its two terms come from
         first = torch.zeros(reps.numel(), dtype=torch.long, device=device)
         first.scatter_(0, rep_of, torch.arange(rep_of.numel(), device=device))
         self.rep_radius = grid.radius_index[first]
-        swapped = iu.abs() > iv.abs()
+        swapped = (iu.abs() > iv.abs()).long()
         n_rep = reps.numel()
-        self.index_x = rep_of + n_rep * (2 * swapped)  # P or P'
-        self.index_y = rep_of + n_rep * (1 + 2 * swapped)  # -Q or -Q'
+        self.index_x = rep_of + n_rep * swapped  # P or P'
+        self.index_y = rep_of + n_rep * (2 + swapped)  # -Q or -Q'
         self.sign_x = torch.where(iu >= 0, 1.0, -1.0).to(dtype)
         self.sign_y = torch.where(iv >= 0, 1.0, -1.0).to(dtype)
 
     def im(self, prof: torch.Tensor) -> torch.Tensor:
-        """Im at the support samples from the radial profiles [A_m; -B_m] (2M, U) at the grid's distinct radii."""
-        m = self.tables.shape[1]
-        g = prof[:, self.rep_radius]  # (2M, R)
-        a, nb = g[:m], g[m:]
-        sums = torch.stack([(a * self.tables[0]).sum(0), (nb * self.tables[1]).sum(0),
-                            (a * self.tables[2]).sum(0), (nb * self.tables[3]).sum(0)]).reshape(-1)
-        return self.sign_x * sums[self.index_x] + self.sign_y * sums[self.index_y]
+        """Im at the support samples from the radial profiles (2M, U), A_m and -B_m interleaved, at the grid's distinct radii.
+        Gathers are index_select: their backward is index_add (fast), where indexing's is an accumulating
+        index_put (several times slower on a CPU)."""
+        sums = _OctantSumsFn.apply(prof, self.tables, self.rep_radius).reshape(-1)  # [P, P', -Q, -Q']
+        return self.sign_x * sums.index_select(0, self.index_x) + self.sign_y * sums.index_select(0, self.index_y)
+
+
+class _OctantSumsFn(torch.autograd.Function):
+    """sums[s, j, i] = sum_m prof[2 m + s, rep_radius[i]] tables[s, j, m, i]: the four angular sums at the octant's
+    representatives, accumulated one order at a time (no (2, 2, M, R) product is ever formed: at the paper's
+    sampling that temporary is 30 MB, and allocating and filling it cost more than the sums)."""
+
+    @staticmethod
+    def forward(ctx, prof: torch.Tensor, tables: torch.Tensor, rep_radius: torch.Tensor) -> torch.Tensor:
+        m = tables.shape[2]
+        g = prof.index_select(1, rep_radius).view(m, 2, -1)
+        out = torch.zeros(tables.shape[0], tables.shape[1], tables.shape[3], dtype=prof.dtype, device=prof.device)
+        for s in range(2):
+            for j in range(2):
+                for k in range(m):
+                    out[s, j].addcmul_(g[k, s], tables[s, j, k])
+        ctx.save_for_backward(tables, rep_radius)
+        ctx.n_radii = prof.shape[1]
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad: torch.Tensor):
+        tables, rep_radius = ctx.saved_tensors
+        m = tables.shape[2]
+        gg = torch.empty(m, 2, tables.shape[3], dtype=grad.dtype, device=grad.device)
+        for s in range(2):
+            for k in range(m):
+                torch.mul(tables[s, 0, k], grad[s, 0], out=gg[k, s]).addcmul_(tables[s, 1, k], grad[s, 1])
+        gprof = torch.zeros(2 * m, ctx.n_radii, dtype=grad.dtype, device=grad.device)
+        return gprof.index_add_(1, rep_radius, gg.view(2 * m, -1)), None, None
 
 
 def plain_rings(n: int) -> tuple[list[float], list[float]]:
@@ -203,31 +232,30 @@ class HalfRingMask(Mask):
 
     # ---- evaluation ---------------------------------------------------------------------------------------
     def _angular(self, angle: torch.Tensor) -> torch.Tensor:
-        """[sin(m_o Phi); cos(m_o Phi)], shape (2M, S)."""
+        """sin(m_o Phi) and cos(m_o Phi) interleaved like the profiles (A_m pairs with sin), shape (2M, S)."""
         arg = self.orders.to(angle.dtype)[:, None] * angle[None, :]
-        return torch.cat([torch.sin(arg), torch.cos(arg)], 0)
+        return torch.stack([torch.sin(arg), torch.cos(arg)], 1).flatten(0, 1)
 
     def radial_profiles(self, radii: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Q0(xi) of shape (U,) and [A_m; -B_m](xi) of shape (2M, U) at the radii xi [m]."""
+        """Q0(xi) of shape (U,) and the profiles (2M, U) at the radii xi [m], A_m and -B_m interleaved (row 2k:
+        A of the k-th order, row 2k + 1: -B)."""
         x = (2 * math.pi / self.aperture_diameter_m) * self.r[:, None] * radii[None, :]  # (R, U)
-        j = bessel_orders(x, [0] + self.orders.tolist())  # (1 + M, R, U): only the orders used
-        q0 = (self.r[:, None] * j[0]).sum(0)
-        jm = j[1:]  # (M, R, U)
         mo = self.orders.to(x.dtype)
         a = 4 * self.r[:, None] / (mo[None, :] * math.pi)  # (R, M)
         if self.harmonic_sign == "fourier":
             a = a * torch.where((self.orders // 2) % 2 == 0, 1.0, -1.0).to(a)  # (-1)^m, m = (m_o - 1) / 2
         ang = mo[None, :] * self.theta[:, None]
-        ca, sa = a * torch.cos(ang), a * torch.sin(ang)
-        prof_a = torch.einsum("rm,mru->mu", ca, jm)
-        prof_b = torch.einsum("rm,mru->mu", sa, jm)
-        return q0, torch.cat([prof_a, -prof_b], 0)
+        pairs = torch.stack([a * torch.cos(ang), -a * torch.sin(ang)], 2).flatten(1)  # (R, 2M): A_m, -B_m per m
+        orders = [n for n in self.orders.tolist() for _ in range(2)]
+        # x's rows ascend with the radii, so the Bessel regimes are contiguous runs (see bessel_rows)
+        prof = bessel_mix(x, torch.cat([self.r[:, None], pairs], 1), [0] + orders)  # sums over rings in float64
+        return prof[0], prof[1:]
 
     def field_parts(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Real part Q0 and imaginary part Im of the synthesized pupil field at the support samples, (S,) each."""
         q0, prof = self.radial_profiles(self._radii)
         if self.strategy == "exact":
-            return q0[self.grid.radius_index], self._octants.im(prof)
+            return q0.index_select(0, self.grid.radius_index), self._octants.im(prof)
         if self.strategy == "table":
             i0, f = self._lerp_index, self._lerp_frac
             q0_s = torch.lerp(q0[i0], q0[i0 + 1], f)
@@ -241,7 +269,7 @@ class HalfRingMask(Mask):
             im = torch.zeros_like(q0_s)
             for k in range(m):
                 arg = float(self.orders[k]) * self._angle_s
-                im = im + prof_s[k] * torch.sin(arg) + prof_s[m + k] * torch.cos(arg)
+                im = im + prof_s[2 * k] * torch.sin(arg) + prof_s[2 * k + 1] * torch.cos(arg)
         return q0_s, im
 
     def support_phase(self) -> torch.Tensor:
