@@ -35,6 +35,7 @@ def scores(model, trainer, data, held_out, scenes, seed: int) -> dict:
         batch, _, target, table = ev.score_preset(scenes, preset, seed + 1000 + j)
         table.update(ev.score({"i_b": centre(ev._network(batch)["i_b"], ev.n)}, target))
         out[preset] = {m: round(float(table[m]["psnr_affine"]), 2) for m in table}
+        out[preset]["tuned_nsr"] = {k: float(f"{v:.3g}") for k, v in ev.calib["nsr"].items()}
     return out
 
 

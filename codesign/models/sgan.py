@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from codesign.config.store import register, spec_node
 from codesign.models import losses
 from codesign.models.discriminators import PatchDiscriminator
-from codesign.models.fill import push_pull_fill, valid_pixels
+from codesign.models.fill import SATURATED, push_pull_fill, valid_pixels
 from codesign.models.losses import LossWeights
 from codesign.models.restorer import Restorer, TrainContext
 from codesign.models.spec import ModelSpec
@@ -46,26 +46,37 @@ def pyramid(x: torch.Tensor) -> list[torch.Tensor]:
     return [downsample2(x), x]
 
 
-def pre_restore(g1: nn.Module, sensor: torch.Tensor, residual: bool, base: str = "sensor") -> torch.Tensor:
+def pre_restore(g1: nn.Module, sensor: torch.Tensor, residual: bool, base: str = "sensor",
+                gate: torch.Tensor | None = None) -> torch.Tensor:
     """I_b^ = G1(s, x, y), or with ``residual`` a correction added to the sensor image (``base`` "sensor") or to
-    the sensor image with its saturated and padded pixels filled from their surroundings ("filled")."""
+    the sensor image with its saturated and padded pixels filled from their surroundings ("filled"); ``gate``
+    (B,): scales the correction per image (model.laser_gate)."""
     out = g1(torch.cat([sensor, coordinates(sensor)], 1))
     if not residual:
         return out
+    if gate is not None:
+        out = out * gate[:, None, None, None]
     return (sensor if base == "sensor" else push_pull_fill(sensor, valid_pixels(sensor))) + out
+
+
+def saturated_fraction(sensor: torch.Tensor) -> torch.Tensor:
+    """(B,) fraction of the sensor's field (non-zero pixels; the padding is exactly 0) at saturation."""
+    field = (sensor > 0).flatten(1).sum(1).clamp_min(1)
+    return (sensor >= SATURATED).flatten(1).sum(1).to(sensor.dtype) / field
 
 
 def sandwich(generators, sensor: torch.Tensor, otf: torch.Tensor, spec: ModelSpec) -> dict:
     """G2(G_v(G1(s, x, y), h)) with the given (g1, gv, g2) modules (the model's own, or e.g. EMA copies); the
-    residual paths as ``spec`` says (g1_residual, g1_base, g2_residual: G2's outputs correct I_b^)."""
+    residual paths as ``spec`` says (g1_residual, g1_base, g2_residual: G2's outputs correct I_b^; laser_gate)."""
     p = sensor.shape[-1]
     if sensor.shape[-2] != p or tuple(otf.shape[-2:]) != (p, p // 2 + 1):
         raise ValueError(f"sensor must be (B, 1, P, P) with an OTF of shape (P, P // 2 + 1); got sensor "
                          f"{tuple(sensor.shape)} and OTF {tuple(otf.shape)}")
     g1, gv, g2 = generators
-    i_b = pre_restore(g1, sensor, spec.g1_residual, spec.g1_base)
+    presence = g2.laser_presence(sensor) if spec.laser_gate else None
+    i_b = pre_restore(g1, sensor, spec.g1_residual, spec.g1_base, presence)
     features = gv(i_b, otf)
-    b = g2(features, g2.base(i_b, otf) if spec.g2_residual else None)
+    b = g2(features, g2.base(i_b, otf, presence) if spec.g2_residual else None)
     return {"i_b": i_b, "features": features, "b": b, "restored": b[1]}
 
 
@@ -83,10 +94,25 @@ class Refiner(nn.Module):
         self.skip = zero_conv(n, 1, 1) if spec.g2_linear_skip else None
         # model.g2_base=wiener: the log noise-to-signal ratio of the classical Wiener filter G2's residual corrects
         self.log_nsr = nn.Parameter(torch.tensor(math.log(spec.g2_base_nsr))) if spec.g2_base == "wiener" else None
+        # model.laser_gate: the saturated fraction at which presence is 1/2, and the lasered images' log nsr
+        self.log_f0 = nn.Parameter(torch.tensor(math.log(spec.laser_gate_f0))) if spec.laser_gate else None
+        self.log_nsr_lasered = (nn.Parameter(torch.tensor(math.log(spec.g2_base_nsr_lasered)))
+                                if spec.laser_gate and spec.g2_base == "wiener" else None)
 
-    def base(self, i_b: torch.Tensor, otf: torch.Tensor) -> torch.Tensor:
-        """What G2's outputs correct (model.g2_residual): I_b^, or its Wiener deconvolution with the system OTF."""
-        return i_b if self.log_nsr is None else wiener_filter(i_b, otf, 1.0, self.log_nsr.exp())
+    def laser_presence(self, sensor: torch.Tensor) -> torch.Tensor:
+        """(B,) p = f / (f + f0) in [0, 1): 0 for an image without saturated pixels (model.laser_gate)."""
+        f = saturated_fraction(sensor)
+        return f / (f + self.log_f0.exp())
+
+    def base(self, i_b: torch.Tensor, otf: torch.Tensor, presence: torch.Tensor | None = None) -> torch.Tensor:
+        """What G2's outputs correct (model.g2_residual): I_b^, or its Wiener deconvolution with the system OTF
+        (with ``presence``, at a log nsr between the unlasered and lasered values)."""
+        if self.log_nsr is None:
+            return i_b
+        log_nsr = self.log_nsr
+        if presence is not None and self.log_nsr_lasered is not None:
+            log_nsr = (log_nsr + presence * (self.log_nsr_lasered - log_nsr))[:, None, None, None]
+        return wiener_filter(i_b, otf, 1.0, log_nsr.exp())
 
     def _scale(self, head: nn.Module, x: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
         out = self.body(head(x))
@@ -169,7 +195,8 @@ class SGAN(Restorer):
 
     def pre_restore(self, sensor: torch.Tensor) -> torch.Tensor:
         """G1: (B, 1, P, P) normalized sensor image -> I_b^ (B, 1, P, P)."""
-        return pre_restore(self.g1, sensor, self.spec.g1_residual, self.spec.g1_base)
+        gate = self.g2.laser_presence(sensor) if self.spec.laser_gate else None
+        return pre_restore(self.g1, sensor, self.spec.g1_residual, self.spec.g1_base, gate)
 
     def critic1(self, sensor: torch.Tensor, i_b: torch.Tensor):
         """D1(s, x, y, I_b) -> (patch scores, level features)."""

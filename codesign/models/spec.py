@@ -47,6 +47,11 @@ class ModelSpec(SpecMixin):
     g2_base: what G2's residual corrects: I_b^ itself (i_b) or its classical Wiener deconvolution with the system
     OTF (wiener), whose noise-to-signal ratio is a learned scalar starting at g2_base_nsr; the untrained sandwich
     then returns the classical pipeline's image (docs/models.md Sec. 10).
+    laser_gate: both stages are told whether a laser is in the image, by the presence p = f / (f + f0) of
+    saturated pixels (f: their fraction of the sensor's field; f0 learned, starting at laser_gate_f0): G1's
+    correction is scaled by p (an unlasered image reaches G2 as measured, where G1 would otherwise apply the halo
+    removal it learned from lasered batches everywhere), and with g2_base=wiener the log nsr moves from the
+    learned unlasered value (p = 0, from g2_base_nsr) to a learned lasered one (p = 1, from g2_base_nsr_lasered).
     """
 
     variant: str = "sgan_b"
@@ -67,6 +72,9 @@ class ModelSpec(SpecMixin):
     g1_base: str = "sensor"
     g2_base: str = "i_b"
     g2_base_nsr: float = 3e-2
+    laser_gate: bool = False
+    laser_gate_f0: float = 1e-3
+    g2_base_nsr_lasered: float = 3e-2
     prefix: str = field(default="model", compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -93,8 +101,13 @@ class ModelSpec(SpecMixin):
         if self.g2_base != "i_b" and not self.g2_residual:
             raise ConfigError(f"{p}.g2_base", self.g2_base, "needs model.g2_residual=true (it is what G2's residual "
                               "corrects)")
+        require_number(f"{p}.laser_gate_f0", self.laser_gate_f0, lo=1e-8, hi=1.0)
+        require_number(f"{p}.g2_base_nsr_lasered", self.g2_base_nsr_lasered, lo=1e-8, hi=1e4)
+        if self.laser_gate and not self.g1_residual:
+            raise ConfigError(f"{p}.laser_gate", self.laser_gate, "needs model.g1_residual=true (it scales G1's "
+                              "correction)")
         require_number(f"{p}.g2_head_layers", self.g2_head_layers, lo=1, hi=8, integer=True)
-        for key in ("attention", "coarse_to_fine", "g1_residual", "g2_linear_skip", "g2_residual"):
+        for key in ("attention", "coarse_to_fine", "g1_residual", "g2_linear_skip", "g2_residual", "laser_gate"):
             if not isinstance(getattr(self, key), bool):
                 raise ConfigError(f"{p}.{key}", getattr(self, key), "must be true or false")
 

@@ -225,9 +225,10 @@ class _Workspace:
     nothing else holds it (an autograd graph that saved it keeps it until its backward or its release), so reuse
     can never overwrite values a pending backward needs. Why: at the paper's sampling the table is ~100 MB, and a
     fresh allocation of that size is mapped afresh by the OS on every call; its page faults cost about as much as
-    the Bessel recurrences themselves (docs/optics.md)."""
+    the Bessel recurrences themselves (docs/optics.md). At most ``keep`` tables are held (the most recently
+    used: a search at one sampling and its check on a finer grid)."""
 
-    def __init__(self, keep: int = 4):
+    def __init__(self, keep: int = 2):
         self.keep = keep
         self.tables: dict[tuple, torch.Tensor] = {}
 

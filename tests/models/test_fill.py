@@ -108,3 +108,38 @@ def test_g2_base_is_checked():
         ModelSpec(g2_base="wiener")  # needs model.g2_residual=true
     with pytest.raises(Exception, match="model.g2_base"):
         ModelSpec(g2_residual=True, g2_base="sensor")
+
+
+def test_laser_gate_passes_an_unlasered_image_and_moves_the_nsr_with_the_saturated_fraction():
+    """model.laser_gate: presence p = f / (f + f0) of saturated pixels (f: their share of the field, padding not
+    counted). An image without saturated pixels reaches G2 exactly as measured (G1's correction times p = 0) and is
+    deconvolved at the unlasered nsr (padding filled, as always with g1_base=filled); a lasered one at log nsr = log nsr_0 + p (log nsr_1 - log nsr_0), per image."""
+    torch.manual_seed(0)
+    model = SGAN(ModelSpec(size="tiny", fe_features=4, g2_residual=True, g1_base="filled", g2_base="wiener",
+                           g2_base_nsr=0.05, laser_gate=True, laser_gate_f0=0.01, g2_base_nsr_lasered=50.0))
+    init_weights(model)
+    for p in model.g1.parameters():  # a G1 whose correction is not zero, so that the gate has something to gate
+        torch.nn.init.normal_(p, std=0.05)
+    lasered = _capture().float()
+    clean = torch.where(lasered >= 1, torch.full_like(lasered, 0.5), lasered)
+    s = torch.cat([clean, lasered])
+    k = torch.rand(5, 5)
+    otf = otf_from_kernel(k / k.sum(), s.shape[-1])
+    out = model(s, otf)
+    f = float(((lasered >= 0.999).sum() / (lasered > 0).sum()))
+    assert f > 0.02
+    torch.testing.assert_close(model.g2.laser_presence(s), torch.tensor([0.0, f / (f + 0.01)]))
+    clean_filled = push_pull_fill(clean, valid_pixels(clean))  # only the padding filled
+    assert torch.equal(out["i_b"][0], clean_filled[0])  # p = 0: G1 does nothing
+    assert not torch.allclose(out["i_b"][1], push_pull_fill(lasered, valid_pixels(lasered))[0])
+    p1 = f / (f + 0.01)
+    nsr1 = float(torch.tensor(0.05).log() + p1 * (torch.tensor(50.0).log() - torch.tensor(0.05).log()))
+    base = model.g2.base(out["i_b"], otf, model.g2.laser_presence(s))
+    torch.testing.assert_close(base[0], classical_wiener(clean_filled, otf, 0.05)[0], atol=1e-6, rtol=0)
+    torch.testing.assert_close(base[1], classical_wiener(out["i_b"][1:], otf, float(torch.tensor(nsr1).exp()))[0],
+                               atol=1e-6, rtol=0)
+    out["restored"][1].square().mean().backward()
+    for name in ("log_f0", "log_nsr_lasered"):
+        assert float(getattr(model.g2, name).grad.abs()) > 0, name
+    with pytest.raises(Exception, match="model.laser_gate"):
+        ModelSpec(laser_gate=True, g1_residual=False)

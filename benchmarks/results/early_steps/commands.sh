@@ -28,3 +28,15 @@ python -m benchmarks.early_steps --steps 160 --at 0,10,40,160 --out $R/filled_wi
 # on the H100 (one device call, cut by its limit after step 400; Wiener there by the old rule)
 python -m benchmarks.early_steps --device cuda --steps 5000 --at 0,10,30,100,200,400,700,1000,1500,2000,3000,4000,5000 \
     --out $R/gpu_filled_h100.json $F
+
+# Third session (2026-11-27): model.laser_gate (G1's correction and the Wiener base's nsr follow the presence of
+# saturated pixels), with the Wiener base and EMA 0.999; the lasered nsr from 0.03 or from 100 (the value the
+# per-condition tuning picks for Wiener at alpha_l = 1e6); docs/models.md Sec. 10 "Then"
+G="$F model.g2_base=wiener trainer.ema=0.999 model.laser_gate=true"
+python -m benchmarks.early_steps --steps 160 --at 0,40,160 --out $R/filled_wienerbase_ema0.999_gate.json $G
+python -m benchmarks.early_steps --steps 160 --at 0,40,160 --out $R/filled_wienerbase_ema0.999_gate_nsr100.json $G \
+    model.g2_base_nsr_lasered=100
+python -m benchmarks.early_steps --steps 160 --at 0,40,160 --out $R/filled_wienerbase_ema0.999_gate_nsr100_lr5e-5.json \
+    $G model.g2_base_nsr_lasered=100 trainer.lr_weights=5e-5 trainer.lr_biases=1e-4
+python -m benchmarks.early_steps --steps 160 --at 0,40,160 --out $R/filled_wienerbase_ema0.999_gate_nsr100_recon.json \
+    $G model.g2_base_nsr_lasered=100 model.loss.adv=0 model.loss.mdf=0
