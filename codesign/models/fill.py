@@ -24,6 +24,12 @@ def valid_pixels(sensor: torch.Tensor, saturated: float = SATURATED) -> torch.Te
     return (sensor > 0) & (sensor < saturated)
 
 
+def saturated_fraction(sensor: torch.Tensor, saturated: float = SATURATED) -> torch.Tensor:
+    """(B,) share of each image's field (the non-zero pixels, as in valid_pixels) at saturation."""
+    field = (sensor > 0).flatten(1).sum(1).clamp_min(1)
+    return (sensor >= saturated).flatten(1).sum(1).to(sensor.dtype) / field
+
+
 def push_pull_fill(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """``x`` (B, C, H, W) with every pixel where ``valid`` is False replaced by a smooth continuation of the valid
     ones (an image without any valid pixel is returned as it is)."""

@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from codesign.config.store import register, spec_node
 from codesign.models import losses
 from codesign.models.discriminators import PatchDiscriminator
-from codesign.models.fill import SATURATED, push_pull_fill, valid_pixels
+from codesign.models.fill import push_pull_fill, saturated_fraction, valid_pixels
 from codesign.models.losses import LossWeights
 from codesign.models.restorer import Restorer, TrainContext
 from codesign.models.spec import ModelSpec
@@ -59,10 +59,9 @@ def pre_restore(g1: nn.Module, sensor: torch.Tensor, residual: bool, base: str =
     return (sensor if base == "sensor" else push_pull_fill(sensor, valid_pixels(sensor))) + out
 
 
-def saturated_fraction(sensor: torch.Tensor) -> torch.Tensor:
-    """(B,) fraction of the sensor's field (non-zero pixels; the padding is exactly 0) at saturation."""
-    field = (sensor > 0).flatten(1).sum(1).clamp_min(1)
-    return (sensor >= SATURATED).flatten(1).sum(1).to(sensor.dtype) / field
+def laser_presence(g2: nn.Module, sensor: torch.Tensor, spec: ModelSpec) -> torch.Tensor | None:
+    """(B,) presence of a laser in each image (model.laser_gate; G2 holds its parameter), None when off."""
+    return g2.laser_presence(sensor) if spec.laser_gate else None
 
 
 def sandwich(generators, sensor: torch.Tensor, otf: torch.Tensor, spec: ModelSpec) -> dict:
@@ -73,7 +72,7 @@ def sandwich(generators, sensor: torch.Tensor, otf: torch.Tensor, spec: ModelSpe
         raise ValueError(f"sensor must be (B, 1, P, P) with an OTF of shape (P, P // 2 + 1); got sensor "
                          f"{tuple(sensor.shape)} and OTF {tuple(otf.shape)}")
     g1, gv, g2 = generators
-    presence = g2.laser_presence(sensor) if spec.laser_gate else None
+    presence = laser_presence(g2, sensor, spec)
     i_b = pre_restore(g1, sensor, spec.g1_residual, spec.g1_base, presence)
     features = gv(i_b, otf)
     b = g2(features, g2.base(i_b, otf, presence) if spec.g2_residual else None)
@@ -195,8 +194,8 @@ class SGAN(Restorer):
 
     def pre_restore(self, sensor: torch.Tensor) -> torch.Tensor:
         """G1: (B, 1, P, P) normalized sensor image -> I_b^ (B, 1, P, P)."""
-        gate = self.g2.laser_presence(sensor) if self.spec.laser_gate else None
-        return pre_restore(self.g1, sensor, self.spec.g1_residual, self.spec.g1_base, gate)
+        return pre_restore(self.g1, sensor, self.spec.g1_residual, self.spec.g1_base,
+                           laser_presence(self.g2, sensor, self.spec))
 
     def critic1(self, sensor: torch.Tensor, i_b: torch.Tensor):
         """D1(s, x, y, I_b) -> (patch scores, level features)."""

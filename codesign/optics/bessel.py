@@ -122,17 +122,21 @@ _RUN_IN_PLACE = 32768  # runs at least this long are evaluated in place, one rec
 _MAX_RUNS = 64  # above this many contiguous runs of one regime, gather and scatter instead (unordered x)
 
 
-def _regime_runs(xd: torch.Tensor, x_hi: float) -> list[list[tuple[int, int]]] | None:
+def _regime_labels(xd: torch.Tensor, x_hi: float) -> torch.Tensor:
+    """Each x's regime: 0 series (x < 1), 1 Miller (1 <= x < x_hi), 2 Hankel + forward recurrence."""
+    return (xd >= _X_SERIES).to(torch.int8) + (xd >= x_hi).to(torch.int8)
+
+
+def _regime_runs(label: torch.Tensor) -> list[list[tuple[int, int]]] | None:
     """For each regime (series, Miller, forward) the contiguous runs [a, b) of the flattened x that fall in it,
     or None when x is too unordered for runs to pay. Ordered inputs (the half-ring's distinct radii times each
     ring's radius: one ascending row per ring) split into a few runs, each evaluated in place on a view of the
     table: no gather of x, no scatter of a part into the table, and each run's recurrence works in cache."""
-    label = (xd >= _X_SERIES).to(torch.int8) + (xd >= x_hi).to(torch.int8)
     edges = torch.nonzero(label[1:] != label[:-1]).squeeze(-1) + 1
     if edges.numel() >= _MAX_RUNS:
         return None
-    bounds = [0] + edges.tolist() + [xd.numel()]
-    kinds = label[torch.tensor(bounds[:-1], device=xd.device)].tolist()
+    bounds = [0] + edges.tolist() + [label.numel()]
+    kinds = label[torch.tensor(bounds[:-1], device=label.device)].tolist()
     runs: list[list[tuple[int, int]]] = [[], [], []]
     for kind, a, b in zip(kinds, bounds[:-1], bounds[1:]):
         runs[kind].append((a, b))
@@ -153,15 +157,15 @@ def bessel_rows(x: torch.Tensor, orders, out: torch.Tensor | None = None) -> tor
         out = out.view(len(orders), xd.numel())
     if xd.numel() == 0:
         return out
-    x_hi = _miller_limit(n_max)
     fns = (_series, _miller, _forward)
-    runs = _regime_runs(xd, x_hi)
+    label = _regime_labels(xd, _miller_limit(n_max))
+    runs = _regime_runs(label)
     if runs is not None:
         for fn, spans in zip(fns, runs):
-            short = [(a, b) for a, b in spans if b - a < _RUN_IN_PLACE] if len(spans) > 1 else []
-            for a, b in spans:
-                if (a, b) not in short:
-                    fn(xd[a:b], n_max, out[:, a:b], rows)
+            in_place = spans if len(spans) == 1 else [(a, b) for a, b in spans if b - a >= _RUN_IN_PLACE]
+            short = [(a, b) for a, b in spans if (a, b) not in in_place]
+            for a, b in in_place:
+                fn(xd[a:b], n_max, out[:, a:b], rows)
             if short:  # one recurrence over all short runs (~100 steps of Python overhead whatever the length),
                 # then slice copies back: still no index_put
                 part = torch.empty(len(orders), sum(b - a for a, b in short), dtype=torch.float64, device=xd.device)
@@ -171,8 +175,8 @@ def bessel_rows(x: torch.Tensor, orders, out: torch.Tensor | None = None) -> tor
                     out[:, a:b].copy_(part[:, at:at + b - a])
                     at += b - a
         return out
-    for fn, mask in zip(fns, ((xd < _X_SERIES), (xd >= _X_SERIES) & (xd < x_hi), xd >= x_hi)):
-        idx = torch.nonzero(mask).squeeze(-1)
+    for kind, fn in enumerate(fns):
+        idx = torch.nonzero(label == kind).squeeze(-1)
         if idx.numel() == 0:
             continue
         part = torch.empty(len(orders), idx.numel(), dtype=torch.float64, device=xd.device)
@@ -305,7 +309,8 @@ def bessel_mix(x: torch.Tensor, weights: torch.Tensor, orders) -> torch.Tensor:
     radii u): the sums are taken in float64 straight from one table of the distinct orders (and the neighbours
     their derivatives need), so no (K, R, U) tensor of Bessel values is copied, cast or multiplied; the backward
     reads the same table. Orders may repeat (several outputs of one order; fastest side by side), each in
-    [0, 200]. x: (R, U), values >= 0; weights: (R, K). Gradients to x and weights. Fastest when each row of x is ordered (see bessel_rows)."""
+    [0, 200]. x: (R, U), values >= 0; weights: (R, K). Gradients to x and weights. Fastest when each row of x
+    is ordered (see bessel_rows)."""
     orders = tuple(int(n) for n in orders)
     if not orders or min(orders) < 0 or max(orders) > 200:
         raise ValueError(f"bessel_mix: orders must be integers in [0, 200], got {orders!r}")

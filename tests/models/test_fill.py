@@ -113,7 +113,8 @@ def test_g2_base_is_checked():
 def test_laser_gate_passes_an_unlasered_image_and_moves_the_nsr_with_the_saturated_fraction():
     """model.laser_gate: presence p = f / (f + f0) of saturated pixels (f: their share of the field, padding not
     counted). An image without saturated pixels reaches G2 exactly as measured (G1's correction times p = 0) and is
-    deconvolved at the unlasered nsr (padding filled, as always with g1_base=filled); a lasered one at log nsr = log nsr_0 + p (log nsr_1 - log nsr_0), per image."""
+    deconvolved at the unlasered nsr (padding filled, as always with g1_base=filled); a lasered one at
+    log nsr = log nsr_0 + p (log nsr_1 - log nsr_0), per image."""
     torch.manual_seed(0)
     model = SGAN(ModelSpec(size="tiny", fe_features=4, g2_residual=True, g1_base="filled", g2_base="wiener",
                            g2_base_nsr=0.05, laser_gate=True, laser_gate_f0=0.01, g2_base_nsr_lasered=50.0))

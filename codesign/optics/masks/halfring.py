@@ -111,9 +111,9 @@ class OctantSums:
         self.sign_y = torch.where(iv >= 0, 1.0, -1.0).to(dtype)
 
     def im(self, prof: torch.Tensor) -> torch.Tensor:
-        """Im at the support samples from the radial profiles (2M, U), A_m and -B_m interleaved, at the grid's distinct radii.
-        Gathers are index_select: their backward is index_add (fast), where indexing's is an accumulating
-        index_put (several times slower on a CPU)."""
+        """Im at the support samples from the radial profiles (2M, U), A_m and -B_m interleaved, at the grid's
+        distinct radii. Gathers are index_select: their backward is index_add (fast), where indexing's is an
+        accumulating index_put (several times slower on a CPU)."""
         sums = _OctantSumsFn.apply(prof, self.tables, self.rep_radius).reshape(-1)  # [P, P', -Q, -Q']
         return self.sign_x * sums.index_select(0, self.index_x) + self.sign_y * sums.index_select(0, self.index_y)
 
