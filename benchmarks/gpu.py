@@ -186,6 +186,17 @@ def inference_cells(p: dict, dev: torch.device, budget: float, compiled: bool = 
     return rows
 
 
+def merge_compiled(old: list[dict], new: list[dict]) -> list[dict]:
+    """The speed table's rows with this run's compiled cells: a cell this run measured (or failed) replaces the
+    earlier one; a cell its budget did not reach keeps an earlier measurement (a short call adds cells, never
+    erases them)."""
+    key = lambda r: (r.get("model"), r.get("width"), r.get("mode"), r.get("batch"))  # noqa: E731
+    skipped = {key(r) for r in new if r.get("error", "").startswith("not run")}
+    earlier = {key(r): r for r in old if is_compiled(r.get("mode", "")) and "error" not in r}
+    kept = [r for r in old if not is_compiled(r.get("mode", ""))]
+    return kept + [earlier[key(r)] if key(r) in skipped and key(r) in earlier else r for r in new]
+
+
 def _time_cell(model, gens, otf, p: dict, batch: int, mode: str, dev: torch.device) -> dict:
     x = torch.rand(batch, 1, p["padded"], p["padded"], device=dev)
 
@@ -447,9 +458,8 @@ def main(argv=None) -> int:
                     torch.cuda.empty_cache()
             elif step == "compiled":
                 speed = res.setdefault("speed", {"inference": []})
-                kept = [r for r in speed["inference"] if not is_compiled(r.get("mode", ""))]
-                speed["inference"] = kept + inference_cells(
-                    p, dev, budget.share(p["shares"]["compiled"], p["floors"]["compiled"]), compiled=True)
+                speed["inference"] = merge_compiled(speed["inference"], inference_cells(
+                    p, dev, budget.share(p["shares"]["compiled"], p["floors"]["compiled"]), compiled=True))
             elif step == "train":
                 reserve = p["shares"]["evaluation"] * budget.total if "evaluate" in steps else 0.0
                 res["train"] = step_train(p, dev, work, out, budget.left() - reserve)

@@ -67,6 +67,19 @@ def test_compiled_cells_sgan_f_and_paper_width_first_at_the_largest_batch():
     assert gpu.inference_passes(gpu.PLANS["dry"], compiled=True) == []
 
 
+
+def test_a_short_compiled_call_adds_cells_and_keeps_the_earlier_ones():
+    cell = lambda mode, **r: {"model": "sgan_f", "width": "paper", "mode": mode, "batch": 8, **r}  # noqa: E731
+    old = [cell("float32", images_per_s=45.4), cell("float32+compile", images_per_s=55.7),
+           cell("float32+cudagraphs", error="not run: speed budget spent")]
+    new = [cell("float32+cudagraphs", images_per_s=59.2), cell("float32+compile", error="not run: speed budget spent"),
+           {**cell("float32+compile"), "width": "cpu", "error": "not run: speed budget spent"}]
+    merged = gpu.merge_compiled(old, new)
+    assert merged == [old[0], new[0], old[1], new[2]]
+    # a cell measured again replaces the earlier figure, a failure too
+    again = gpu.merge_compiled(merged, [cell("float32+compile", error="OutOfMemoryError: CUDA")])
+    assert again == [old[0], cell("float32+compile", error="OutOfMemoryError: CUDA")]
+
 @pytest.mark.parametrize("args,message", [
     (["--dry-run"], "--dry-run needs --out DIR (its tiny-size figures must not replace the GPU results)"),
     (["--dry-run", "--out", "X", "--only", "tests,fly"], "--only 'tests,fly': allowed steps: tests, speed, compiled, "

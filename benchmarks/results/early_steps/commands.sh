@@ -40,3 +40,7 @@ python -m benchmarks.early_steps --steps 160 --at 0,40,160 --out $R/filled_wiene
     $G model.g2_base_nsr_lasered=100 trainer.lr_weights=5e-5 trainer.lr_biases=1e-4
 python -m benchmarks.early_steps --steps 160 --at 0,40,160 --out $R/filled_wienerbase_ema0.999_gate_nsr100_recon.json \
     $G model.g2_base_nsr_lasered=100 model.loss.adv=0 model.loss.mdf=0
+
+# On the H100 (2026-11-27, one device call, cut by its limit after step 500): the gate + lasered-nsr arm
+python -m benchmarks.early_steps --device cuda --steps 2000 --at 0,40,160,300,500,700,1000,1500,2000 \
+    --out $R/gpu_gate_nsr100_h100.json $G model.g2_base_nsr_lasered=100
