@@ -1,11 +1,13 @@
 """How the restoration of held-out photographs moves over the first training steps of the main job's network.
 
-Trains the network of ``+experiment=joint``'s CPU default (SGAN-B, cpu width, 96 px padded to 128, batch 4) with the
-published mask frozen, in this process, and at the chosen steps scores PSNR after the per-image gain/offset match
-on the held-out photographs at alpha_l = 0 and 1e6: the network, its G1 output I_b^, the sensor image, classical
-Wiener and Wiener after G1 (docs/models.md Sec. 10). Overrides are Hydra's, e.g. ``model.g2_residual=true``.
+Trains the network of ``+experiment=joint``'s CPU default (model=sgan_b_gated, cpu width, 96 px padded to 128,
+batch 4, EMA 0.99) with the published mask frozen, in this process, and at the chosen steps scores PSNR after the
+per-image gain/offset match on the held-out photographs (default alpha_l = 0 and 1e6; --presets): the network,
+G2's base (the network without G2's learned correction), its G1 output I_b^, the sensor image, classical Wiener and
+Wiener after G1 (docs/models.md Sec. 10). Overrides are Hydra's, e.g. ``model=sgan_b trainer.ema=null`` (the main
+job's network before 2026-11-27).
 
-    python -m benchmarks.early_steps --steps 40 --at 0,1,10,40 model.g2_residual=true model.g1_base=filled
+    python -m benchmarks.early_steps --steps 160 --at 0,40,160 --presets laser_0,laser_1e3,laser_1e5,laser_1e6
 """
 from __future__ import annotations
 
@@ -21,22 +23,68 @@ import torch
 from benchmarks.common import compose, write_json
 
 SCENES = Path(__file__).resolve().parents[2] / "shared" / "data" / "scenes"
-MAIN_JOB = ["+experiment=baseline", "preset=joint_cpu", "trainer=joint_cpu", "logging.tensorboard=false"]
+MAIN_JOB = ["+experiment=baseline", "preset=joint_cpu", "trainer=joint_cpu", "model=sgan_b_gated",
+            "logging.tensorboard=false"]
 
 
-def scores(model, trainer, data, held_out, scenes, seed: int) -> dict:
-    """PSNR aff. of every method at alpha_l = 0 and 1e6 (baselines tuned on the training distribution)."""
+PRESETS = ("laser_0", "laser_1e6")
+
+
+def scores(model, trainer, data, held_out, scenes, seed: int, presets=PRESETS) -> dict:
+    """PSNR aff. of every method under each preset (default alpha_l = 0 and 1e6; baselines tuned for each
+    condition on the training distribution)."""
     from codesign.train.evaluation import Evaluator, centre
 
     ev = Evaluator(model, trainer.restoring_modules(), held_out)
     ev.tune_per_condition(data.validation_scenes(8), data.validation_noise_seed)
     out = {}
-    for j, preset in enumerate(("laser_0", "laser_1e6")):
-        batch, _, target, table = ev.score_preset(scenes, preset, seed + 1000 + j)
-        table.update(ev.score({"i_b": centre(ev._network(batch)["i_b"], ev.n)}, target))
+    for preset in presets:
+        batch, _, target, table = ev.score_preset(scenes, preset, seed + 1000 + noise_offset(preset))
+        extra = {"i_b": centre(ev._network(batch)["i_b"], ev.n)}
+        base = g2_base(model, trainer, batch, data.otf)
+        if base is not None:  # what G2's learned correction starts from: the network minus that correction
+            extra["g2_base"] = centre(base, ev.n)
+        table.update(ev.score(extra, target))
         out[preset] = {m: round(float(table[m]["psnr_affine"]), 2) for m in table}
         out[preset]["tuned_nsr"] = {k: float(f"{v:.3g}") for k, v in ev.calib["nsr"].items()}
+    out["learned"] = learned_scalars(trainer)
     return out
+
+
+def noise_offset(preset: str) -> int:
+    """A fixed noise stream per condition, whichever others are scored (0 and 1 as before --presets existed)."""
+    from codesign.data.params import PRESETS as KNOWN
+
+    return PRESETS.index(preset) if preset in PRESETS else 2 + list(KNOWN).index(preset)
+
+
+@torch.no_grad()
+def g2_base(model, trainer, batch: dict, otf: torch.Tensor) -> torch.Tensor | None:
+    """G2's base (model.g2_residual) on the restoring generators' I_b^, None without a residual G2."""
+    from codesign.models.sgan import laser_presence, pre_restore
+
+    spec = getattr(model, "spec", None)
+    if spec is None or not getattr(spec, "g2_residual", False):
+        return None
+    g1, _, g2 = trainer.restoring_modules()
+    modes = [g.training for g in (g1, g2)]
+    g1.eval(), g2.eval()
+    try:
+        parts = []
+        for sensor in batch["sensor"].split(8):
+            presence = laser_presence(g2, sensor, spec)
+            parts.append(g2.base(pre_restore(g1, sensor, spec.g1_residual, spec.g1_base, presence), otf, presence))
+        return torch.cat(parts)
+    finally:
+        g1.train(modes[0]), g2.train(modes[1])
+
+
+def learned_scalars(trainer) -> dict:
+    """The restoring G2's learned scalars where present: base nsr (unlasered, lasered), the laser gate's f0."""
+    g2 = trainer.restoring_modules()[2]
+    names = {"log_nsr": "nsr", "log_nsr_lasered": "nsr_lasered", "log_f0": "f0"}
+    return {label: float(f"{float(getattr(g2, name).exp()):.4g}") for name, label in names.items()
+            if getattr(g2, name, None) is not None}
 
 
 def main(argv=None) -> int:
@@ -53,11 +101,19 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", type=Path, default=SCENES, help="held-out photographs (default ../shared/data/scenes)")
     ap.add_argument("--out", type=Path, default=None, help="write the scores as JSON here (after every scoring)")
     ap.add_argument("--device", default="cpu", help="cpu (default), cuda or cuda:N")
+    ap.add_argument("--presets", default=",".join(PRESETS),
+                    help=f"evaluation conditions, comma-separated (default {','.join(PRESETS)}; laser_0, "
+                         "laser_1e1 .. laser_1e6, E1 .. H2)")
     ap.add_argument("overrides", nargs="*", help="Hydra overrides of the run")
     a = ap.parse_args(argv)
     at = sorted({int(v) for v in a.at.split(",") if v.strip()})
     if a.steps < 0 or not at or at[0] < 0 or at[-1] > a.steps:
         ap.error(f"--at {a.at!r}: steps between 0 and --steps {a.steps}")
+    from codesign.data.params import PRESETS as KNOWN
+
+    presets = tuple(v.strip() for v in a.presets.split(",") if v.strip())
+    if not presets or any(v not in KNOWN for v in presets):
+        ap.error(f"--presets {a.presets!r}: allowed {', '.join(KNOWN)} (comma-separated)")
     if not a.scenes.is_dir():
         ap.error(f"--scenes {a.scenes}: no such folder")
     try:
@@ -86,7 +142,7 @@ def main(argv=None) -> int:
     t0, res = time.perf_counter(), {"overrides": a.overrides, "device": str(dev), "scenes": names, "steps": {}}
     for step in range(a.steps + 1):
         if step in at:
-            res["steps"][step] = scores(model, trainer, data, held_out, scenes, seed)
+            res["steps"][step] = scores(model, trainer, data, held_out, scenes, seed, presets)
             res["seconds"] = round(time.perf_counter() - t0, 1)
             print(f"step {step:4d} ({res['seconds']:5.0f} s): {json.dumps(res['steps'][step])}", flush=True)
             if a.out:  # after every scoring: a run cut short keeps what it measured

@@ -136,3 +136,15 @@ def test_peers_worker_refuses_thread_pools_set_after_python_started(monkeypatch)
     with pytest.raises(SystemExit, match=r"^bench_peers worker --threads 1: the thread pools must be set before "
                                          r"Python starts \(MKL_NUM_THREADS=None\); run it through measure\(\)$"):
         bench_peers.worker(["--threads", "1", "--samples", "384"])
+
+
+def test_early_steps_refuses_unknown_conditions_before_any_work(capsys):
+    from benchmarks import early_steps
+
+    with pytest.raises(SystemExit):
+        early_steps.main(["--presets", "laser_0,laser_7"])
+    err = capsys.readouterr().err
+    assert "--presets 'laser_0,laser_7': allowed figure, E1, E2, M, H1, H2, laser_0, laser_1e1" in err
+    # each condition keeps its noise stream whichever others are scored (0 and 1: the default pair, as before)
+    assert [early_steps.noise_offset(p) for p in ("laser_0", "laser_1e6")] == [0, 1]
+    assert len({early_steps.noise_offset(p) for p in ("laser_0", "laser_1e3", "laser_1e5", "laser_1e6", "H1")}) == 5

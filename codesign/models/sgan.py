@@ -66,7 +66,8 @@ def laser_presence(g2: nn.Module, sensor: torch.Tensor, spec: ModelSpec) -> torc
 
 def sandwich(generators, sensor: torch.Tensor, otf: torch.Tensor, spec: ModelSpec) -> dict:
     """G2(G_v(G1(s, x, y), h)) with the given (g1, gv, g2) modules (the model's own, or e.g. EMA copies); the
-    residual paths as ``spec`` says (g1_residual, g1_base, g2_residual: G2's outputs correct I_b^; laser_gate)."""
+    residual paths as ``spec`` says (g1_residual, g1_base, g2_residual: G2's outputs correct I_b^; laser_gate,
+    g2_gate)."""
     p = sensor.shape[-1]
     if sensor.shape[-2] != p or tuple(otf.shape[-2:]) != (p, p // 2 + 1):
         raise ValueError(f"sensor must be (B, 1, P, P) with an OTF of shape (P, P // 2 + 1); got sensor "
@@ -75,7 +76,8 @@ def sandwich(generators, sensor: torch.Tensor, otf: torch.Tensor, spec: ModelSpe
     presence = laser_presence(g2, sensor, spec)
     i_b = pre_restore(g1, sensor, spec.g1_residual, spec.g1_base, presence)
     features = gv(i_b, otf)
-    b = g2(features, g2.base(i_b, otf, presence) if spec.g2_residual else None)
+    b = g2(features, g2.base(i_b, otf, presence) if spec.g2_residual else None,
+           presence if spec.g2_gate else None)
     return {"i_b": i_b, "features": features, "b": b, "restored": b[1]}
 
 
@@ -105,31 +107,39 @@ class Refiner(nn.Module):
 
     def base(self, i_b: torch.Tensor, otf: torch.Tensor, presence: torch.Tensor | None = None) -> torch.Tensor:
         """What G2's outputs correct (model.g2_residual): I_b^, or its Wiener deconvolution with the system OTF
-        (with ``presence``, at a log nsr between the unlasered and lasered values)."""
-        if self.log_nsr is None:
-            return i_b
-        log_nsr = self.log_nsr
-        if presence is not None and self.log_nsr_lasered is not None:
-            log_nsr = (log_nsr + presence * (self.log_nsr_lasered - log_nsr))[:, None, None, None]
-        return wiener_filter(i_b, otf, 1.0, log_nsr.exp())
+        scaled to unit DC gain (with ``presence``, at a log nsr between the unlasered and lasered values)."""
+        base = i_b
+        if self.log_nsr is not None:
+            log_nsr = self.log_nsr
+            if presence is not None and self.log_nsr_lasered is not None:
+                log_nsr = (log_nsr + presence * (self.log_nsr_lasered - log_nsr))[:, None, None, None]
+            nsr = log_nsr.exp()
+            # at unit DC gain: Wiener's DC gain H(0) / (|H(0)|^2 + nsr) is 1 / 101 at the lasered images' nsr ~ 100,
+            # and a base that dark leaves G2's correction to draw the whole image (docs/models.md Sec. 10)
+            dc = otf[..., 0, 0].real
+            base = wiener_filter(i_b, otf, 1.0, nsr) * ((dc * dc + nsr) / dc)
+        return base
 
     def _scale(self, head: nn.Module, x: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
         out = self.body(head(x))
         return out if self.skip is None else out + self.skip(features)
 
-    def forward(self, features: torch.Tensor, base: torch.Tensor | None = None) -> list[torch.Tensor]:
+    def forward(self, features: torch.Tensor, base: torch.Tensor | None = None,
+                gate: torch.Tensor | None = None) -> list[torch.Tensor]:
         """[coarse, fine] estimates; ``base`` (B, 1, P, P): added to them (downsampled for the coarse one), so that
-        G2 learns a correction to it (model.g2_residual)."""
+        G2 learns a correction to it (model.g2_residual); ``gate`` (B,): scales that correction per image
+        (model.g2_gate)."""
+        g = 1.0 if gate is None else gate[:, None, None, None]
         small = downsample2(features)
         coarse = self._scale(self.heads[0], small, small)
         if base is not None:
-            coarse = coarse + downsample2(base)
+            coarse = g * coarse + downsample2(base)
         fine_in = features
         if self.coarse_to_fine:
             up = F.interpolate(coarse, size=features.shape[-2:], mode="bicubic", align_corners=False)
             fine_in = torch.cat([features, up], 1)
         fine = self._scale(self.heads[1], fine_in, features)
-        return [coarse, fine if base is None else fine + base]
+        return [coarse, fine if base is None else g * fine + base]
 
 
 class SGAN(Restorer):
@@ -289,3 +299,12 @@ VARIANT_LOSSES: dict[str, dict[str, float]] = {
 for _variant, _loss in VARIANT_LOSSES.items():  # the config options model=sgan_b|sgan_e|sgan_f
     register("model", _variant, {"kind": SGAN.kind, **spec_node(ModelSpec, variant=_variant),
                                  "loss": spec_node(LossWeights, **_loss)})
+
+# model=sgan_b_gated, the main job's network (+experiment=joint): SGAN-B whose untrained sandwich is the laser-aware
+# classical pipeline (G1 corrects the filled sensor image, G2 the unit-DC Wiener deconvolution of I_b^ at an nsr
+# that follows the laser's presence) and whose learned corrections are gated by that presence: the options that
+# keep it above the sensor image and ahead of Wiener from the first steps (docs/models.md Sec. 10)
+GATED = {"g2_residual": True, "g1_base": "filled", "g2_base": "wiener", "laser_gate": True,
+         "g2_base_nsr_lasered": 100.0, "g2_gate": True}
+register("model", "sgan_b_gated", {"kind": SGAN.kind, **spec_node(ModelSpec, variant="sgan_b", **GATED),
+                                   "loss": spec_node(LossWeights)})

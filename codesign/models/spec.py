@@ -52,6 +52,10 @@ class ModelSpec(SpecMixin):
     correction is scaled by p (an unlasered image reaches G2 as measured, where G1 would otherwise apply the halo
     removal it learned from lasered batches everywhere), and with g2_base=wiener the log nsr moves from the
     learned unlasered value (p = 0, from g2_base_nsr) to a learned lasered one (p = 1, from g2_base_nsr_lasered).
+    g2_gate: G2's correction is scaled by the same presence p (needs laser_gate and g2_residual): the training
+    images nearly all carry a laser (alpha_l uniform on [0, 2e6]), so G2 learns corrections of lasered images only,
+    and an image without saturated pixels gets the classical pipeline's image, which is what it scores best with
+    at the CPU budget (docs/models.md Sec. 10).
     """
 
     variant: str = "sgan_b"
@@ -75,6 +79,7 @@ class ModelSpec(SpecMixin):
     laser_gate: bool = False
     laser_gate_f0: float = 1e-3
     g2_base_nsr_lasered: float = 3e-2
+    g2_gate: bool = False
     prefix: str = field(default="model", compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -103,11 +108,15 @@ class ModelSpec(SpecMixin):
                               "corrects)")
         require_number(f"{p}.laser_gate_f0", self.laser_gate_f0, lo=1e-8, hi=1.0)
         require_number(f"{p}.g2_base_nsr_lasered", self.g2_base_nsr_lasered, lo=1e-8, hi=1e4)
+        if self.g2_gate and not (self.laser_gate and self.g2_residual):
+            raise ConfigError(f"{p}.g2_gate", self.g2_gate, "needs model.laser_gate=true and model.g2_residual=true "
+                              "(it scales G2's correction by the laser's presence)")
         if self.laser_gate and not self.g1_residual:
             raise ConfigError(f"{p}.laser_gate", self.laser_gate, "needs model.g1_residual=true (it scales G1's "
                               "correction)")
         require_number(f"{p}.g2_head_layers", self.g2_head_layers, lo=1, hi=8, integer=True)
-        for key in ("attention", "coarse_to_fine", "g1_residual", "g2_linear_skip", "g2_residual", "laser_gate"):
+        for key in ("attention", "coarse_to_fine", "g1_residual", "g2_linear_skip", "g2_residual", "laser_gate",
+                    "g2_gate"):
             if not isinstance(getattr(self, key), bool):
                 raise ConfigError(f"{p}.{key}", getattr(self, key), "must be true or false")
 

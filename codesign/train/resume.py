@@ -99,7 +99,7 @@ def load_initial_weights(model, path, cfg: DictConfig, key: str = "init.checkpoi
 
 # SGAN keys added after checkpoints were written, at the values those checkpoints were trained with
 SGAN_ADDED = {"g2_residual": False, "g1_base": "sensor", "g2_base": "i_b", "g2_base_nsr": 3e-2, "laser_gate": False,
-              "laser_gate_f0": 1e-3, "g2_base_nsr_lasered": 3e-2}
+              "laser_gate_f0": 1e-3, "g2_base_nsr_lasered": 3e-2, "g2_gate": False}
 
 
 def _with_added_keys(saved: dict) -> dict:

@@ -2,10 +2,13 @@
 start from it: valid pixels untouched, holes filled from their surroundings, exact identities at initialization."""
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
 from codesign.models import SGAN, ModelSpec, otf_from_kernel
+from codesign.models.sgan import downsample2
 from codesign.models.fill import push_pull_fill, valid_pixels
 from codesign.models.wiener import classical_wiener
 from codesign.train.resume import _with_added_keys
@@ -85,9 +88,16 @@ def test_g1_base_is_checked():
         ModelSpec(g1_base="wiener")
 
 
+def _unit_dc_wiener(x: torch.Tensor, otf: torch.Tensor, nsr: float) -> torch.Tensor:
+    """The classical Wiener filter scaled to unit DC gain (a flat image keeps its level): H(0) = 1 here."""
+    assert abs(complex(otf[0, 0]) - 1) < 1e-6
+    return classical_wiener(x, otf, nsr) * (1 + nsr)
+
+
 def test_with_a_wiener_base_the_untrained_sandwich_returns_the_classical_pipeline():
-    """model.g2_base=wiener: G2 corrects the Wiener deconvolution of I_b^ (the learned nsr at its start value), so the
-    untrained network is the classical pipeline (the evaluation's g1_wiener) exactly; the nsr gets a gradient."""
+    """model.g2_base=wiener: G2 corrects the Wiener deconvolution of I_b^ (the learned nsr at its start value) at unit
+    DC gain, so the untrained network is the classical pipeline (the evaluation's g1_wiener) up to that gain, a
+    flat image keeps its level at any nsr; the nsr gets a gradient."""
     torch.manual_seed(0)
     model = SGAN(ModelSpec(size="tiny", fe_features=4, g2_residual=True, g1_base="filled", g2_base="wiener",
                            g2_base_nsr=0.05))
@@ -98,9 +108,51 @@ def test_with_a_wiener_base_the_untrained_sandwich_returns_the_classical_pipelin
     out = model(s, otf)
     filled = push_pull_fill(s, valid_pixels(s))
     assert torch.equal(out["i_b"], filled)
-    assert torch.allclose(out["restored"], classical_wiener(filled, otf, 0.05), atol=1e-6)
+    assert torch.allclose(out["restored"], _unit_dc_wiener(filled, otf, 0.05), atol=1e-6)
+    flat = torch.full_like(s, 0.4)
+    with torch.no_grad():
+        for nsr in (100.0, 0.05):  # a flat image keeps its level at any nsr (classical Wiener: 0.4 / (1 + nsr))
+            model.g2.log_nsr.fill_(math.log(nsr))
+            torch.testing.assert_close(model.g2.base(flat, otf), flat, atol=1e-5, rtol=0)
     out["restored"].square().mean().backward()
     assert model.g2.log_nsr.grad is not None and float(model.g2.log_nsr.grad.abs()) > 0
+
+
+def _gated_pair(options: dict, randomized: str):
+    """(model, [clean; lasered] sensor batch, OTF, (clean, lasered)): a tiny laser-gated SGAN with a Wiener base
+    whose ``randomized`` generator (g1 or g2) has non-zero weights (a correction for the gate to scale; learned
+    scalars as configured), the lasered capture and the same with its saturated pixels set to 0.5."""
+    torch.manual_seed(0)
+    model = SGAN(ModelSpec(size="tiny", fe_features=4, g2_residual=True, g1_base="filled", g2_base="wiener",
+                           laser_gate=True, laser_gate_f0=0.01, **options))
+    init_weights(model)
+    for p in getattr(model, randomized).parameters():
+        if p.dim() > 0:
+            torch.nn.init.normal_(p, std=0.05)
+    lasered = _capture().float()
+    clean = torch.where(lasered >= 1, torch.full_like(lasered, 0.5), lasered)
+    k = torch.rand(5, 5)
+    return model, torch.cat([clean, lasered]), otf_from_kernel(k / k.sum(), lasered.shape[-1]), (clean, lasered)
+
+def test_g2_gate_leaves_an_unlasered_image_at_its_base_and_corrects_a_lasered_one():
+    """model.g2_gate: G2's correction times the presence p, so an image without saturated pixels leaves the network
+    as its base (the classical pipeline's image) whatever G2's weights, and a lasered one gets p x the correction;
+    refused without the laser gate."""
+    model, s, otf, _ = _gated_pair(dict(g2_gate=True), "g2")
+    out = model(s, otf)
+    presence = model.g2.laser_presence(s).detach()
+    base = model.g2.base(out["i_b"], otf, presence)
+    assert float(presence[0]) == 0.0 and float(presence[1]) > 0.5
+    assert torch.equal(out["restored"][0], base[0])
+    with torch.no_grad():
+        coarse_ungated, _ = model.g2(out["features"], base)
+        coarse_base = downsample2(base)
+        # the coarse estimate is base + p x correction exactly (the fine one sees the gated coarse estimate)
+        torch.testing.assert_close(out["b"][0][1] - coarse_base[1], presence[1] * (coarse_ungated[1] - coarse_base[1]))
+        assert float((coarse_ungated[1] - coarse_base[1]).abs().max()) > 1e-3
+        assert float((out["restored"][1] - base[1]).abs().max()) > 1e-4
+    with pytest.raises(Exception, match="model.g2_gate.*needs model.laser_gate=true"):
+        ModelSpec(g2_residual=True, g2_gate=True)
 
 
 def test_g2_base_is_checked():
@@ -109,23 +161,12 @@ def test_g2_base_is_checked():
     with pytest.raises(Exception, match="model.g2_base"):
         ModelSpec(g2_residual=True, g2_base="sensor")
 
-
 def test_laser_gate_passes_an_unlasered_image_and_moves_the_nsr_with_the_saturated_fraction():
     """model.laser_gate: presence p = f / (f + f0) of saturated pixels (f: their share of the field, padding not
     counted). An image without saturated pixels reaches G2 exactly as measured (G1's correction times p = 0) and is
     deconvolved at the unlasered nsr (padding filled, as always with g1_base=filled); a lasered one at
     log nsr = log nsr_0 + p (log nsr_1 - log nsr_0), per image."""
-    torch.manual_seed(0)
-    model = SGAN(ModelSpec(size="tiny", fe_features=4, g2_residual=True, g1_base="filled", g2_base="wiener",
-                           g2_base_nsr=0.05, laser_gate=True, laser_gate_f0=0.01, g2_base_nsr_lasered=50.0))
-    init_weights(model)
-    for p in model.g1.parameters():  # a G1 whose correction is not zero, so that the gate has something to gate
-        torch.nn.init.normal_(p, std=0.05)
-    lasered = _capture().float()
-    clean = torch.where(lasered >= 1, torch.full_like(lasered, 0.5), lasered)
-    s = torch.cat([clean, lasered])
-    k = torch.rand(5, 5)
-    otf = otf_from_kernel(k / k.sum(), s.shape[-1])
+    model, s, otf, (clean, lasered) = _gated_pair(dict(g2_base_nsr=0.05, g2_base_nsr_lasered=50.0), "g1")
     out = model(s, otf)
     f = float(((lasered >= 0.999).sum() / (lasered > 0).sum()))
     assert f > 0.02
@@ -136,9 +177,9 @@ def test_laser_gate_passes_an_unlasered_image_and_moves_the_nsr_with_the_saturat
     p1 = f / (f + 0.01)
     nsr1 = float(torch.tensor(0.05).log() + p1 * (torch.tensor(50.0).log() - torch.tensor(0.05).log()))
     base = model.g2.base(out["i_b"], otf, model.g2.laser_presence(s))
-    torch.testing.assert_close(base[0], classical_wiener(clean_filled, otf, 0.05)[0], atol=1e-6, rtol=0)
-    torch.testing.assert_close(base[1], classical_wiener(out["i_b"][1:], otf, float(torch.tensor(nsr1).exp()))[0],
-                               atol=1e-6, rtol=0)
+    torch.testing.assert_close(base[0], _unit_dc_wiener(clean_filled, otf, 0.05)[0], atol=1e-6, rtol=0)
+    torch.testing.assert_close(base[1], _unit_dc_wiener(out["i_b"][1:], otf, float(torch.tensor(nsr1).exp()))[0],
+                               atol=1e-5, rtol=1e-5)
     out["restored"][1].square().mean().backward()
     for name in ("log_f0", "log_nsr_lasered"):
         assert float(getattr(model.g2, name).grad.abs()) > 0, name

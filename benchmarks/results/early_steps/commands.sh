@@ -44,3 +44,26 @@ python -m benchmarks.early_steps --steps 160 --at 0,40,160 --out $R/filled_wiene
 # On the H100 (2026-11-27, one device call, cut by its limit after step 500): the gate + lasered-nsr arm
 python -m benchmarks.early_steps --device cuda --steps 2000 --at 0,40,160,300,500,700,1000,1500,2000 \
     --out $R/gpu_gate_nsr100_h100.json $G model.g2_base_nsr_lasered=100
+
+# Fourth session (2026-11-27). From here early_steps' MAIN_JOB is the new main job's network (model=sgan_b_gated,
+# trainer=joint_cpu with EMA 0.99), and G2's Wiener base has unit DC gain: the lines above ran with model=sgan_b and
+# no EMA and the old base (rerun them with `model=sgan_b trainer.ema=null` added; the base change is not optional).
+# Diagnostics with the old base (the first two; g2_base_gain was an option of that session, measured, removed):
+G="$F model.g2_base=wiener trainer.ema=0.999 model.laser_gate=true model.g2_base_nsr_lasered=100"
+python -m benchmarks.early_steps --steps 160 --at 0,40,160 --out $R/filled_wienerbase_ema0.999_gate_nsr100_alphab0.7.json \
+    $G "data.params.alpha_b_range=[0.7,0.7]" data.params.exposure_std_s=0
+# python -m benchmarks.early_steps --steps 160 --at 0,10,40,160 \
+#     --out $R/filled_wienerbase_ema0.999_gate_nsr100_alphab0.7_gain1.43.json $G model.g2_base_gain=1.4286 \
+#     "data.params.alpha_b_range=[0.7,0.7]" data.params.exposure_std_s=0
+# unit-DC base (model=sgan_b: g2_gate off)
+python -m benchmarks.early_steps --steps 160 --at 0,10,40,160 \
+    --out $R/filled_wienerbase_ema0.999_gate_nsr100_unitdc.json model=sgan_b $G
+python -m benchmarks.early_steps --steps 160 --at 0,40,160 --out $R/filled_wienerbase_ema0.99_gate_nsr100_unitdc.json \
+    model=sgan_b $G trainer.ema=0.99
+# on the H100 (cut by the device call after step 300)
+python -m benchmarks.early_steps --device cuda --steps 1000 --at 0,160,300,400,500,700,1000 \
+    --out $R/gpu_unitdc_h100.json model=sgan_b $G
+# the new default, model=sgan_b_gated with EMA 0.99 (the same as $G trainer.ema=0.99 model.g2_gate=true), two seeds
+P="--presets laser_0,laser_1e3,laser_1e5,laser_1e6"
+python -m benchmarks.early_steps --steps 160 --at 0,40,160 $P --out $R/unitdc_gate_g2gate_ema0.99.json
+python -m benchmarks.early_steps --steps 160 --at 0,160 $P --out $R/unitdc_gate_g2gate_ema0.99_seed1.json seed=1
