@@ -61,7 +61,13 @@ def pre_restore(g1: nn.Module, sensor: torch.Tensor, residual: bool, base: str =
 
 def laser_presence(g2: nn.Module, sensor: torch.Tensor, spec: ModelSpec) -> torch.Tensor | None:
     """(B,) presence of a laser in each image (model.laser_gate; G2 holds its parameter), None when off."""
-    return g2.laser_presence(sensor) if spec.laser_gate else None
+    return _plain_module(g2).laser_presence(sensor) if spec.laser_gate else None
+
+
+def _plain_module(m: nn.Module) -> nn.Module:
+    """The module under a DistributedDataParallel wrapper (which forwards only ``forward``): G2's presence and base
+    use its scalars outside its forward; their gradients still reach DDP's per-parameter hooks and are averaged."""
+    return getattr(m, "module", m)
 
 
 def sandwich(generators, sensor: torch.Tensor, otf: torch.Tensor, spec: ModelSpec) -> dict:
@@ -76,7 +82,7 @@ def sandwich(generators, sensor: torch.Tensor, otf: torch.Tensor, spec: ModelSpe
     presence = laser_presence(g2, sensor, spec)
     i_b = pre_restore(g1, sensor, spec.g1_residual, spec.g1_base, presence)
     features = gv(i_b, otf)
-    b = g2(features, g2.base(i_b, otf, presence) if spec.g2_residual else None,
+    b = g2(features, _plain_module(g2).base(i_b, otf, presence) if spec.g2_residual else None,
            presence if spec.g2_gate else None)
     return {"i_b": i_b, "features": features, "b": b, "restored": b[1]}
 

@@ -99,13 +99,13 @@ class JointTrainer(RestorationTrainer):
     def replicated_parameters(self) -> list:
         return super().replicated_parameters() + self.mask_params
 
-    def _log_step(self, terms: dict, t0: float, start: int) -> None:
+    def _log_step(self, terms: dict, t0: float, start: int, counted: bool = True) -> None:
         if self.dist.enabled:
             diff = self.replica_check(self.mask_params, "mask parameters", "distributed/mask_max_difference")
             self.mask_diff = max(self.mask_diff, diff)
             if diff > 0:
                 self.camera.invalidate()
-        super()._log_step(terms, t0, start)
+        super()._log_step(terms, t0, start, counted)
 
     def _log_scalars(self, terms: dict) -> None:
         super()._log_scalars(terms)

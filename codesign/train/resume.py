@@ -74,7 +74,8 @@ INIT_MAY_DIFFER = ("model.loss",) + tuple(f"optics.{k}" for k in MEASURED_DEFAUL
 
 def load_initial_weights(model, path, cfg: DictConfig, key: str = "init.checkpoint") -> dict:
     """Start ``model`` from the weights of a checkpoint trained on another mask (a warm start): weights only (no
-    optimizer, step or mask); the model (but its loss weights), physics and image geometry checked against this
+    optimizer, step or mask; the generators' EMA averages where the checkpoint has them, the network it reports);
+    the model (but its loss weights), physics and image geometry checked against this
     run's, any difference a ConfigError naming the file and the keys. Returns what the run records: the path and
     the checkpoint's step and mask family."""
     state = load_checkpoint(path, key)
@@ -90,11 +91,25 @@ def load_initial_weights(model, path, cfg: DictConfig, key: str = "init.checkpoi
         raise ConfigError(key, str(path), "was trained with different " + ", ".join(differ) + ": a warm start keeps "
                           "the network, the optics, the sensor and the image sizes (only the mask may change)")
     facts = model.summary()
-    load_module_state(model, state["model"], key, path, f"its weights do not fit this run's model (model.kind="
-                      f"{model.kind}, variant={facts['variant']}, size={facts['size']})")
+    what = (f"its weights do not fit this run's model (model.kind={model.kind}, variant={facts['variant']}, "
+            f"size={facts['size']})")
+    load_module_state(model, state["model"], key, path, what)
+    if state.get("ema"):  # the generators the checkpoint restores with (and was evaluated with): its averages
+        load_ema_weights(model.generators(), state, key, path, what)
     mask = OmegaConf.select(saved, "mask.kind")
     log.info("network weights from %s (step %d, trained on mask %s)", path, int(state["step"]), mask)
     return {"init_checkpoint": str(path), "init_steps": int(state["step"]), "init_mask_kind": mask}
+
+
+def load_ema_weights(generators: list, state: dict, key: str, path, what: str) -> None:
+    """The checkpoint's EMA generator states into ``generators`` (one per generator, in order)."""
+    states = state["ema"]
+    if not isinstance(states, list) or len(states) != len(generators):
+        n = len(states) if isinstance(states, list) else "no list of"
+        raise load_error(key, path, what, f"its EMA holds {n} generator state(s), the model has {len(generators)} "
+                         "generators")
+    for g, st in zip(generators, states):
+        load_module_state(g, st, key, path, what + " (EMA weights)")
 
 
 # SGAN keys added after checkpoints were written, at the values those checkpoints were trained with
@@ -145,14 +160,8 @@ def load_trained(path, device: torch.device, key: str = "checkpoint"):
     load_module_state(model, state["model"], key, path, what)
     generators = model.generators()
     if state.get("ema"):
-        ema, states = EMA(generators, 0.0), state["ema"]
-        if not isinstance(states, list) or len(states) != len(generators):
-            n = len(states) if isinstance(states, list) else "no list of"
-            raise load_error(key, path, what, f"its EMA holds {n} generator state(s), the model has "
-                             f"{len(generators)} generators")
-        for shadow, st in zip(ema.shadow, states):
-            load_module_state(shadow, st, key, path, what + " (EMA weights)")
-        generators = ema.shadow
+        generators = EMA(generators, 0.0).shadow
+        load_ema_weights(generators, state, key, path, what)
     model.to(device)
     generators = [g.to(device) for g in generators]
     return model, generators, ckpt_cfg, state

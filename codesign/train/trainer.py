@@ -414,8 +414,11 @@ class RestorationTrainer(TrainContext):
                 if self.dist.enabled:  # a signal stops every rank at the same step (rank 0's decides)
                     asked = distributed.broadcast_flag(asked, self.dist)
                 last = self.step == spec.steps or over
-                if self.step % progress_every == 0 or last or asked or self.step == start + 1:
-                    self._log_step(terms, t0, start)
+                scheduled = self.step % progress_every == 0 or last or self.step == 1
+                if scheduled or asked or self.step == start + 1:
+                    # the extra lines (the first step after a resume, a stop signal) are not counted in the lowest
+                    # terms: a resumed run records the divergence figures of an uninterrupted one
+                    self._log_step(terms, t0, start, counted=scheduled)
                 if spec.val_every and (self.step % spec.val_every == 0) or last:
                     self.check_replicas()
                     if self.dist.is_main:
@@ -458,13 +461,14 @@ class RestorationTrainer(TrainContext):
         """Seconds spent in fit() over the whole run, before and after any resume."""
         return self.seconds_before + (time.perf_counter() - self._fit_t0 if self._fit_t0 is not None else 0.0)
 
-    def _log_step(self, terms: dict, t0: float, start: int) -> None:
-        """Read this step's terms (global-batch means), log them and the skips; the progress line."""
+    def _log_step(self, terms: dict, t0: float, start: int, counted: bool = True) -> None:
+        """Read this step's terms (global-batch means), log them and the skips; the progress line; ``counted``: the
+        terms update the lowest logged values (divergence)."""
         values = distributed.all_mean(terms, self.dist)
         values["step"] = self.step
         self.first_terms = self.first_terms or values
         self.last_terms = values
-        for k in reconstruction_terms(values):
+        for k in reconstruction_terms(values) if counted else ():
             if math.isfinite(values[k]):
                 self.lowest_terms[k] = min(self.lowest_terms.get(k, math.inf), values[k])
         self.report_skips()
