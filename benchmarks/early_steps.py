@@ -40,11 +40,8 @@ def scores(model, trainer, data, held_out, scenes, seed: int, presets=PRESETS) -
     out = {}
     for preset in presets:
         batch, _, target, table = ev.score_preset(scenes, preset, seed + 1000 + noise_offset(preset))
-        extra = {"i_b": centre(ev._network(batch)["i_b"], ev.n)}
-        base = g2_base(model, trainer, batch, data.otf)
-        if base is not None:  # what G2's learned correction starts from: the network minus that correction
-            extra["g2_base"] = centre(base, ev.n)
-        table.update(ev.score(extra, target))
+        inner = inner_images(model, trainer, batch, data.otf)
+        table.update(ev.score({name: centre(x, ev.n) for name, x in inner.items()}, target))
         out[preset] = {m: round(float(table[m]["psnr_affine"]), 2) for m in table}
         out[preset]["tuned_nsr"] = {k: float(f"{v:.3g}") for k, v in ev.calib["nsr"].items()}
     out["learned"] = learned_scalars(trainer)
@@ -59,24 +56,12 @@ def noise_offset(preset: str) -> int:
 
 
 @torch.no_grad()
-def g2_base(model, trainer, batch: dict, otf: torch.Tensor) -> torch.Tensor | None:
-    """G2's base (model.g2_residual) on the restoring generators' I_b^, None without a residual G2."""
-    from codesign.models.sgan import laser_presence, pre_restore
-
-    spec = getattr(model, "spec", None)
-    if spec is None or not getattr(spec, "g2_residual", False):
-        return None
-    g1, _, g2 = trainer.restoring_modules()
-    modes = [g.training for g in (g1, g2)]
-    g1.eval(), g2.eval()
-    try:
-        parts = []
-        for sensor in batch["sensor"].split(8):
-            presence = laser_presence(g2, sensor, spec)
-            parts.append(g2.base(pre_restore(g1, sensor, spec.g1_residual, spec.g1_base, presence), otf, presence))
-        return torch.cat(parts)
-    finally:
-        g1.train(modes[0]), g2.train(modes[1])
+def inner_images(model, trainer, batch: dict, otf: torch.Tensor) -> dict:
+    """The restoring generators' inner images of ``batch``: G1's output I_b^ and, with a residual G2, G2's base
+    (what its learned correction is added to: the network without that correction), as "i_b" and "g2_base"."""
+    outs = [model.restore(sensor, otf, trainer.restoring_modules()) for sensor in batch["sensor"].split(8)]
+    return {name: torch.cat([o[key] for o in outs]) for key, name in (("i_b", "i_b"), ("base", "g2_base"))
+            if key in outs[0]}
 
 
 def learned_scalars(trainer) -> dict:

@@ -82,9 +82,12 @@ def sandwich(generators, sensor: torch.Tensor, otf: torch.Tensor, spec: ModelSpe
     presence = laser_presence(g2, sensor, spec)
     i_b = pre_restore(g1, sensor, spec.g1_residual, spec.g1_base, presence)
     features = gv(i_b, otf)
-    b = g2(features, _plain_module(g2).base(i_b, otf, presence) if spec.g2_residual else None,
-           presence if spec.g2_gate else None)
-    return {"i_b": i_b, "features": features, "b": b, "restored": b[1]}
+    base = _plain_module(g2).base(i_b, otf, presence) if spec.g2_residual else None
+    b = g2(features, base, presence if spec.g2_gate else None)
+    out = {"i_b": i_b, "features": features, "b": b, "restored": b[1]}
+    if base is not None:  # what G2's learned correction is added to (the network without that correction)
+        out["base"] = base
+    return out
 
 
 class Refiner(nn.Module):

@@ -109,6 +109,7 @@ def test_with_a_wiener_base_the_untrained_sandwich_returns_the_classical_pipelin
     filled = push_pull_fill(s, valid_pixels(s))
     assert torch.equal(out["i_b"], filled)
     assert torch.allclose(out["restored"], _unit_dc_wiener(filled, otf, 0.05), atol=1e-6)
+    assert torch.equal(out["base"], out["restored"])  # the untrained correction is zero: the output is the base
     flat = torch.full_like(s, 0.4)
     with torch.no_grad():
         for nsr in (100.0, 0.05):  # a flat image keeps its level at any nsr (classical Wiener: 0.4 / (1 + nsr))
