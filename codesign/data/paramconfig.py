@@ -21,6 +21,7 @@ class ParamConfig:
 
     alpha_l_range: tuple[float, float] = (0.0, 2.0e6)      # laser strength, uncoded peak / I_sat
     alpha_l_levels: int = 10_000                           # number of predetermined, evenly spaced values
+    alpha_l_spacing: str = "linear"                        # linear (the paper's) or log: see sample_scene_params
     angle_three_sigma_fraction: float = 0.36               # 3 sigma of the incidence = this * [W_s/f, H_s/f] rad
     dark_current_mean_e: float = 0.002                     # mu_c, e-; the sampled value is normal around it
     dark_current_std_fraction: float = 0.5                 # std of the dark current = this * mu_c
@@ -37,6 +38,7 @@ class ParamConfig:
 _RANGES = ("alpha_l_range", "read_noise_mean_range_e", "read_noise_std_range_e", "c1_range", "c2_range",
            "alpha_b_range")
 _FIELDS = tuple(f.name for f in dataclasses.fields(ParamConfig))
+SPACINGS = ("linear", "log")
 
 
 def _range(key: str, value: Any) -> tuple[float, float]:
@@ -73,10 +75,19 @@ def param_config(cfg: ParamConfig | Mapping | None) -> ParamConfig:
         key, v = f"{PREFIX}.{name}", cfg[name]
         if name in _RANGES:
             out[name] = _range(key, v)
+        elif name == "alpha_l_spacing":
+            if v not in SPACINGS:
+                raise ConfigError(key, v, f"must be one of {', '.join(SPACINGS)}")
+            out[name] = v
         elif name == "alpha_l_levels":
             out[name] = require_number(key, v, lo=1, integer=True)
         elif name in ("exposure_mean_s", "exposure_min_s"):  # a zero exposure would make the sensor blind
             out[name] = require_number(key, v, lo=0.0, lo_open=True)
         else:  # non-negative scalars: fractions, means, stds, the exposure floor
             out[name] = require_number(key, v, lo=0.0)
-    return ParamConfig(**out)
+    pc = ParamConfig(**out)
+    if pc.alpha_l_spacing == "log" and pc.alpha_l_range[1] < 1:
+        raise ConfigError(f"{PREFIX}.alpha_l_range", list(pc.alpha_l_range),
+                          "with alpha_l_spacing=log the upper end must be >= 1 (the log levels start at "
+                          "max(lo, 1), the laser at the saturation level)")
+    return pc

@@ -17,7 +17,20 @@ from codesign.data.paramconfig import ParamConfig, param_config
 from codesign.errors import ConfigError, require_number
 
 __all__ = ["SceneParams", "sample_scene_params", "fixed_scene_params", "preset_params", "preset_names",
-           "LASER_STRENGTHS", "FIGURE_VALUES", "ROBUSTNESS_FIXED", "ROBUSTNESS_STAGES", "PRESETS"]
+           "LASER_STRENGTHS", "FIGURE_VALUES", "ROBUSTNESS_FIXED", "ROBUSTNESS_STAGES", "PRESETS",
+           "laser_strength_levels"]
+
+
+def laser_strength_levels(pc: ParamConfig) -> torch.Tensor:
+    """The predetermined laser strengths the training draws from, float64 (see sample_scene_params)."""
+    (lo, hi), n = pc.alpha_l_range, pc.alpha_l_levels
+    if pc.alpha_l_spacing == "linear":
+        return torch.linspace(lo, hi, n, dtype=torch.float64)
+    zero = lo == 0 and n > 1
+    start = max(lo, 1.0)
+    levels = torch.logspace(math.log10(start), math.log10(hi), n - zero, dtype=torch.float64)
+    return torch.cat([torch.zeros(1, dtype=torch.float64), levels]) if zero else levels
+
 
 # Field names of SceneParams with shape (B,); laser_angle_rad is the one (B, 2) field.
 SCALAR_FIELDS = ("alpha_l", "alpha_b", "c1", "c2", "dark_current_mean_e", "read_noise_mean_e",
@@ -142,7 +155,10 @@ def sample_scene_params(batch: int, generator: torch.Generator, cfg: ParamConfig
 
     * alpha_l: uniform over ``alpha_l_levels`` (10,000) predetermined values ``torch.linspace(lo, hi, n)``
       over [0, 2e6]. Our reading of "10K predetermined values uniformly distributed in [0, 2e6]": an evenly
-      spaced grid including both ends (step ~200), each value equally likely.
+      spaced grid including both ends (step ~200), each value equally likely. ``alpha_l_spacing=log`` (not the
+      paper's) spaces the levels geometrically from max(lo, 1) to hi, with 0 as one of them when lo = 0: the
+      linear grid puts 0.5 % of its draws at alpha_l <= 1e4, where a mask that keeps the spot small saturates
+      only a few pixels, so a network trained on it has hardly seen that regime (docs/codesign.md Sec. 7).
     * laser_angle_rad: independent normals per axis, mean 0, 3 sigma = 0.36 * [W_s / f, H_s / f]. The paper
       prints 0.36 * [f / W_s, f / H_s], which for Table 1 (f = 0.11 m, W_s = 18.1 mm, or 13.7 mm for the
       2532-pixel crop) is 2.2-2.9 rad, not a usable incidence angle; with W_s / f the focal-plane footprint
@@ -171,7 +187,7 @@ def sample_scene_params(batch: int, generator: torch.Generator, cfg: ParamConfig
         lo, hi = lo_hi
         return lo + (hi - lo) * torch.rand(batch, generator=g, dtype=f64)
 
-    grid = torch.linspace(pc.alpha_l_range[0], pc.alpha_l_range[1], pc.alpha_l_levels, dtype=f64)
+    grid = laser_strength_levels(pc)
     alpha_l = grid[torch.randint(pc.alpha_l_levels, (batch,), generator=g)]
     sigma = torch.tensor([w / f, h / f], dtype=f64) * (pc.angle_three_sigma_fraction / 3.0)
     angle = torch.randn(batch, 2, generator=g, dtype=f64) * sigma

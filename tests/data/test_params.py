@@ -103,6 +103,38 @@ def test_config_ranges_are_used():
     assert param_config(None) == ParamConfig() == param_config({}) == param_config({"params": None})
 
 
+def test_log_spacing_draws_from_zero_and_geometric_levels_up_to_the_range_end():
+    from codesign.data.params import laser_strength_levels
+
+    pc = param_config({"alpha_l_range": [0, 1.0e6], "alpha_l_levels": 7, "alpha_l_spacing": "log"})
+    levels = laser_strength_levels(pc)
+    # 0, then 6 levels from 1 to 1e6: a constant ratio 10^(6/5)
+    assert len(levels) == 7 and levels[0] == 0 and levels[1] == 1 and levels[-1].item() == pytest.approx(1.0e6, rel=1e-12)
+    ratios = levels[2:] / levels[1:-1]
+    assert torch.allclose(ratios, torch.full_like(ratios, 10 ** 1.2), rtol=1e-12)
+    # a range that starts above 1 keeps its lower end and has no zero level
+    high = laser_strength_levels(param_config({"alpha_l_range": [1e3, 1e6], "alpha_l_levels": 4,
+                                               "alpha_l_spacing": "log"}))
+    assert high.tolist() == pytest.approx([1e3, 1e4, 1e5, 1e6], rel=1e-12)
+    # the paper's default grid is unchanged: 10,000 evenly spaced levels over [0, 2e6]
+    assert torch.equal(laser_strength_levels(ParamConfig()), torch.linspace(0, 2e6, 10_000, dtype=torch.float64))
+    # the draws: every one a level; log puts ~2/3 of them at <= 1e4 where the linear grid puts 0.5 %
+    cfg = {"params": {"alpha_l_spacing": "log"}}
+    drawn = _sample(batch=N, cfg=cfg, dtype=torch.float64).alpha_l
+    grid = laser_strength_levels(param_config(cfg["params"]))
+    assert torch.isin(drawn, grid).all()
+    share = lambda a: float((a <= 1e4).double().mean())  # noqa: E731
+    assert share(drawn) == pytest.approx(4 / 6.30103, abs=0.02)
+    assert share(_sample(batch=N, dtype=torch.float64).alpha_l) == pytest.approx(0.005, abs=0.002)
+
+
+def test_bad_alpha_l_spacing_names_the_allowed_values():
+    with pytest.raises(ConfigError, match=r"data\.params\.alpha_l_spacing.*must be one of linear, log"):
+        param_config({"alpha_l_spacing": "geometric"})
+    with pytest.raises(ConfigError, match=r"data\.params\.alpha_l_range.*upper end must be >= 1"):
+        param_config({"alpha_l_spacing": "log", "alpha_l_range": [0, 0.5]})
+
+
 @pytest.mark.parametrize("key, value", [
     ("c1_range", [0.3, 0.1]), ("alpha_b_range", [-0.1, 0.5]), ("read_noise_std_range_e", "abc"),
     ("c2_range", [1.0]), ("alpha_l_levels", 0), ("alpha_l_levels", 2.5), ("exposure_mean_s", 0.0),
