@@ -5,7 +5,7 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-from codesign.errors import ConfigError, require_number
+from codesign.errors import ConfigError, require_choice, require_number
 
 __all__ = ["ParamConfig", "param_config"]
 
@@ -76,9 +76,7 @@ def param_config(cfg: ParamConfig | Mapping | None) -> ParamConfig:
         if name in _RANGES:
             out[name] = _range(key, v)
         elif name == "alpha_l_spacing":
-            if v not in SPACINGS:
-                raise ConfigError(key, v, f"must be one of {', '.join(SPACINGS)}")
-            out[name] = v
+            out[name] = require_choice(key, v, SPACINGS)
         elif name == "alpha_l_levels":
             out[name] = require_number(key, v, lo=1, integer=True)
         elif name in ("exposure_mean_s", "exposure_min_s"):  # a zero exposure would make the sensor blind
