@@ -7,6 +7,9 @@ import errno
 import json
 import os
 import re
+import shutil
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -113,23 +116,56 @@ def test_output_folder_that_refuses_new_files(tmp_path, monkeypatch):
         io.check_writable_dir(tmp_path / "run")
 
 
-def test_read_only_folder_by_permissions(tmp_path):
-    ro = tmp_path / "ro"
-    ro.mkdir()
-    ro.chmod(0o555)
+def _as_unprivileged_user(fn) -> str:
+    """``fn()`` in a forked child that runs as a user whom the mode bits bind (root drops to nobody, 65534; another
+    user stays itself); returns what it printed: the ConfigError's message, or "no error"."""
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: never returns into pytest
+        code = 1
+        try:
+            os.close(read)
+            if os.geteuid() == 0:
+                os.setgroups([])
+                os.setgid(65534)
+                os.setuid(65534)
+            try:
+                fn()
+                said = "no error"
+            except ConfigError as err:
+                said = str(err)
+            os.write(write, said.encode())
+            code = 0
+        finally:
+            os._exit(code)
+    os.close(write)
+    with os.fdopen(read) as f:
+        said = f.read()
+    assert os.waitpid(pid, 0)[1] == 0, "the child failed before it could answer"
+    return said
+
+
+def test_read_only_folder_by_permissions():
+    """A folder whose mode forbids writing, checked by a user the mode binds (as root, CI's user, the check runs as
+    nobody: root itself ignores the mode bits, and tests/inputs must fail where they run)."""
+    base = Path(tempfile.mkdtemp(prefix="codesign-ro-"))
     try:
-        try:  # root (and some file systems) ignore the mode bits: then there is nothing to test
-            (ro / "probe").write_text("x")
-            writable = True
-        except PermissionError:
-            writable = False
-        if writable or os.geteuid() == 0:
-            pytest.skip("mode 0o555 does not stop this user from writing")
-        with pytest.raises(ConfigError, match=r"^hydra.run.dir = .*: is not writable \(PermissionError: Permission "
-                                              r"denied in .*ro\): choose a writable output folder"):
-            io.check_writable_dir(ro / "run")
+        base.chmod(0o755)  # the unprivileged user may enter it
+        ro = base / "ro"
+        ro.mkdir(mode=0o555)
+        ro.chmod(0o555)
+        said = _as_unprivileged_user(lambda: io.check_writable_dir(ro / "run"))
+        assert re.match(r"^hydra.run.dir = .*: is not writable \(PermissionError: Permission denied in "
+                        + re.escape(str(ro)) + r"\): choose a writable output folder", said), said
+        ok = base / "ok"
+        ok.mkdir(mode=0o777)
+        ok.chmod(0o777)
+        assert _as_unprivileged_user(lambda: io.check_writable_dir(ok / "run")) == "no error"
     finally:
-        ro.chmod(0o755)
+        for d in (base / "ro", base / "ok"):
+            if d.exists():
+                d.chmod(0o755)
+        shutil.rmtree(base, ignore_errors=True)
 
 
 def test_unwritable_run_dir_stops_before_any_work(tmp_path, monkeypatch, capsys):

@@ -67,6 +67,28 @@ def test_install_sh_refuses_a_missing_folder_and_unknown_arguments(tmp_path):
     assert out.returncode == 2 and "unknown argument '--fast'; allowed: --wheelhouse DIR" in out.stderr
 
 
+def node_environment(venv: Path) -> Path:
+    """A fresh venv that sees every package the running interpreter sees, wherever that interpreter lives: a system
+    Python, a virtualenv (whose packages ``--system-site-packages`` alone would not show: the new venv's base is the
+    base interpreter) or a conda-style prefix. Each of this interpreter's site directories is added to the new
+    environment as a site directory (its .pth files processed too), after the environment's own."""
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+    mine = [p for p in sys.path if Path(p).name in ("site-packages", "dist-packages") and Path(p).is_dir()]
+    site_dir = subprocess.run([str(venv / "bin" / "python"), "-c", "import sysconfig; print(sysconfig.get_paths()"
+                               "['purelib'])"], capture_output=True, text=True, check=True).stdout.strip()
+    lines = "".join(f"import site; site.addsitedir({p!r})\n" for p in mine)
+    (Path(site_dir) / "_codesign_test_parent_site.pth").write_text(lines)
+    return venv
+
+
+def test_the_node_environment_sees_what_this_interpreter_sees(tmp_path):
+    venv = node_environment(tmp_path / "venv")
+    out = subprocess.run([str(venv / "bin" / "python"), "-c", "import sys, torch, numpy, hydra; print(sys.prefix)"],
+                         capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == str(venv)  # its own environment, where pip installs, not this one
+
+
 def test_build_then_install_with_no_index_into_a_fresh_environment(tmp_path):
     """This machine's Python as the node: everything installed here is 'had' by the node, so the wheelhouse holds
     the build backend only; the install then reaches no index (pip's own configuration switched off too)."""
@@ -82,8 +104,7 @@ def test_build_then_install_with_no_index_into_a_fresh_environment(tmp_path):
         pytest.skip(f"no package registry reachable to build the wheelhouse: {built.stdout[-300:]}")
     assert built.returncode == 0, built.stderr[-2000:] + built.stdout[-2000:]
     assert [w.name.split("-")[0] for w in house.glob("*.whl")] == ["setuptools"]
-    venv = tmp_path / "venv"
-    subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", str(venv)], check=True)
+    venv = node_environment(tmp_path / "venv")
     env = {**os.environ, "PYTHON": str(venv / "bin" / "python"), "PIP_CONFIG_FILE": os.devnull,
            "PIP_NO_INDEX": "1"}
     out = subprocess.run(["bash", str(REPO / "install.sh"), "--wheelhouse", str(house)], capture_output=True,

@@ -7,6 +7,7 @@ import torch
 from scipy import special
 
 from codesign.optics.bessel import bessel_j, bessel_mix, bessel_rows
+from tests.tolerances import assert_within_ulps
 
 N_MAX = 60
 
@@ -118,7 +119,7 @@ def test_bessel_gradient_at_zero_is_finite():
     j = bessel_j(x, 4)
     (g,) = torch.autograd.grad(j.sum(), x)
     # d/dx [J0 + J1 + J2 + J3 + J4] at 0 = -J1(0) + (J0 - J2)/2 + ... = 1/2
-    torch.testing.assert_close(g, torch.full_like(g, 0.5), rtol=0, atol=1e-15)
+    assert_within_ulps(g, torch.full_like(g, 0.5), 8, scale=1.0)  # a sum of five terms of order 1
 
 
 @pytest.mark.parametrize("bad", [[-1.0], [1.0, -1e-300], [float("nan")], [2.0, float("nan"), 3.0]])
@@ -174,13 +175,13 @@ def test_bessel_mix_equals_the_weighted_sum_of_bessel_j_and_its_gradients():
 
 
 def test_bessel_rows_runs_and_scatter_paths_agree_to_rounding():
-    """Same recurrences either way; only the last bit of a few elements may differ (vectorized and scalar tails
-    of the elementwise math differ in rounding)."""
+    """Same recurrences either way; only the last bits of a few elements may differ (vectorized and scalar tails
+    of the elementwise math differ in rounding, by one ulp on the CPUs seen so far)."""
     x = torch.linspace(0.0, 200.0, 70001, dtype=torch.float64)
     perm = torch.randperm(x.numel(), generator=torch.Generator().manual_seed(4))
     ordered = bessel_rows(x, range(38))
     shuffled = bessel_rows(x[perm], range(38))  # too many regime runs: the gather / scatter path
-    torch.testing.assert_close(ordered[:, perm], shuffled, rtol=0, atol=1e-17)
+    assert_within_ulps(shuffled, ordered[:, perm], 2)
 
 
 def test_bessel_mix_gradcheck_and_input_checks():

@@ -9,6 +9,7 @@ import torch
 from codesign.optics import OpticalSystem, OpticsSpec, RadialMTF, bsr, lsr_sampled, lsr_smooth, mtf, otf
 from codesign.optics.atan2 import atan_of_ratio
 from codesign.optics.masks import published_halfring
+from tests.tolerances import assert_within_ulps
 
 PS = [1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0, 256.0, 1024.0, 1e4]
 
@@ -116,7 +117,7 @@ def test_radial_mtf_of_ones_is_ones(m):
     spec = OpticsSpec.with_samples_across(64, focal_n=m)
     radial = RadialMTF(spec)
     out = radial(torch.ones(m, m, dtype=torch.float64))
-    torch.testing.assert_close(out, torch.ones_like(out), rtol=0, atol=1e-15)
+    assert_within_ulps(out, torch.ones_like(out), 4)  # an average of ones: the rounding of the bin sums
     assert float(radial.counts.sum()) == m * m
     assert float(radial.counts[0]) == 1  # DC alone in bin 0
     assert float(radial.freqs[0]) == 0.0
@@ -178,7 +179,7 @@ def test_atan_of_ratio_is_atan_of_ratio():
     y = torch.randn(500, dtype=torch.float64, generator=gen)
     x = torch.randn(500, dtype=torch.float64, generator=gen)
     out = atan_of_ratio(y, x)
-    torch.testing.assert_close(out, torch.atan(y / x), rtol=0, atol=1e-15)
+    assert_within_ulps(out, torch.atan(y / x), 4, scale=math.pi / 2)  # two roundings of atan's range
     assert float(out.abs().max()) <= math.pi / 2
     edge = atan_of_ratio(torch.tensor([1.0, -1.0, 0.0], dtype=torch.float64), torch.zeros(3, dtype=torch.float64))
     torch.testing.assert_close(edge, torch.tensor([math.pi / 2, -math.pi / 2, 0.0], dtype=torch.float64))
