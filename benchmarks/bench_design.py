@@ -51,7 +51,7 @@ def _cfg(overrides: list[str]):
 
 def _search(run_dir: Path, overrides: list[str]) -> dict:
     """One mask_search run (in this process); its metrics.json content, with the wall time."""
-    from codesign.tasks.mask_search import run
+    from codesign.experiments.mask_search import run
 
     cfg = _cfg(overrides)
     torch.manual_seed(0)

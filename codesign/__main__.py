@@ -1,4 +1,4 @@
-"""``python -m codesign +experiment=NAME``: the thin Hydra entry point. Work happens in codesign.tasks.
+"""``python -m codesign +experiment=NAME``: the thin Hydra entry point. Work happens in codesign.experiments.
 
 Under ``torchrun`` the process group is joined before Hydra composes the config, so that every rank agrees on
 rank 0's run directory (codesign/train/distributed.py).
@@ -16,7 +16,7 @@ CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="config")
 def _hydra_main(cfg: DictConfig) -> float | None:
-    from codesign.tasks import run_experiment
+    from codesign.experiments import run_experiment
 
     return run_experiment(cfg)
 

@@ -7,7 +7,7 @@ from omegaconf import OmegaConf
 
 from hydra.core.config_store import ConfigStore
 
-from codesign.tasks import EXPERIMENTS, experiment_function
+from codesign.experiments import EXPERIMENTS, experiment_function
 from tests.cli import run_codesign
 from tests.conftest import REPO_ROOT
 

@@ -183,7 +183,7 @@ def test_every_group_option_composes(group, option):
 @pytest.mark.parametrize("optics", ["default", "paper"])
 @pytest.mark.parametrize("mask", ["halfring", "freeform"])
 def test_psf_experiment_runs_for_each_mask_and_optics(tmp_path, mask, optics):
-    from codesign.tasks import run_experiment
+    from codesign.experiments import run_experiment
 
     cfg = _compose(["+experiment=psf", "debug=smoke", f"mask={mask}", f"optics={optics}", "threads=2"])
     assert cfg.mask.kind == mask
@@ -205,7 +205,7 @@ def test_freeform_init_is_the_halfring_phase_as_a_plate_of_cells(tmp_path):
     """mask=freeform (the pixel family) from the published phase holds the half ring's samples; as a plate of
     cells its PSF is the half ring's times the cells' sinc^2 envelope, exactly."""
     from codesign.optics import OpticalSystem, OpticsSpec
-    from codesign.tasks import run_experiment
+    from codesign.experiments import run_experiment
 
     out = {}
     for mask in ("halfring", "freeform"):
@@ -223,7 +223,7 @@ def test_freeform_init_is_the_halfring_phase_as_a_plate_of_cells(tmp_path):
 
 
 def test_run_experiment_config_error_exits_2(tmp_path, capsys):
-    from codesign.tasks import run_experiment
+    from codesign.experiments import run_experiment
 
     cfg = _compose(["+experiment=psf", "debug=smoke", "mask.convention=atan3"])
     run_dir = tmp_path / "run"
@@ -242,14 +242,14 @@ def test_run_experiment_config_error_exits_2(tmp_path, capsys):
 def test_debug_smoke_applies_and_names_only_what_the_experiment_reads(task, applied):
     """The log line "debug=smoke: applied ..." once named trainer.*, model.* and evaluate.* keys for psf."""
     from codesign.config.runtime import apply_debug_overrides
-    from codesign.tasks import read_keys
+    from codesign.experiments import read_keys
 
     cfg = _compose([f"+experiment={task}", "debug=smoke"])
     assert apply_debug_overrides(cfg, frozenset(), read_keys(task)) == applied
 
 
 def test_every_experiment_declares_only_root_keys_it_accepts():
-    from codesign.tasks import EXPERIMENTS, read_keys, root_keys
+    from codesign.experiments import EXPERIMENTS, read_keys, root_keys
 
     for name in EXPERIMENTS:
         assert set(read_keys(name)) <= set(root_keys(name)), name

@@ -1,5 +1,5 @@
 """The package layout is the data flow: each package imports only the packages before it, only the entry point
-imports the experiments (codesign.tasks), there are no import cycles, and no module uses another's private names."""
+imports the experiments (codesign.experiments), there are no import cycles, and no module uses another's private names."""
 from __future__ import annotations
 
 import ast
@@ -11,7 +11,7 @@ ROOT = Path(__file__).resolve().parent.parent / "codesign"
 # The packages in data-flow order (README.md's Layout): a package may import itself and those listed before it.
 # "core" is codesign/errors.py and codesign/spec_base.py.
 ORDER = ("core", "config", "io", "data", "optics", "sensor", "camera", "models", "design", "fab", "train",
-         "tasks")
+         "experiments")
 ENTRY = "codesign.__main__"
 
 
@@ -66,11 +66,11 @@ def test_a_package_imports_only_the_packages_before_it(module):
 
 
 def test_only_the_entry_point_imports_the_experiments():
-    importers = sorted(m for m, targets in EDGES.items() if _package(m) != "tasks" and m != ENTRY
-                       and any(_package(t) == "tasks" for t in targets))
+    importers = sorted(m for m, targets in EDGES.items() if _package(m) != "experiments" and m != ENTRY
+                       and any(_package(t) == "experiments" for t in targets))
     assert importers == []
-    # and one experiment module never imports another (their shared runner is codesign.tasks itself)
-    experiments = [m for m in MODULES if m.startswith("codesign.tasks.") and m != "codesign.tasks.rundir"]
+    # and one experiment module never imports another (their shared runner is codesign.experiments itself)
+    experiments = [m for m in MODULES if m.startswith("codesign.experiments.") and m != "codesign.experiments.rundir"]
     for m in experiments:
         assert not [t for t in EDGES[m] if t in experiments and t != m], m
 

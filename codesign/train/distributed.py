@@ -63,7 +63,7 @@ def env_context() -> DistContext:
 
 
 def current() -> DistContext:
-    """The process group's context once joined, else SINGLE (a plain run, a test calling the tasks directly)."""
+    """The process group's context once joined, else SINGLE (a plain run, a test calling the experiments directly)."""
     if dist.is_available() and dist.is_initialized():
         return DistContext(dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", "0")))
     return SINGLE

@@ -15,7 +15,7 @@ from codesign.design.limits import MTFLimit
 from codesign.design.lsr_constraint import CodesignSpec
 from codesign.design.merit import metrics_spec
 from codesign.design.monitor import MaskMonitor, published_reference
-from codesign.tasks import joint
+from codesign.experiments import joint
 from tests.cli import run_codesign
 from tests.inputs._run import compose_cfg
 from tests.train._util import tiny_trainer

@@ -19,7 +19,7 @@ from codesign.design.problem import DesignProblem, Limits
 from codesign.design.search_spec import SearchSpec
 from codesign.errors import ConfigError
 from codesign.optics import OpticalSystem, OpticsSpec, RadialMTF, build_mask
-from codesign.tasks.mask_search import run as run_mask_search
+from codesign.experiments.mask_search import run as run_mask_search
 from tests.cli import run_codesign
 from tests.conftest import REPO_ROOT
 from tests.tolerances import assert_within_ulps

@@ -6,7 +6,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from codesign.config.runtime import command_line_keys
-import codesign.tasks as experiments
+import codesign.experiments as experiments
 from tests.conftest import REPO_ROOT
 
 
@@ -29,15 +29,15 @@ def _camera_without_optics(build):
 
 def stop_before_work(monkeypatch) -> None:
     """Replace the first expensive step of every experiment with the sentinel."""
-    import codesign.tasks.export as export
-    import codesign.tasks.joint as joint
-    import codesign.tasks.tolerance as tolerance
-    import codesign.tasks.psf as psf
-    import codesign.tasks.baseline as restoration
-    import codesign.tasks.evaluate as evaluate
-    import codesign.tasks.restore as restore
-    import codesign.tasks.mask_search as search
-    import codesign.tasks.simulate as simulate
+    import codesign.experiments.export as export
+    import codesign.experiments.joint as joint
+    import codesign.experiments.tolerance as tolerance
+    import codesign.experiments.psf as psf
+    import codesign.experiments.baseline as restoration
+    import codesign.experiments.evaluate as evaluate
+    import codesign.experiments.restore as restore
+    import codesign.experiments.mask_search as search
+    import codesign.experiments.simulate as simulate
 
     monkeypatch.setattr(psf, "time_forward_backward", _work)
     monkeypatch.setattr(simulate, "build_camera", _camera_without_optics(simulate.build_camera))

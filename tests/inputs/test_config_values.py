@@ -7,7 +7,7 @@ import re
 
 import pytest
 
-from codesign.tasks import EXPERIMENTS, root_keys
+from codesign.experiments import EXPERIMENTS, root_keys
 from tests.cli import run_codesign
 from tests.inputs._run import compose_cfg, config_error
 

@@ -1,7 +1,7 @@
 """Image files a user hands over: captures for +experiment=restore (corrupt, truncated, wrong size, wrong bit
 depth, wrong sample type) and scene folders (data.folder). Each is a ConfigError naming the file and what is
 wrong, raised before any restoration starts. The basic cases (8-bit, RGB, size, range, paths) are in
-tests/tasks/test_restore.py."""
+tests/experiments/test_restore.py."""
 from __future__ import annotations
 
 import re
@@ -18,7 +18,7 @@ from codesign.data.images import SceneLoadWarning
 from codesign.data.scenes import build_scene_source
 from codesign.train.checkpoint import save_checkpoint
 from codesign.io.images import read_counts
-from codesign.tasks.restore import input_files, validate
+from codesign.experiments.restore import input_files, validate
 from codesign.train.setup import build_model
 from codesign.errors import ConfigError
 from tests.train._util import tiny_cfg

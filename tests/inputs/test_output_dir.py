@@ -16,9 +16,9 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-import codesign.tasks as experiments
+import codesign.experiments as experiments
 from codesign.io import files as io
-from codesign.tasks import rundir
+from codesign.experiments import rundir
 from codesign.train.checkpoint import save_checkpoint
 from codesign.train.evaluation import write_csv
 from codesign.io.images import save_png16
@@ -307,7 +307,7 @@ def test_an_output_path_taken_by_a_folder_is_refused_before_any_work(tmp_path, m
 
 def test_every_experiment_declares_its_fixed_outputs():
     for name in experiments.EXPERIMENTS:
-        outputs = experiments.task_module(name).OUTPUTS
+        outputs = experiments.experiment_module(name).OUTPUTS
         assert "metrics.json" in outputs, name
 
 

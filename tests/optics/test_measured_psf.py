@@ -15,7 +15,7 @@ from omegaconf import OmegaConf
 from PIL import Image
 from scipy.special import erf
 
-import codesign.tasks as experiments
+import codesign.experiments as experiments
 from codesign.camera import build_camera, with_measured_psf
 from codesign.config.runtime import apply_debug_overrides, command_line_keys
 from codesign.errors import ConfigError
@@ -338,7 +338,7 @@ def test_the_other_experiments_refuse_a_measured_psf(experiment, files, monkeypa
 
 
 def test_only_the_four_experiments_take_a_measured_psf():
-    takers = {n for n in experiments.EXPERIMENTS if getattr(experiments.task_module(n), "MEASURED_PSF", False)}
+    takers = {n for n in experiments.EXPERIMENTS if getattr(experiments.experiment_module(n), "MEASURED_PSF", False)}
     assert takers == {"simulate", "baseline", "evaluate", "restore"}
 
 

@@ -29,14 +29,14 @@ from codesign.errors import ConfigError, OutputWriteError
 from codesign.io import files as io
 from codesign.optics.measured import MEASURED_DEFAULTS, load_measured
 from codesign.optics.spec import OpticsSpec
-from codesign.tasks import rundir
+from codesign.experiments import rundir
 from codesign.train import distributed
 from codesign.train.trainer import TrainingInterrupted
 
 log = logging.getLogger("codesign")
 
 
-# Every module of this package but these is an experiment: codesign.tasks.NAME runs +experiment=NAME through its
+# Every module of this package but these is an experiment: codesign.experiments.NAME runs +experiment=NAME through its
 # run(cfg, run_dir, device), reads the root keys COMMON_KEYS + its ROOT_KEYS, writes the fixed file names OUTPUTS
 # (checked before any work), continues a killed run on its own folder when it sets RESUMES (rundir.py refuses any
 # other folder holding results), trains under torchrun when it sets DISTRIBUTED, and takes a measured PSF
@@ -51,9 +51,9 @@ COMMON_KEYS = ("task", "seed", "device", "threads", "deterministic", "optics", "
                "trainer", "metrics", "logging", "evaluate", "debug")
 
 
-def task_module(name: str):
+def experiment_module(name: str):
     """The module of experiment ``name`` (imported on first use)."""
-    return importlib.import_module(f"codesign.tasks.{name}")
+    return importlib.import_module(f"codesign.experiments.{name}")
 
 
 # The common keys every experiment reads; the others (optics, mask, sensor, model, data, trainer, metrics, evaluate)
@@ -63,12 +63,12 @@ ALWAYS_READ = ("task", "seed", "device", "threads", "deterministic", "logging", 
 
 def root_keys(name: str) -> tuple[str, ...]:
     """Every root key experiment ``name`` accepts (COMMON_KEYS + its ROOT_KEYS)."""
-    return COMMON_KEYS + tuple(task_module(name).ROOT_KEYS)
+    return COMMON_KEYS + tuple(experiment_module(name).ROOT_KEYS)
 
 
 def read_keys(name: str) -> tuple[str, ...]:
     """The root keys experiment ``name`` actually reads: what debug=smoke shrinks and says it shrank."""
-    module = task_module(name)
+    module = experiment_module(name)
     reads = getattr(module, "READS", None)
     return root_keys(name) if reads is None else ALWAYS_READ + tuple(reads) + tuple(module.ROOT_KEYS)
 
@@ -91,9 +91,9 @@ def check_measured_psf(cfg: DictConfig, task: str) -> None:
     if optics is None:
         return
     path = optics.get("psf_file")
-    takes = getattr(task_module(task), "MEASURED_PSF", False)
+    takes = getattr(experiment_module(task), "MEASURED_PSF", False)
     if path is not None and not takes:
-        takers = ", ".join(n for n in EXPERIMENTS if getattr(task_module(n), "MEASURED_PSF", False))
+        takers = ", ".join(n for n in EXPERIMENTS if getattr(experiment_module(n), "MEASURED_PSF", False))
         raise ConfigError("optics.psf_file", path, f"+experiment={task} computes the PSF of its mask and takes no "
                           f"measured one (a measured PSF replaces the computed one in {takers}): leave it null")
     if not takes or all(optics.get(k, v) == v for k, v in MEASURED_DEFAULTS.items()):
@@ -108,7 +108,7 @@ def check_measured_psf(cfg: DictConfig, task: str) -> None:
 
 
 def experiment_function(name: str) -> Callable:
-    return task_module(name).run
+    return experiment_module(name).run
 
 
 def _run_dir() -> Path:
@@ -147,8 +147,8 @@ def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None
         if task not in EXPERIMENTS:
             raise ConfigError("task", task, "choose an experiment with +experiment=NAME; available: "
                               + ", ".join(sorted(EXPERIMENTS)))
-        if ctx.enabled and not getattr(task_module(task), "DISTRIBUTED", False):
-            trainers = ", ".join(n for n in EXPERIMENTS if getattr(task_module(n), "DISTRIBUTED", False))
+        if ctx.enabled and not getattr(experiment_module(task), "DISTRIBUTED", False):
+            trainers = ", ".join(n for n in EXPERIMENTS if getattr(experiment_module(n), "DISTRIBUTED", False))
             raise ConfigError("task", task, f"does not train networks and runs in one process: start it without "
                               f"torchrun (training experiments under torchrun: {trainers})")
         check_root_keys(cfg, task)
@@ -164,7 +164,7 @@ def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None
         deterministic = set_deterministic(root.deterministic, device)
         if ctx.is_main:  # the other ranks write nothing
             io.check_writable_dir(run_dir)  # before any work: never an hour of training, then a failed write
-            io.check_output_files(run_dir, getattr(task_module(task), "OUTPUTS", ("metrics.json",)))
+            io.check_output_files(run_dir, getattr(experiment_module(task), "OUTPUTS", ("metrics.json",)))
         torch.manual_seed(seed)
         log.info("task=%s device=%s threads=%d deterministic=%s run_dir=%s%s", task, device, threads,
                  "on" if deterministic else "off", run_dir,

@@ -32,7 +32,7 @@ from codesign.optics import OpticalSystem, OpticsSpec, build_mask, circular_mtf,
 log = logging.getLogger("codesign.mask_search")
 # Root keys this experiment reads besides the common ones (conf/experiment/mask_search.yaml); any other is refused.
 ROOT_KEYS: tuple[str, ...] = ("search",)
-# The common groups it reads (besides ALWAYS_READ in codesign/tasks/__init__.py).
+# The common groups it reads (besides ALWAYS_READ in codesign/experiments/__init__.py).
 READS = ("optics", "mask", "sensor", "data", "metrics")
 # The fixed names it writes in its run dir: each is checked to be writable before any work.
 OUTPUTS = ("metrics.json", "best_mask.json", "evaluations.csv", "mtf.png", "pareto.png")

@@ -1,4 +1,4 @@
-"""``python tests/tasks/kill_after_checkpoint.py N ARGS...``: run ``python -m codesign ARGS`` and SIGKILL the process
+"""``python tests/experiments/kill_after_checkpoint.py N ARGS...``: run ``python -m codesign ARGS`` and SIGKILL the process
 right after its trainers' N-th checkpoint, a kill at a known step (a real SIGKILL: nothing after it runs)."""
 from __future__ import annotations
 

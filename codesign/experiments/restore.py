@@ -28,7 +28,7 @@ from codesign.train.resume import apply_checkpoint_mask, load_trained
 log = logging.getLogger("codesign.restore")
 # Root keys this experiment reads besides the common ones (conf/experiment/restore.yaml); any other is refused.
 ROOT_KEYS: tuple[str, ...] = ("input", "checkpoint")
-# The common groups it reads (besides ALWAYS_READ in codesign/tasks/__init__.py): none; optics, sensor, model and
+# The common groups it reads (besides ALWAYS_READ in codesign/experiments/__init__.py): none; optics, sensor, model and
 # data are the checkpoint's (but a measured PSF, optics.psf_*, given on this command line).
 READS = ()
 # The fixed names it writes in its run dir: each is checked to be writable before any work.

@@ -121,7 +121,7 @@ def test_evaluate_takes_the_scene_source_from_the_command_line_as_one():
     scenes key, so the folder needs data.scenes=folder, as in every experiment."""
     from omegaconf import OmegaConf
 
-    from codesign.tasks.evaluate import merged_eval_config
+    from codesign.experiments.evaluate import merged_eval_config
 
     ckpt = OmegaConf.create({"data": {"scenes": "folder", "folder": "/trained/on", "test_fraction": 0.2,
                                       "split_seed": 0, "cache_mb": 1.0}})
@@ -137,7 +137,7 @@ def test_evaluate_refuses_a_model_other_than_the_checkpoints():
     from omegaconf import OmegaConf
 
     from codesign.errors import ConfigError
-    from codesign.tasks.evaluate import refuse_other_model
+    from codesign.experiments.evaluate import refuse_other_model
 
     ckpt = OmegaConf.create({"model": {"kind": "sgan", "variant": "B", "size": "cpu"}})
     same = OmegaConf.create({"model": {"kind": "sgan", "variant": "B", "size": "cpu"}})

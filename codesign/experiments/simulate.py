@@ -28,7 +28,7 @@ from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enable
 log = logging.getLogger("codesign.simulate")
 # Root keys this experiment reads besides the common ones (conf/experiment/simulate.yaml); any other is refused.
 ROOT_KEYS: tuple[str, ...] = ("precision", "simulate")
-# The common groups it reads (besides ALWAYS_READ in codesign/tasks/__init__.py).
+# The common groups it reads (besides ALWAYS_READ in codesign/experiments/__init__.py).
 READS = ("optics", "mask", "sensor", "data", "metrics")
 # The fixed names it writes in its run dir: each is checked to be writable before any work (measured_psf.png: with
 # a measured PSF only).

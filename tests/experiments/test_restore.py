@@ -6,7 +6,7 @@ import pytest
 from PIL import Image
 
 from codesign.io.images import read_counts
-from codesign.tasks.restore import input_files, validate
+from codesign.experiments.restore import input_files, validate
 from codesign.errors import ConfigError
 
 

@@ -24,7 +24,7 @@ log = logging.getLogger("codesign.psf")
 
 # Root keys this experiment reads besides the common ones (conf/experiment/psf.yaml); any other is refused.
 ROOT_KEYS: tuple[str, ...] = ("precision", "timing_repeats")
-# The common groups it reads (besides ALWAYS_READ in codesign/tasks/__init__.py).
+# The common groups it reads (besides ALWAYS_READ in codesign/experiments/__init__.py).
 READS = ("optics", "mask", "metrics")
 # The fixed names it writes in its run dir: each is checked to be writable before any work.
 OUTPUTS = ("metrics.json", "mask.json", "phase.png", "psf_log.png", "mtf.png", "mtf2d.png")
