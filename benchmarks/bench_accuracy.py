@@ -480,7 +480,7 @@ def _trainer(steps: int, *overrides: str, seed: int = 0):
     from hydra import compose, initialize_config_dir
 
     from codesign.train.data import SimulatedData
-    from codesign.train.setup import build_model
+    from codesign.train.model_setup import build_model
     from codesign.train.spec import TrainerSpec
     from codesign.train.trainer import RestorationTrainer, init_weights
 
@@ -503,11 +503,11 @@ def _joint_guard_ratio(steps: int) -> float:
 
     from hydra import compose, initialize_config_dir
 
-    from codesign.design.lsr_constraint import CodesignSpec, LSRConstraint
+    from codesign.train.lsr_constraint import CodesignSpec, LSRConstraint
     from codesign.optics.masks import published_mask_config
     from codesign.train.data import SimulatedData
     from codesign.train.joint_trainer import JointTrainer
-    from codesign.train.setup import build_model
+    from codesign.train.model_setup import build_model
     from codesign.train.spec import TrainerSpec
     from codesign.train.trainer import init_weights
     from codesign.optics import build_mask

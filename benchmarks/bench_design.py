@@ -117,7 +117,7 @@ def _family_rows(results: dict) -> list[list]:
 
 def fronts_figure(path: Path, results: dict) -> Path:
     """LSR against mtf_mean: every family's front (its sweep), the published mask, the limit curve."""
-    from codesign.design.figures import lsr_mtf_figure
+    from codesign.design.tradeoff_figures import lsr_mtf_figure
     from codesign.design.limits import MTFLimit
     from codesign.io.files import save_figure
     from codesign.optics import OpticalSystem, OpticsSpec

@@ -58,7 +58,7 @@ def _config(method: str, size: str, p: dict, steps: int):
 def _train(cfg, data, start: dict, dev: torch.device):
     """(model, generators, steps, seconds): the baseline experiment's model + trainer, no TensorBoard."""
     from codesign.config.runtime import to_container
-    from codesign.train.setup import build_model
+    from codesign.train.model_setup import build_model
     from codesign.train.spec import TrainerSpec
     from codesign.train.trainer import RestorationTrainer, init_weights
 

@@ -51,7 +51,7 @@ def joint_step(dev: torch.device, options: dict, steps: int) -> dict:
 
 
 def inference_fps(dev: torch.device, amp: bool, compiled: bool, repeats: int) -> dict:
-    from codesign.train.setup import build_model
+    from codesign.train.model_setup import build_model
 
     size = "paper" if dev.type == "cuda" else "cpu"
     cfg = compose(["+experiment=baseline", "model=sgan_f", f"model.size={size}", "data.image_size=256",

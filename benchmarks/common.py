@@ -242,10 +242,10 @@ def joint_trainer(overrides: list[str], dev: torch.device, run_dir: Path, **opti
     (codesign.warmup_fraction 0), no LSR bound in force (lsr_max 1), no validation, checkpoints or images;
     ``options``: further TrainerSpec fields (amp, channels_last, compile). Seed 0, weights initialised as in a run."""
     from codesign.config.runtime import to_container
-    from codesign.design.lsr_constraint import CodesignSpec
+    from codesign.train.lsr_constraint import CodesignSpec
     from codesign.train.data import SimulatedData
     from codesign.train.joint_trainer import JointTrainer
-    from codesign.train.setup import build_model
+    from codesign.train.model_setup import build_model
     from codesign.train.spec import TrainerSpec
     from codesign.train.trainer import init_weights
 

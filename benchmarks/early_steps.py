@@ -75,7 +75,7 @@ def learned_scalars(trainer) -> dict:
 def main(argv=None) -> int:
     from codesign.config.runtime import to_container
     from codesign.train.data import SimulatedData
-    from codesign.train.setup import build_model
+    from codesign.train.model_setup import build_model
     from codesign.train.spec import TrainerSpec
     from codesign.train.trainer import RestorationTrainer, init_weights
 

@@ -10,7 +10,7 @@ _resolvers.register()
 # has one source, its spec dataclass), so that any Hydra composition that imports codesign sees them. Mask-family
 # and restorer plug-ins register themselves when codesign.optics.masks and codesign.models discover them.
 _SPEC_MODULES = ("config.runtime", "optics.spec", "optics.masks", "sensor.spec", "data.scenes", "models",
-                 "design.merit", "design.lsr_constraint", "design.search_spec", "train.spec", "train.evaluation")
+                 "design.merit", "train.lsr_constraint", "design.search_spec", "train.spec", "train.evaluation")
 for _name in _SPEC_MODULES:
     importlib.import_module(f"codesign.{_name}")
 importlib.import_module("codesign.models").restorer_kinds()

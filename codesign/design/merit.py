@@ -10,7 +10,9 @@ import torch
 
 from codesign.config.store import register, spec_node
 from codesign.errors import ConfigError, require_list, require_number
-from codesign.optics import OpticalSystem, RadialMTF, metrics
+from codesign.io.tensorboard import log_mask
+from codesign.optics import OpticalSystem, RadialMTF, build_mask, metrics
+from codesign.optics.masks import published_mask_config
 from codesign.spec_base import SpecMixin
 
 BAND_ALLOWED = ("must be [low, high] with 0 <= low < high <= 1 (frequency normalized to the incoherent cutoff, "
@@ -108,3 +110,32 @@ def evaluate_mask(system: OpticalSystem, mask, band: tuple[float, float], p: flo
     arrays = {"phase": arr["phase"], "psf": arr["psf"], "psf_uncoded": psf0, "mtf2d": arr["mtf2d"],
               "mtf_radial": torch.stack([radial.freqs.to(rad0), arr["mtf_radial"], rad0])}
     return out, arrays
+
+
+def published_reference(mask_cfg: dict, system):
+    """The frozen published mask on ``system``'s grid, under the configured conventions: every comparison's
+    baseline."""
+    return build_mask(published_mask_config(mask_cfg), system.grid, system.spec.aperture_diameter_m).freeze()
+
+
+class MaskMonitor:
+    """A mask's figures of merit on ``system`` against a reference mask (the published one, or None), measured for
+    the records and logged to TensorBoard (codesign.io.tensorboard.log_mask). ``band``: the MTF summary band;
+    ``p``: the smooth-LSR exponent (metrics.lsr_p)."""
+
+    def __init__(self, system, reference, band: tuple[float, float], p: float):
+        self.system, self.band, self.p = system, tuple(band), p
+        self.radial = RadialMTF(system.spec, device=system.grid.rho.device)
+        self.reference = None if reference is None else self.measure(reference)
+
+    def measure(self, mask, refine: bool = False) -> tuple[dict, dict]:
+        return mask_figures_of_merit(self.system, mask, self.radial, self.band, self.p, refine)
+
+    def log(self, writer, step: int, mask, images: bool = True, prefix: str = "mask") -> dict:
+        """Scalars (and, when ``images``, pictures and histograms) of ``mask`` at ``step``; returns the scalars."""
+        values, arrays = self.measure(mask)
+        if writer is not None:
+            log_mask(writer, step, mask, values, arrays, reference=self.reference,
+                     aperture=self.system.grid.aperture.cpu().numpy(), uncoded_peak=self.system.uncoded_peak,
+                     freqs=self.radial.freqs.cpu().numpy(), band=self.band, images=images, prefix=prefix)
+        return values

@@ -9,7 +9,7 @@ from omegaconf import DictConfig
 
 from codesign.config.runtime import check_seed, logging_spec, to_container
 from codesign.design.check import camera_sampling_report
-from codesign.design.measured import measured_psf_report
+from codesign.design.measured_merit import measured_psf_report
 from codesign.io import files as io
 from codesign.io.tensorboard import open_writer, tensorboard_enabled
 from codesign.train import distributed
@@ -18,7 +18,7 @@ from codesign.train.data import SimulatedData
 from codesign.train.evaluation import eval_settings, run_evaluation
 from codesign.train.memory import check_training_fits
 from codesign.train.resume import load_initial_weights, resume_if_possible
-from codesign.train.setup import build_model, distributed_metrics, run_metrics
+from codesign.train.model_setup import build_model, distributed_metrics, run_metrics
 from codesign.train.spec import InitSpec, TrainerSpec
 from codesign.train.trainer import RestorationTrainer, init_weights
 

@@ -11,14 +11,14 @@ from omegaconf import DictConfig, OmegaConf
 from codesign.camera import with_measured_psf
 from codesign.config.runtime import check_seed, explicit_keys
 from codesign.design.check import camera_sampling_report
-from codesign.design.measured import measured_psf_report
+from codesign.design.measured_merit import measured_psf_report
 from codesign.errors import ConfigError
 from codesign.io import files as io
 from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
 from codesign.train.data import SimulatedData
 from codesign.train.evaluation import eval_settings, run_evaluation
 from codesign.train.resume import apply_checkpoint_mask, load_trained
-from codesign.train.setup import run_metrics
+from codesign.train.model_setup import run_metrics
 
 log = logging.getLogger("codesign.evaluate")
 

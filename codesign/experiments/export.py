@@ -13,9 +13,9 @@ from omegaconf import DictConfig
 
 from codesign.design.limits import MTFLimit
 from codesign.design.merit import evaluate_mask, metrics_spec
-from codesign.design.setup import restorability_tools
-from codesign.fab.design import make_plate, plate_sidecar, setup
-from codesign.fab.figures import export_figure
+from codesign.design.search_setup import restorability_tools
+from codesign.fab.plate_setup import make_plate, plate_sidecar, setup
+from codesign.fab.plate_figures import export_figure
 from codesign.fab.surface import PlatePhase
 from codesign.fab.writers import write_height_png, write_height_tiff
 from codesign.io import files as io

@@ -18,9 +18,8 @@ from omegaconf import DictConfig, OmegaConf
 from codesign.config.runtime import check_seed, logging_spec, to_container
 from codesign.design.check import camera_sampling_report, report_sampling, sampling_of, verify_design
 from codesign.design.limits import MTFLimit
-from codesign.design.lsr_constraint import CodesignSpec, LSRConstraint
-from codesign.design.merit import metrics_spec
-from codesign.design.monitor import MaskMonitor, published_reference
+from codesign.train.lsr_constraint import CodesignSpec, LSRConstraint
+from codesign.design.merit import MaskMonitor, metrics_spec, published_reference
 from codesign.design.records import write_record
 from codesign.io import files as io
 from codesign.io import plots
@@ -34,7 +33,7 @@ from codesign.train.evaluation import conditions, eval_settings, run_evaluation
 from codesign.train.joint_trainer import JointTrainer
 from codesign.train.memory import check_training_fits
 from codesign.train.resume import load_initial_weights, resume_if_possible
-from codesign.train.setup import build_model, distributed_metrics, run_metrics
+from codesign.train.model_setup import build_model, distributed_metrics, run_metrics
 from codesign.train.spec import InitSpec, TrainerSpec
 from codesign.train.summary import comparison_figure, joint_summary
 from codesign.train.trainer import RestorationTrainer, init_weights

@@ -14,15 +14,14 @@ from omegaconf import DictConfig
 
 from codesign.config.runtime import resolve_dtype, to_container
 from codesign.design.check import report_sampling, sampling_of, sampling_report, verify_design
-from codesign.design.figures import evaluations_figure
+from codesign.design.tradeoff_figures import evaluations_figure
 from codesign.design.limits import MTFLimit
-from codesign.design.merit import metrics_spec
-from codesign.design.monitor import MaskMonitor, published_reference
+from codesign.design.merit import MaskMonitor, metrics_spec, published_reference
 from codesign.design.problem import DesignProblem, Limits
 from codesign.design.records import write_record
 from codesign.design.search import MaskSearch, start_points
 from codesign.design.search_spec import SearchSpec
-from codesign.design.setup import (quantized_figures, restorability_tools, search_limits, start_init,
+from codesign.design.search_setup import (quantized_figures, restorability_tools, search_limits, start_init,
                                    start_vector)
 from codesign.errors import ConfigError
 from codesign.io import files as io, plots

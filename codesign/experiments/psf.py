@@ -10,9 +10,8 @@ from omegaconf import DictConfig, OmegaConf
 from codesign.config.runtime import resolve_dtype
 from codesign.design.check import sampling_report
 from codesign.design.limits import MTFLimit
-from codesign.design.merit import evaluate_mask, metrics_spec, time_forward_backward
+from codesign.design.merit import MaskMonitor, evaluate_mask, metrics_spec, published_reference, time_forward_backward
 from codesign.design.records import write_record
-from codesign.design.monitor import MaskMonitor, published_reference
 from codesign.errors import require_number
 from codesign.io import files as io
 from codesign.io import plots

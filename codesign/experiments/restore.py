@@ -18,10 +18,10 @@ import torch.nn.functional as F
 from codesign.camera import build_camera, field_of_view, with_measured_psf
 from codesign.config.runtime import explicit_keys
 from codesign.design.check import camera_sampling_report
-from codesign.design.measured import measured_psf_report
+from codesign.design.measured_merit import measured_psf_report
 from codesign.errors import ConfigError
 from codesign.io import files as io
-from codesign.io.images import read_counts, save_png16
+from codesign.io.captures import read_counts, save_png16
 from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
 from codesign.train.resume import apply_checkpoint_mask, load_trained
 

@@ -18,10 +18,10 @@ from codesign.config.runtime import check_seed, resolve_dtype
 from codesign.data.params import fixed_scene_params, sample_scene_params
 from codesign.data.scenes import build_scene_source
 from codesign.design.check import camera_sampling_report
-from codesign.design.measured import measured_psf_figure, measured_psf_report
+from codesign.design.measured_merit import measured_psf_figure, measured_psf_report
 from codesign.errors import ConfigError, require_number, require_numbers, unknown_keys
 from codesign.io import files as io
-from codesign.io.images import save_png16
+from codesign.io.captures import save_png16
 from codesign.io.plots import plt
 from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
 

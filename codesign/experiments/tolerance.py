@@ -16,8 +16,8 @@ from omegaconf import DictConfig
 
 from codesign.config.runtime import to_container
 from codesign.design.merit import metrics_spec
-from codesign.fab.design import make_plate, setup
-from codesign.fab.figures import tolerance_figure
+from codesign.fab.plate_setup import make_plate, setup
+from codesign.fab.plate_figures import tolerance_figure
 from codesign.fab.tolerance import SOURCES, Errors, PlateEvaluator, ToleranceSpec, deterministic, draw
 from codesign.io import files as io
 from codesign.optics import OpticalSystem

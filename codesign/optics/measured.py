@@ -101,7 +101,7 @@ def _read(path: Path, key: str) -> tuple[np.ndarray, str]:
     if not path.is_file():
         raise ConfigError(key, str(path), "no such file" if not path.exists() else "is not a file")
     if suffix in SIXTEEN_BIT:
-        from codesign.io.images import read_counts
+        from codesign.io.captures import read_counts
 
         try:
             arr = read_counts(path, key)

@@ -18,7 +18,7 @@ import logging
 
 import torch
 
-from codesign.design.lsr_constraint import (
+from codesign.train.lsr_constraint import (
     CodesignSpec,
     LSRConstraint,
     snapshot,

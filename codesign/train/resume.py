@@ -18,7 +18,7 @@ from codesign.train.checkpoint import (
     load_module_state,
     state_mismatch,
 )
-from codesign.train.setup import build_model
+from codesign.train.model_setup import build_model
 from codesign.train.trainer import EMA
 
 log = logging.getLogger("codesign.train")

@@ -12,9 +12,8 @@ import torch
 from codesign.camera.build import build_camera
 from codesign.design.check import phase_sampling
 from codesign.design.limits import MTFLimit
-from codesign.design.lsr_constraint import CodesignSpec
-from codesign.design.merit import metrics_spec
-from codesign.design.monitor import MaskMonitor, published_reference
+from codesign.train.lsr_constraint import CodesignSpec
+from codesign.design.merit import MaskMonitor, MetricsSpec, metrics_spec, published_reference
 from codesign.experiments import joint
 from tests.cli import run_codesign
 from tests.inputs._run import compose_cfg
@@ -51,7 +50,7 @@ def test_psf_flags_an_unresolved_phase_in_metrics_and_on_the_console(tmp_path):
 def _lsr_max_setup():
     cfg, cam = _camera("optics.pupil_pitch_m=2.0e-5", "optics.focal_n=160")
     system = cam.system
-    monitor = MaskMonitor(system, published_reference(dict(cfg.mask), system), (0.0, 0.5), 16.0)
+    monitor = MaskMonitor(system, published_reference(dict(cfg.mask), system), (0.0, 0.5), MetricsSpec.lsr_p)
     return CodesignSpec.from_config({}), monitor, system, cam.mask
 
 

@@ -167,7 +167,7 @@ def test_gradients_match_finite_differences():
 @pytest.mark.parametrize("kind, start", [("halfring", "published"), ("spiral", "mask"), ("zernike", "defocus"),
                                          ("spline", "defocus"), ("pixel", "defocus")])
 def test_auto_start_is_the_family_s_and_defocus_is_a_quadratic_phase(kind, start):
-    from codesign.design.setup import start_init, start_vector
+    from codesign.design.search_setup import start_init, start_vector
 
     system, _ = _system(torch.float64)
     mask = build_mask({"kind": kind}, system.grid, system.spec.aperture_diameter_m)
@@ -198,7 +198,7 @@ def test_step_constraint_counts_wrapped_neighbour_steps():
 
 
 def test_spline_steps_are_capped_so_the_grid_resolves_the_surface():
-    from codesign.design.setup import start_vector
+    from codesign.design.search_setup import start_vector
     from codesign.optics.masks.spline import SplineMask
 
     assert SplineMask.resolution_step == 1.0  # what search.max_phase_step=auto applies to this family

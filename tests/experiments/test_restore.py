@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from codesign.io.images import read_counts
+from codesign.io.captures import read_counts
 from codesign.experiments.restore import input_files, validate
 from codesign.errors import ConfigError
 

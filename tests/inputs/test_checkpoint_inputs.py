@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 from codesign.errors import ConfigError
 from codesign.train.checkpoint import save_checkpoint
 from codesign.train.resume import apply_checkpoint_mask, check_resume_config, load_trained, resume_if_possible
-from codesign.train.setup import build_model
+from codesign.train.model_setup import build_model
 from codesign.optics import OpticalSystem, OpticsSpec
 from codesign.optics.masks import HalfRingMask
 from tests.cli import run_codesign

@@ -17,9 +17,9 @@ from PIL import Image
 from codesign.data.images import SceneLoadWarning
 from codesign.data.scenes import build_scene_source
 from codesign.train.checkpoint import save_checkpoint
-from codesign.io.images import read_counts
+from codesign.io.captures import read_counts
 from codesign.experiments.restore import input_files, validate
-from codesign.train.setup import build_model
+from codesign.train.model_setup import build_model
 from codesign.errors import ConfigError
 from tests.train._util import tiny_cfg
 from tests.inputs._run import config_error

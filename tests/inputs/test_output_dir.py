@@ -21,7 +21,7 @@ from codesign.io import files as io
 from codesign.experiments import rundir
 from codesign.train.checkpoint import save_checkpoint
 from codesign.train.evaluation import write_csv
-from codesign.io.images import save_png16
+from codesign.io.captures import save_png16
 from codesign.errors import ConfigError, OutputWriteError
 from tests.cli import run_codesign
 from tests.inputs._run import config_error

@@ -24,9 +24,9 @@ from hydra import compose, initialize_config_dir
 from codesign.models import losses
 from codesign.train.data import SimulatedData
 from codesign.train.joint_trainer import JointTrainer
-from codesign.design.lsr_constraint import CodesignSpec, LSRConstraint, snapshot
+from codesign.train.lsr_constraint import CodesignSpec, LSRConstraint, snapshot
 from codesign.optics.masks import published_mask_config
-from codesign.train.setup import build_model
+from codesign.train.model_setup import build_model
 from codesign.train.spec import TrainerSpec
 from codesign.train.trainer import init_weights
 from codesign.optics import build_mask

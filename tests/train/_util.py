@@ -4,13 +4,13 @@ from __future__ import annotations
 import torch
 from hydra import compose, initialize_config_dir
 
-from codesign.design.lsr_constraint import CodesignSpec, LSRConstraint
+from codesign.train.lsr_constraint import CodesignSpec, LSRConstraint
 from codesign.optics.masks import published_mask_config
 from codesign.optics import build_mask
 from codesign.train.data import SimulatedData
 from codesign.train.distributed import SINGLE
 from codesign.train.joint_trainer import JointTrainer
-from codesign.train.setup import build_model
+from codesign.train.model_setup import build_model
 from codesign.train.spec import TrainerSpec
 from codesign.train.trainer import RestorationTrainer, init_weights
 from tests.conftest import REPO_ROOT

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from codesign.train.joint_trainer import JointTrainer
-from codesign.design.lsr_constraint import CodesignSpec, LSRConstraint, snapshot
+from codesign.train.lsr_constraint import CodesignSpec, LSRConstraint, snapshot
 from codesign.errors import ConfigError
 from tests.train._util import joint_trainer
 
@@ -72,7 +72,7 @@ def test_guard_shortens_a_violating_update_and_an_infeasible_start_only_descends
     assert tight.shortened + tight.undone >= 1
     # feasible start, ceiling = its LSR: any update ends at or below it
     c2 = LSRConstraint(tr.cs, tr.data.camera.system, lsr0)
-    from codesign.design.lsr_constraint import restore
+    from codesign.train.lsr_constraint import restore
 
     restore(mask, start)
     with torch.no_grad():
