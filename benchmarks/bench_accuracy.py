@@ -468,8 +468,6 @@ def restoration_rows(scale: str) -> list[dict]:
 # ---- training -----------------------------------------------------------------------------------------------
 # Upper bounds of tests/stress/test_training_stress.py (BOUNDS) for the terms reported here
 STRESS_BOUNDS = {"critic_total": 1e4, "d2_gp": 1e3, "generator_total": 1e3, "rec2": 5.0}
-TINY = ["optics.pupil_pitch_m=2.0e-5", "optics.focal_n=160", "data.image_size=48", "data.padded_size=64",
-        "data.batch_size=2", "model.size=tiny", "trainer.val_size=2"]
 STRONG = ["data.params.alpha_l_range=[1.0e6,1.0e8]", "data.image_size=32", "data.padded_size=48"]
 
 
@@ -477,23 +475,10 @@ def _trainer(steps: int, *overrides: str, seed: int = 0):
     """The tests' tiny restoration trainer (tests/train/_util.py), no validation or checkpoint writes."""
     import tempfile
 
-    from hydra import compose, initialize_config_dir
+    from tests.train._util import tiny_trainer
 
-    from codesign.train.data import SimulatedData
-    from codesign.train.model_setup import build_model
-    from codesign.train.spec import TrainerSpec
-    from codesign.train.trainer import RestorationTrainer, init_weights
-
-    conf = Path(__file__).resolve().parent.parent / "conf"
-    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        cfg = compose("config", overrides=["+experiment=baseline", *TINY, *overrides])
-    torch.manual_seed(seed)
-    model = build_model(cfg)
-    init_weights(model)
-    spec = TrainerSpec.from_config(dict(cfg.trainer)).replace(steps=steps, val_every=0, checkpoint_every=0,
-                                                              image_every=0)
-    return RestorationTrainer(model, SimulatedData(cfg, CPU, seed), spec, Path(tempfile.mkdtemp()), CPU,
-                              {"bench": 1}, None, seed)
+    return tiny_trainer(Path(tempfile.mkdtemp()), *overrides, seed=seed, steps=steps, val_every=0,
+                        checkpoint_every=0, image_every=0)
 
 
 def _joint_guard_ratio(steps: int) -> float:
@@ -501,36 +486,13 @@ def _joint_guard_ratio(steps: int) -> float:
     no penalty (tests/train/test_joint_trainer.py's setup): only the feasibility guard keeps the constraint."""
     import tempfile
 
-    from hydra import compose, initialize_config_dir
+    from tests.train._util import joint_trainer
 
-    from codesign.train.lsr_constraint import CodesignSpec, LSRConstraint
-    from codesign.optics.masks import published_mask_config
-    from codesign.train.data import SimulatedData
-    from codesign.train.joint_trainer import JointTrainer
-    from codesign.train.model_setup import build_model
-    from codesign.train.spec import TrainerSpec
-    from codesign.train.trainer import init_weights
-    from codesign.optics import build_mask
-
-    conf = Path(__file__).resolve().parent.parent / "conf"
-    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        cfg = compose("config", overrides=["+experiment=joint", *TINY])
-    torch.manual_seed(0)
-    model = build_model(cfg)
-    init_weights(model)
-    data = SimulatedData(cfg, CPU, 0)
-    spec = TrainerSpec.from_config(dict(cfg.trainer)).replace(steps=steps, val_every=0, checkpoint_every=0,
-                                                              image_every=0)
-    cs = CodesignSpec.from_config({**dict(cfg.codesign), "warmup_fraction": 0.0, "mask_lr": 0.5,
-                                   "penalty_weight": 0.0})
-    system = data.camera.system
-    ref = build_mask(published_mask_config(dict(cfg.mask)), system.grid, system.spec.aperture_diameter_m)
-    lsr_max = LSRConstraint(cs, system, 1.0).measure(ref)
-    tr = JointTrainer(model, data, spec, Path(tempfile.mkdtemp()), CPU, {"bench": 1}, None, 0, cs, lsr_max)
-    worst = 0.0
+    tr = joint_trainer(Path(tempfile.mkdtemp()), steps=steps, mask_lr=0.5, penalty_weight=0.0)
+    lsr_max, worst = tr.codesign.constraint.lsr_max, 0.0
     for _ in range(steps):
         tr.train_step()
-        worst = max(worst, tr.constraint.measure(tr.mask) / lsr_max)
+        worst = max(worst, tr.codesign.constraint.measure(tr.codesign.mask) / lsr_max)
     return worst
 
 
@@ -593,7 +555,7 @@ def _training_rows(scale: str) -> list[dict]:
 
     def rec():
         with torch.no_grad():
-            t = tr.generator_losses(val, tr.model(val["sensor"], tr.data.otf))
+            t = tr.update.generator_losses(val, tr.model(val["sensor"], tr.data.otf))
         return torch.stack([t["rec1"], t["rec2"]])
 
     before, logs = rec(), []

@@ -80,11 +80,12 @@ class StepClock:
 def watched(trainer, sync):
     """A StepClock on the methods a co-design step calls (instance attributes, removed afterwards)."""
     clock = StepClock(sync)
-    camera = trainer.camera
+    camera = trainer.codesign.camera
     for obj, name, label in ((trainer.data, "train_batch", "batch"),
                              (camera, "current_optics", "optics"), (camera.simulator, "kernel", "kernel"),
-                             (trainer, "generate", "generate"), (trainer, "critic_step", "critic"),
-                             (trainer, "generator_losses", "losses"), (trainer, "generator_step", "generator")):
+                             (trainer.update, "generate", "generate"), (trainer.update, "critic_update", "critic"),
+                             (trainer.update, "generator_losses", "losses"),
+                             (trainer.update, "generator_update", "generator")):
         clock.watch(obj, name, label)
     try:
         yield clock
@@ -123,8 +124,6 @@ def timed_steps(trainer, step_fn, warmup: int, repeats: int, sync) -> dict:
 
 
 def measure_preset(overrides: list[str], dev: torch.device, warmup: int, repeats: int) -> dict:
-    from codesign.train.trainer import RestorationTrainer
-
     sync = cuda_sync(dev)
     with tempfile.TemporaryDirectory() as tmp:
         tr = joint_trainer(overrides, dev, Path(tmp))
@@ -133,15 +132,19 @@ def measure_preset(overrides: list[str], dev: torch.device, warmup: int, repeats
             raise RuntimeError("the mask did not train in the timed steps (no optics were recomputed)")
 
         def frozen_step():  # the restoration step with the mask frozen: the published baseline's step
-            tr.camera.set_trainable(False)
-            return RestorationTrainer.train_step(tr)
+            codesign, tr.codesign = tr.codesign, None
+            codesign.camera.set_trainable(False)
+            try:
+                return tr.train_step()
+            finally:
+                tr.codesign = codesign
 
         frozen = timed_steps(tr, frozen_step, warmup, repeats, sync)
         cfg, data = tr.data.cfg, tr.data
         info = {"model": tr.model.summary().get("variant", tr.model.kind), "model_size": str(cfg.model.size),
                 "image_size": data.image_size, "padded_size": data.padded_size,
-                "batch_size": int(cfg.data.batch_size), "pupil_n": tr.camera.system.grid.n,
-                "focal_n": tr.camera.system.spec.focal_n, "critic_steps": tr.spec.critic_steps}
+                "batch_size": int(cfg.data.batch_size), "pupil_n": tr.codesign.camera.system.grid.n,
+                "focal_n": tr.codesign.camera.system.spec.focal_n, "critic_steps": tr.spec.critic_steps}
     print(f"  {' '.join(overrides) or 'joint_cpu preset'}: joint step {joint['total']:.3f} s, frozen-mask step "
           f"{frozen['total']:.3f} s", flush=True)
     return {"overrides": overrides, **info, "joint": joint, "frozen": frozen}

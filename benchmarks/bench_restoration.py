@@ -2,7 +2,7 @@
 scenes.
 
 A randomly initialised network's PSNR means nothing, so every network (SGAN-B/E/F and `model=wiener_unet`) is first
-trained briefly by the project's own RestorationTrainer on the +experiment=baseline config (composed with Hydra),
+trained briefly by the project's own Trainer on the +experiment=baseline config (composed with Hydra),
 each from the same seed, the same training batches and the same steps per width. Then every method restores the
 *same* simulated sensor images of the test split (built-in scenes cell and chelsea, never trained on) at alpha_l =
 0 and 1e6, scored by the project's Evaluator (codesign/train/evaluation.py: PSNR / SSIM of
@@ -60,15 +60,16 @@ def _train(cfg, data, start: dict, dev: torch.device):
     from codesign.config.runtime import to_container
     from codesign.train.model_setup import build_model
     from codesign.train.spec import TrainerSpec
-    from codesign.train.trainer import RestorationTrainer, init_weights
+    from codesign.train.optim import init_weights
+    from codesign.train.trainer import Trainer
 
     torch.manual_seed(0)
     model = build_model(cfg)
     init_weights(model)
     data.load_state_dict(start)  # every method sees the same training batches
     with tempfile.TemporaryDirectory() as tmp:  # the trainer's final checkpoint is not kept
-        trainer = RestorationTrainer(model, data, TrainerSpec.from_config(to_container(cfg.trainer)), Path(tmp),
-                                     dev, {}, None, 0)
+        trainer = Trainer(model=model, data=data, spec=TrainerSpec.from_config(to_container(cfg.trainer)),
+                          run_dir=Path(tmp), device=dev, config={})
         t0 = time.perf_counter()
         trainer.fit(progress_every=10**9)
         seconds = time.perf_counter() - t0
@@ -199,7 +200,7 @@ def report(res: dict, out: Path) -> Report:
     notes = [
         f"Each SGAN variant and the Wiener-UNet plug-in (`model=wiener_unet`: learnable Wiener deconvolution of "
         "features + residual UNet, Charbonnier L1 only, no critics) is trained in process by the project's "
-        f"RestorationTrainer on the +experiment=baseline config: {p['image']} px images padded to {p['padded']}, "
+        f"Trainer on the +experiment=baseline config: {p['image']} px images padded to {p['padded']}, "
         f"batch {p['batch']}, steps per width: {steps} (the same budget for every network), constant learning "
         "rate (trainer.first_fraction=1), same seed and same training batches for every network, SGAN-E/F without "
         "their VGG term (no weights here). **These are short CPU-budget trainings, not the paper's results** (the "

@@ -102,7 +102,7 @@ def sensor_sweeps(s: dict, dev) -> list[dict]:
 
 
 def network_sweeps(s: dict, dev) -> list[dict]:
-    from codesign.train.trainer import init_weights
+    from codesign.train.optim import init_weights
     from codesign.models import build_sgan, otf_from_kernel
 
     torch.manual_seed(0)

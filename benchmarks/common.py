@@ -244,10 +244,12 @@ def joint_trainer(overrides: list[str], dev: torch.device, run_dir: Path, **opti
     from codesign.config.runtime import to_container
     from codesign.train.lsr_constraint import CodesignSpec
     from codesign.train.data import SimulatedData
-    from codesign.train.joint_trainer import JointTrainer
+    from codesign.design.merit import metrics_spec
+    from codesign.train.mask_codesign import MaskCodesign
     from codesign.train.model_setup import build_model
+    from codesign.train.optim import init_weights
     from codesign.train.spec import TrainerSpec
-    from codesign.train.trainer import init_weights
+    from codesign.train.trainer import Trainer
 
     cfg = compose(["+experiment=joint", *overrides])
     torch.manual_seed(0)
@@ -257,4 +259,6 @@ def joint_trainer(overrides: list[str], dev: torch.device, run_dir: Path, **opti
     spec = TrainerSpec.from_config(to_container(cfg.trainer)).replace(
         steps=10**6, val_every=0, checkpoint_every=0, image_every=0, **options)
     cs = CodesignSpec.from_config({**(to_container(cfg.get("codesign")) or {}), "warmup_fraction": 0.0})
-    return JointTrainer(model, data, spec, run_dir, dev, {}, None, 0, cs, 1.0)
+    mask = MaskCodesign(camera=data.camera, spec=cs, lsr_max=1.0, lsr_p=metrics_spec(cfg).lsr_p, steps=spec.steps,
+                        device=dev)
+    return Trainer(model=model, data=data, spec=spec, run_dir=run_dir, device=dev, config={}, codesign=mask)

@@ -77,7 +77,8 @@ def main(argv=None) -> int:
     from codesign.train.data import SimulatedData
     from codesign.train.model_setup import build_model
     from codesign.train.spec import TrainerSpec
-    from codesign.train.trainer import RestorationTrainer, init_weights
+    from codesign.train.optim import init_weights
+    from codesign.train.trainer import Trainer
 
     ap = argparse.ArgumentParser(prog="python -m benchmarks.early_steps", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -121,7 +122,8 @@ def main(argv=None) -> int:
     spec = TrainerSpec.from_config(to_container(cfg.trainer)).replace(steps=max(a.steps, 1), val_every=0,
                                                                       checkpoint_every=0, image_every=0)
     run_dir = Path(tempfile.mkdtemp(prefix="codesign_early_"))  # the trainer's folder: nothing is kept
-    trainer = RestorationTrainer(model, data, spec, run_dir, dev, to_container(cfg), None, seed)
+    trainer = Trainer(model=model, data=data, spec=spec, run_dir=run_dir, device=dev, config=to_container(cfg),
+                      seed=seed)
     names = held_out.source.split_names("all")[:12]
     scenes = held_out.source.fixed_batch(names, data.camera.scene_size)
     t0, res = time.perf_counter(), {"overrides": a.overrides, "device": str(dev), "scenes": names, "steps": {}}

@@ -31,7 +31,7 @@ from codesign.optics.measured import MEASURED_DEFAULTS, load_measured
 from codesign.optics.spec import OpticsSpec
 from codesign.experiments import rundir
 from codesign.train import distributed
-from codesign.train.trainer import TrainingInterrupted
+from codesign.train.signals import TrainingInterrupted
 
 log = logging.getLogger("codesign")
 

@@ -20,7 +20,8 @@ from codesign.train.memory import check_training_fits
 from codesign.train.resume import load_initial_weights, resume_if_possible
 from codesign.train.model_setup import build_model, distributed_metrics, run_metrics
 from codesign.train.spec import InitSpec, TrainerSpec
-from codesign.train.trainer import RestorationTrainer, init_weights
+from codesign.train.optim import init_weights
+from codesign.train.trainer import Trainer
 
 log = logging.getLogger("codesign.restoration")
 
@@ -49,7 +50,8 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     sampling = {**camera_sampling_report(data.camera, cfg, log), **measured_psf_report(data.camera, cfg, log)} \
         if ctx.is_main else {}
     memory = check_training_fits(model, data, spec, device, "baseline")  # before any training
-    trainer = RestorationTrainer(model, data, spec, run_dir, device, to_container(cfg), None, seed, ctx)
+    trainer = Trainer(model=model, data=data, spec=spec, run_dir=run_dir, device=device, config=to_container(cfg),
+                      seed=seed, dist=ctx)
     resume_if_possible(trainer, cfg, run_dir)
     # purge_step drops the events a killed run logged after its last checkpoint; rank 0 alone writes
     trainer.writer = open_writer(run_dir, tensorboard_enabled(cfg) and ctx.is_main, purge_step=trainer.step)

@@ -30,13 +30,14 @@ from codesign.train import distributed
 from codesign.train.checkpoint import CHECKPOINT_NAME
 from codesign.train.data import SimulatedData
 from codesign.train.evaluation import conditions, eval_settings, run_evaluation
-from codesign.train.joint_trainer import JointTrainer
+from codesign.train.mask_codesign import MaskCodesign
 from codesign.train.memory import check_training_fits
 from codesign.train.resume import load_initial_weights, resume_if_possible
 from codesign.train.model_setup import build_model, distributed_metrics, run_metrics
 from codesign.train.spec import InitSpec, TrainerSpec
 from codesign.train.summary import comparison_figure, joint_summary
-from codesign.train.trainer import RestorationTrainer, init_weights
+from codesign.train.optim import init_weights
+from codesign.train.trainer import Trainer
 
 log = logging.getLogger("codesign.joint")
 # Root keys this experiment reads besides the common ones (conf/experiment/joint.yaml); any other is refused.
@@ -126,8 +127,10 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         sampling = camera_sampling_report(camera, cfg, log, "the start mask")
         start.update(phase_resolved_start=sampling["phase_resolved"], phase_sampling_start=sampling["phase_sampling"],
                      **_check_lsr_max(lsr_max, cs, monitor, system, camera.mask))
-    trainer = JointTrainer(model, data, spec, run_dir, device, to_container(cfg), None, seed, cs, lsr_max, monitor,
-                           ctx, ms.lsr_p)
+    mask = MaskCodesign(camera=camera, spec=cs, lsr_max=lsr_max, lsr_p=ms.lsr_p, steps=spec.steps, device=device,
+                        monitor=monitor, dist=ctx)
+    trainer = Trainer(model=model, data=data, spec=spec, run_dir=run_dir, device=device, config=to_container(cfg),
+                      seed=seed, dist=ctx, codesign=mask)
     common = run_metrics(cfg, model, device)
     log.info("joint: %s (%s) generators %.2fM parameters; mask %s (%d parameters, lr %.3g, frozen for %d steps); "
              "lsr_max %.4g (%s); %d steps, batch %d, %d px padded to %d", common["variant"], common["size"],
@@ -160,13 +163,10 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
                 "analytic circular pupil": circular_mtf(torch.from_numpy(freqs)).numpy()},
         ms.mtf_band, f"radial MTF after {steps} joint steps"))
 
-    metrics = {**common, **distributed_metrics(trainer), "mask_max_rank_difference": trainer.mask_diff,
-               "steps": steps, **timing, "lsr_max": lsr_max, "lsr_max_from": lsr_max_from, **start, **sampling,
+    metrics = {**common, **distributed_metrics(trainer), **mask.record(), "steps": steps, **timing, "lsr_max": lsr_max, "lsr_max_from": lsr_max_from, **start, **sampling,
                **warm,
                "lsr_constraint_met": learned["lsr_smooth"] <= lsr_max * (1 + cs.guard_tolerance),
                "skipped_updates": trainer.skipped, "undone_updates": trainer.rollbacks,
-               "mask_rollbacks": trainer.mask_rollbacks,
-               "guard_shortened": trainer.constraint.shortened, "guard_undone": trainer.constraint.undone,
                "vgg_loss": model.loss_status, "mask_kind": to_container(cfg.mask)["kind"],
                **learned, **{f"{k}_baseline": v for k, v in base.items()}, **camera.mask.summary(), **rings,
                **recheck, "checkpoint": str(run_dir / CHECKPOINT_NAME)}
@@ -266,7 +266,8 @@ def _published_train(cfg, published_cfg, init, spec, steps, seed, device, run_di
                                         "resume": None})
     model, _ = _network(pub_cfg, init, seed)  # the same initial weights as the joint network
     data = SimulatedData(pub_cfg, device, seed, ctx)
-    trainer = RestorationTrainer(model, data, pub_spec, sub, device, to_container(pub_cfg), None, seed, ctx)
+    trainer = Trainer(model=model, data=data, spec=pub_spec, run_dir=sub, device=device, config=to_container(pub_cfg),
+                      seed=seed, dist=ctx)
     timing = _train(trainer, pub_cfg, sub, log_every, "published mask")
     return model, trainer, data, timing
 

@@ -19,7 +19,7 @@ from codesign.train.checkpoint import (
     state_mismatch,
 )
 from codesign.train.model_setup import build_model
-from codesign.train.trainer import EMA
+from codesign.train.optim import EMA
 
 log = logging.getLogger("codesign.train")
 

@@ -106,13 +106,13 @@ def test_a_training_step_runs_on_the_device_and_moves_the_generators(tmp_path, d
 
 def test_a_joint_step_moves_the_mask_on_the_device(tmp_path, device):
     tr = joint_trainer(tmp_path, device=device)
-    assert _on(tr.mask, device)
-    before = {n: p.detach().clone() for n, p in tr.mask.named_parameters()}
+    assert _on(tr.codesign.mask, device)
+    before = {n: p.detach().clone() for n, p in tr.codesign.mask.named_parameters()}
     for _ in range(2):
         terms = tr.train_step()
     assert all(bool(torch.isfinite(v)) for v in terms.values())
-    moved = [n for n, p in tr.mask.named_parameters() if not torch.equal(p.detach(), before[n])]
-    assert moved and all(bool(torch.isfinite(p).all()) for p in tr.mask.parameters())
+    moved = [n for n, p in tr.codesign.mask.named_parameters() if not torch.equal(p.detach(), before[n])]
+    assert moved and all(bool(torch.isfinite(p).all()) for p in tr.codesign.mask.parameters())
 
 
 def test_resume_on_the_device_continues_the_run(tmp_path, device):
@@ -137,7 +137,7 @@ def test_bf16_autocast_step_on_the_device_keeps_float32_physics_and_losses(tmp_p
     tr = tiny_trainer(tmp_path, steps=4, amp="bf16", device=device, **NO_IO)
     batch = tr.data.train_batch(0)
     assert batch["sensor"].dtype == torch.float32 and tr.data.otf.dtype == torch.complex64
-    out = tr.generate(batch)
+    out = tr.update.generate(batch)
     assert out["i_b"].dtype == torch.float32
     terms = [tr.train_step() for _ in range(3)][-1]
     assert all(v.dtype == torch.float32 and bool(torch.isfinite(v)) for v in terms.values()) and tr.skipped == 0

@@ -7,10 +7,10 @@ import runpy
 import signal
 import sys
 
-from codesign.train.trainer import RestorationTrainer
+from codesign.train.trainer import Trainer
 
 KILL_AFTER = int(sys.argv[1])
-_save = RestorationTrainer.save
+_save = Trainer.save
 _saves = [0]
 
 
@@ -22,6 +22,6 @@ def _save_then_kill(self, path=None):
     return out
 
 
-RestorationTrainer.save = _save_then_kill
+Trainer.save = _save_then_kill
 sys.argv = ["codesign", *sys.argv[2:]]
 runpy.run_module("codesign", run_name="__main__", alter_sys=True)

@@ -41,7 +41,7 @@ def stop_before_work(monkeypatch) -> None:
 
     monkeypatch.setattr(psf, "time_forward_backward", _work)
     monkeypatch.setattr(simulate, "build_camera", _camera_without_optics(simulate.build_camera))
-    monkeypatch.setattr(restoration.RestorationTrainer, "fit", _work)
+    monkeypatch.setattr(restoration.Trainer, "fit", _work)
     monkeypatch.setattr(restoration, "run_evaluation", _work)
     monkeypatch.setattr(evaluate, "run_evaluation", _work)
     monkeypatch.setattr(joint, "_train", _work)

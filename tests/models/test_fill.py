@@ -12,7 +12,7 @@ from codesign.models.sgan import downsample2
 from codesign.models.fill import push_pull_fill, valid_pixels
 from codesign.models.wiener import classical_wiener
 from codesign.train.resume import _with_added_keys
-from codesign.train.trainer import init_weights
+from codesign.train.optim import init_weights
 
 
 def _capture(p: int = 48, n: int = 32) -> torch.Tensor:

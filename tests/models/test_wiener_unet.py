@@ -67,7 +67,7 @@ def test_the_evaluator_scores_it_without_the_g1_baseline(tmp_path):
 
 def test_co_design_moves_the_mask_through_it(tmp_path):
     tr = joint_trainer(tmp_path, *TINY, mask_lr=0.5)
-    before = [p.detach().clone() for p in tr.mask_params]
+    before = [p.detach().clone() for p in tr.codesign.params]
     tr.train_step()
-    assert tr.camera.trainable
-    assert any(not torch.equal(a, b.detach()) for a, b in zip(before, tr.mask_params))
+    assert tr.codesign.camera.trainable
+    assert any(not torch.equal(a, b.detach()) for a, b in zip(before, tr.codesign.params))

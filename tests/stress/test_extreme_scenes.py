@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from codesign.models import build_sgan, otf_from_kernel
-from codesign.train.trainer import init_weights
+from codesign.train.optim import init_weights
 from tests.sensor import _util as U
 
 F32 = torch.float32

@@ -19,19 +19,10 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
 from codesign.models import losses
-from codesign.train.data import SimulatedData
-from codesign.train.joint_trainer import JointTrainer
-from codesign.train.lsr_constraint import CodesignSpec, LSRConstraint, snapshot
-from codesign.optics.masks import published_mask_config
-from codesign.train.model_setup import build_model
-from codesign.train.spec import TrainerSpec
-from codesign.train.trainer import init_weights
-from codesign.optics import build_mask
-from tests.conftest import REPO_ROOT
-from tests.train._util import TINY, tiny_trainer
+from codesign.train.lsr_constraint import snapshot
+from tests.train._util import joint_trainer, tiny_trainer
 
 CPU = torch.device("cpu")
 # Every image dazzled: alpha_l drawn from [1e6, 1e8] instead of the paper's [0, 2e6]; 1e8 is the top of the range
@@ -110,7 +101,7 @@ def _validation_rec(tr) -> tuple[float, float]:
     simulated through the current mask."""
     val = tr.data.validation_batch(4)
     with torch.no_grad():
-        terms = tr.generator_losses(val, tr.model(val["sensor"], tr.data.otf))
+        terms = tr.update.generator_losses(val, tr.model(val["sensor"], tr.data.otf))
     return float(terms["rec1"]), float(terms["rec2"])
 
 
@@ -188,7 +179,7 @@ def test_forced_nans_mid_run_skip_only_the_poisoned_update_and_training_recovers
     monkeypatch.setattr(losses, "gradient_penalty", lambda *a, **k: gp(*a, **k) * float("nan"))
     with caplog.at_level(logging.WARNING, logger="codesign.train"):
         terms = tr.train_step()
-        tr.report_skips()
+        tr.guard.report(tr.step)
     monkeypatch.undo()
     assert terms["critic_skipped"] == 1.0 and math.isnan(terms["critic_total"]) and tr.skipped == 1
     assert "step 11: 1 update(s) skipped since the last report (1 non-finite loss, 0 non-finite gradient)" \
@@ -204,7 +195,7 @@ def test_forced_nans_mid_run_skip_only_the_poisoned_update_and_training_recovers
     hook = next(tr.model.g2.parameters()).register_hook(lambda g: torch.full_like(g, float("inf")))
     with caplog.at_level(logging.WARNING, logger="codesign.train"):
         terms = tr.train_step()
-        tr.report_skips()
+        tr.guard.report(tr.step)
     hook.remove()
     assert terms["generator_skipped"] == 1.0 and terms["critic_skipped"] == 0.0 and tr.skipped == 2
     assert "step 16: 1 update(s) skipped since the last report (0 non-finite loss, 1 non-finite gradient)" \
@@ -238,42 +229,32 @@ def test_forced_nans_mid_run_skip_only_the_poisoned_update_and_training_recovers
     assert _weights_finite([tr.model] + tr.ema.shadow)
 
 
-def _joint_trainer(tmp_path: Path, steps: int) -> JointTrainer:
+def _joint_trainer(tmp_path: Path, steps: int):
     """The co-design trainer on the strong-laser data, mask trainable from step 0, the published mask's smooth
     LSR as the ceiling (what +experiment=joint does with codesign.lsr_max = null)."""
-    with initialize_config_dir(config_dir=str(REPO_ROOT / "conf"), version_base="1.3"):
-        cfg = compose("config", overrides=["+experiment=joint", *TINY, *STRONG_LASER])
-    torch.manual_seed(0)
-    model = build_model(cfg)
-    init_weights(model)
-    data = SimulatedData(cfg, CPU, 0)
-    spec = TrainerSpec.from_config(dict(cfg.trainer)).replace(steps=steps, **NO_IO)
-    cs = CodesignSpec.from_config({**dict(cfg.codesign), "warmup_fraction": 0.0})
-    ref = build_mask(published_mask_config(dict(cfg.mask)), data.camera.system.grid, data.camera.system.spec.aperture_diameter_m)
-    lsr_max = LSRConstraint(cs, data.camera.system, 1.0).measure(ref)
-    return JointTrainer(model, data, spec, tmp_path, CPU, {"test": 1}, None, 0, cs, lsr_max)
+    return joint_trainer(tmp_path, *STRONG_LASER, steps=steps)
 
 
 @pytest.mark.parametrize("steps", [pytest.param(12, id="ci"), pytest.param(80, marks=pytest.mark.slow, id="long")])
 def test_joint_mask_and_network_under_strong_lasers_stay_finite_and_feasible(tmp_path, steps):
     tr = _joint_trainer(tmp_path, steps)
-    cs, limit = tr.cs, tr.constraint.lsr_max * (1 + tr.cs.guard_tolerance)
+    cs, limit = tr.codesign.spec, tr.codesign.constraint.lsr_max * (1 + tr.codesign.spec.guard_tolerance)
     # the guard keeps smooth LSR <= lsr_max (1 + tol) after every update, so the penalty w relu(LSR / lsr_max -
     # (1 - margin))^2 can never exceed w (margin + tol)^2 (= 4 at the start, where the mask is the published one);
     # 1e-3 relative slack for the float32 PSF [measured max 4.000]
     penalty_max = cs.penalty_weight * (cs.margin + cs.guard_tolerance) ** 2 * (1 + 1e-3)
-    start, before, logs, lsrs = snapshot(tr.mask), _validation_rec(tr), [], []
+    start, before, logs, lsrs = snapshot(tr.codesign.mask), _validation_rec(tr), [], []
     for _ in range(steps):
         logs.append(tr.train_step())
-        lsrs.append(tr.constraint.measure(tr.mask))
-        assert lsrs[-1] <= limit and lsrs[-1] == pytest.approx(tr.lsr, rel=1e-6)
-    assert tr.skipped == 0 and tr.mask_rollbacks == 0
+        lsrs.append(tr.codesign.constraint.measure(tr.codesign.mask))
+        assert lsrs[-1] <= limit and lsrs[-1] == pytest.approx(tr.codesign.lsr, rel=1e-6)
+    assert tr.skipped == 0 and tr.codesign.record()["mask_rollbacks"] == 0
     assert all("lsr_penalty" in t and 0 <= t["lsr_penalty"] <= penalty_max for t in logs)
     _check_finite_and_bounded(logs)
     if steps >= 40:  # too few steps in the CI variant to compare medians
         _check_learning(tr, before, logs)
-    assert _weights_finite([tr.model, tr.mask])
-    assert not all(torch.equal(a, b) for a, b in zip(start, snapshot(tr.mask)))  # the mask did move
+    assert _weights_finite([tr.model, tr.codesign.mask])
+    assert not all(torch.equal(a, b) for a, b in zip(start, snapshot(tr.codesign.mask)))  # the mask did move
 
 
 def test_the_bound_check_lets_a_single_penalty_spike_pass_and_catches_a_diverging_critic():

@@ -6,13 +6,15 @@ from hydra import compose, initialize_config_dir
 
 from codesign.train.lsr_constraint import CodesignSpec, LSRConstraint
 from codesign.optics.masks import published_mask_config
+from codesign.design.merit import MetricsSpec
 from codesign.optics import build_mask
 from codesign.train.data import SimulatedData
 from codesign.train.distributed import SINGLE
-from codesign.train.joint_trainer import JointTrainer
+from codesign.train.mask_codesign import MaskCodesign
 from codesign.train.model_setup import build_model
 from codesign.train.spec import TrainerSpec
-from codesign.train.trainer import RestorationTrainer, init_weights
+from codesign.train.optim import init_weights
+from codesign.train.trainer import Trainer
 from tests.conftest import REPO_ROOT
 
 CPU = torch.device("cpu")
@@ -27,14 +29,14 @@ def tiny_cfg(*overrides: str):
 
 
 def tiny_trainer(tmp_path, *overrides: str, seed: int = 0, device: torch.device = CPU,
-                 **spec_changes) -> RestorationTrainer:
+                 **spec_changes) -> Trainer:
     cfg = tiny_cfg(*overrides)
     torch.manual_seed(seed)
     model = build_model(cfg)
     init_weights(model)
     data = SimulatedData(cfg, device, seed)
     spec = TrainerSpec.from_config(dict(cfg.trainer)).replace(**spec_changes)
-    return RestorationTrainer(model, data, spec, tmp_path, device, {"test": 1}, None, seed)
+    return Trainer(model=model, data=data, spec=spec, run_dir=tmp_path, device=device, config={"test": 1}, seed=seed)
 
 
 def joint_cfg(*overrides: str):
@@ -43,18 +45,20 @@ def joint_cfg(*overrides: str):
 
 
 def joint_trainer(tmp_path, *overrides: str, seed: int = 0, lsr_max: float | None = None, dist=SINGLE,
-                  device: torch.device = CPU, **codesign) -> JointTrainer:
+                  device: torch.device = CPU, steps: int = 4, **codesign) -> Trainer:
     cfg = joint_cfg(*overrides)
     torch.manual_seed(seed)
     model = build_model(cfg)
     init_weights(model)
     data = SimulatedData(cfg, device, seed, dist)
-    spec = TrainerSpec.from_config(dict(cfg.trainer)).replace(steps=4, val_every=0, checkpoint_every=0,
+    spec = TrainerSpec.from_config(dict(cfg.trainer)).replace(steps=steps, val_every=0, checkpoint_every=0,
                                                               image_every=0)
     cs = CodesignSpec.from_config({**dict(cfg.codesign), "warmup_fraction": 0.0, **codesign})
     if lsr_max is None:
         system = data.camera.system
         ref = build_mask(published_mask_config(dict(cfg.mask)), system.grid, system.spec.aperture_diameter_m)
-        lsr_max = LSRConstraint(cs, system, 1.0).measure(ref)
-    return JointTrainer(model, data, spec, tmp_path, device, {"test": 1}, None, seed, cs, lsr_max,
-                        dist=dist)
+        lsr_max = LSRConstraint(cs, system, 1.0, MetricsSpec.lsr_p).measure(ref)
+    mask = MaskCodesign(camera=data.camera, spec=cs, lsr_max=lsr_max, lsr_p=MetricsSpec.lsr_p, steps=spec.steps,
+                        device=device, dist=dist)
+    return Trainer(model=model, data=data, spec=spec, run_dir=tmp_path, device=device, config={"test": 1}, seed=seed,
+                   dist=dist, codesign=mask)

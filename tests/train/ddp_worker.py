@@ -31,7 +31,7 @@ def main(out: Path, steps: int) -> None:
         losses.append(distributed.all_mean(terms, ctx))
     params = {f"{i}": p.detach().clone() for i, p in enumerate(tr.replicated_parameters())}
     name = f"rank{ctx.rank}.pt" if ctx.enabled else "single.pt"
-    torch.save({"params": params, "losses": losses, "world": ctx.world, "mask": tr.mask.summary(),
+    torch.save({"params": params, "losses": losses, "world": ctx.world, "mask": tr.codesign.mask.summary(),
                 "divergence": distributed.replica_divergence(tr.replicated_parameters(), ctx, resync=False)},
                out / name)
     distributed.finish()

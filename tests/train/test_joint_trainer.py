@@ -6,7 +6,7 @@ import logging
 import pytest
 import torch
 
-from codesign.train.joint_trainer import JointTrainer
+from codesign.train.gan_update import GANUpdate
 from codesign.train.lsr_constraint import CodesignSpec, LSRConstraint, snapshot
 from codesign.errors import ConfigError
 from tests.train._util import joint_trainer
@@ -22,10 +22,10 @@ def test_mask_gets_a_finite_nonzero_gradient_through_the_whole_pipeline(tmp_path
 
     batch["targets"] = pyramid(batch["scene"])
     out = tr.model(batch["sensor"], batch["otf"])
-    terms = tr.generator_losses(batch, out)
+    terms = tr.update.generator_losses(batch, out)
     # the restoration loss alone (no LSR penalty) must move the mask
     (terms["generator_total"] - terms["lsr_penalty"]).backward()
-    for name, p in tr.mask.named_parameters():
+    for name, p in tr.codesign.mask.named_parameters():
         assert p.grad is not None, name
         assert bool(torch.isfinite(p.grad).all()), name
         assert float(p.grad.abs().max()) > 0, name
@@ -33,31 +33,31 @@ def test_mask_gets_a_finite_nonzero_gradient_through_the_whole_pipeline(tmp_path
 
 def test_warmup_keeps_the_mask_out_of_the_graph(tmp_path):
     tr = joint_trainer(tmp_path, warmup_fraction=0.5)
-    before = snapshot(tr.mask)
+    before = snapshot(tr.codesign.mask)
     tr.train_step()
     tr.train_step()
-    assert all(torch.equal(a, b) for a, b in zip(before, snapshot(tr.mask)))
-    assert tr.opt_g.param_groups[2]["lr"] == pytest.approx(tr.cs.mask_lr)  # active from step 2 of 4
+    assert all(torch.equal(a, b) for a, b in zip(before, snapshot(tr.codesign.mask)))
+    assert tr.opt_g.param_groups[2]["lr"] == pytest.approx(tr.codesign.spec.mask_lr)  # active from step 2 of 4
     tr.train_step()
-    assert not all(torch.equal(a, b) for a, b in zip(before, snapshot(tr.mask)))
+    assert not all(torch.equal(a, b) for a, b in zip(before, snapshot(tr.codesign.mask)))
 
 
 def test_learned_mask_never_ends_above_lsr_max_under_a_large_mask_step(tmp_path):
     # a mask step 25x the default with no penalty: only the guard keeps the constraint
     tr = joint_trainer(tmp_path, mask_lr=0.5, penalty_weight=0.0)
-    limit = tr.constraint.lsr_max * (1 + tr.cs.guard_tolerance)
+    limit = tr.codesign.constraint.lsr_max * (1 + tr.codesign.spec.guard_tolerance)
     for _ in range(4):
         tr.train_step()
-        assert tr.constraint.measure(tr.mask) <= limit
-    assert tr.lsr == pytest.approx(tr.constraint.measure(tr.mask), rel=1e-6)
+        assert tr.codesign.constraint.measure(tr.codesign.mask) <= limit
+    assert tr.codesign.lsr == pytest.approx(tr.codesign.constraint.measure(tr.codesign.mask), rel=1e-6)
 
 
 def test_guard_shortens_a_violating_update_and_an_infeasible_start_only_descends(tmp_path):
     tr = joint_trainer(tmp_path)
-    c, mask = tr.constraint, tr.mask
+    c, mask = tr.codesign.constraint, tr.codesign.mask
     start, lsr0 = snapshot(mask), c.measure(mask)
     # a tight ceiling (start infeasible): a random large move may only be kept where it lowers the LSR
-    tight = LSRConstraint(tr.cs, tr.data.camera.system, 0.5 * lsr0)
+    tight = LSRConstraint(tr.codesign.spec, tr.data.camera.system, 0.5 * lsr0)
     gen = torch.Generator().manual_seed(3)
     lsr = lsr0
     for _ in range(6):
@@ -71,7 +71,7 @@ def test_guard_shortens_a_violating_update_and_an_infeasible_start_only_descends
         lsr = lsr_new
     assert tight.shortened + tight.undone >= 1
     # feasible start, ceiling = its LSR: any update ends at or below it
-    c2 = LSRConstraint(tr.cs, tr.data.camera.system, lsr0)
+    c2 = LSRConstraint(tr.codesign.spec, tr.data.camera.system, lsr0)
     from codesign.train.lsr_constraint import restore
 
     restore(mask, start)
@@ -83,32 +83,32 @@ def test_guard_shortens_a_violating_update_and_an_infeasible_start_only_descends
 
 def test_penalty_is_zero_inside_the_margin_and_quadratic_beyond(tmp_path):
     tr = joint_trainer(tmp_path)
-    c = tr.constraint
+    c = tr.codesign.constraint
     m = c.lsr_max
     assert float(c.penalty(torch.tensor(0.97 * m))) == 0.0
-    expected = tr.cs.penalty_weight * (1.1 - (1 - tr.cs.margin)) ** 2
+    expected = tr.codesign.spec.penalty_weight * (1.1 - (1 - tr.codesign.spec.margin)) ** 2
     assert float(c.penalty(torch.tensor(1.1 * m, dtype=torch.float64))) == pytest.approx(expected, rel=1e-9)
 
 
 def test_nan_loss_skips_the_step_and_leaves_mask_and_network_untouched(tmp_path, caplog, monkeypatch):
     tr = joint_trainer(tmp_path)
     tr.train_step()
-    mask_before = snapshot(tr.mask)
+    mask_before = snapshot(tr.codesign.mask)
     net_before = [p.detach().clone() for p in tr.model.g1.parameters()]
-    orig = JointTrainer.generator_losses
+    orig = GANUpdate.generator_losses
 
     def poisoned(self, batch, out):
         terms = orig(self, batch, out)
         terms["generator_total"] = terms["generator_total"] * float("nan")
         return terms
 
-    monkeypatch.setattr(JointTrainer, "generator_losses", poisoned)
+    monkeypatch.setattr(GANUpdate, "generator_losses", poisoned)
     with caplog.at_level(logging.WARNING, logger="codesign.train"):
         terms = tr.train_step()
-        tr.report_skips()
+        tr.guard.report(tr.step)
     assert terms["generator_skipped"] == 1.0 and tr.skipped == 1
     assert "(1 non-finite loss, 0 non-finite gradient)" in caplog.text
-    assert all(torch.equal(a, b) for a, b in zip(mask_before, snapshot(tr.mask)))
+    assert all(torch.equal(a, b) for a, b in zip(mask_before, snapshot(tr.codesign.mask)))
     assert all(torch.equal(a, b) for a, b in zip(net_before, tr.model.g1.parameters()))
 
 
@@ -116,36 +116,36 @@ def test_nan_mask_gradient_skips_and_nan_mask_after_update_restores_the_last_goo
                                                                                        monkeypatch):
     tr = joint_trainer(tmp_path)
     tr.train_step()
-    good = snapshot(tr.mask)
-    hook = tr.mask.r.register_hook(lambda g: g * float("inf"))
+    good = snapshot(tr.codesign.mask)
+    hook = tr.codesign.mask.r.register_hook(lambda g: g * float("inf"))
     with caplog.at_level(logging.WARNING, logger="codesign.train"):
         terms = tr.train_step()
-        tr.report_skips()
+        tr.guard.report(tr.step)
     hook.remove()
     assert terms["generator_skipped"] == 1.0 and "(0 non-finite loss, 1 non-finite gradient)" in caplog.text
-    assert all(torch.equal(a, b) for a, b in zip(good, snapshot(tr.mask)))
+    assert all(torch.equal(a, b) for a, b in zip(good, snapshot(tr.codesign.mask)))
     # an update that leaves NaN in the mask (e.g. a corrupted optimizer state): rolled back
     orig_step = tr.opt_g.step
 
     def corrupt(*a, **k):
         out = orig_step(*a, **k)
         with torch.no_grad():
-            tr.mask.theta[0] = float("nan")
+            tr.codesign.mask.theta[0] = float("nan")
         return out
 
     monkeypatch.setattr(tr.opt_g, "step", corrupt)
-    before = snapshot(tr.mask)
+    before = snapshot(tr.codesign.mask)
     with caplog.at_level(logging.WARNING, logger="codesign.train"):
         terms = tr.train_step()
-        tr.report_skips()
+        tr.guard.report(tr.step)
     # the whole update (network and mask) is undone by the trainer, as a non-finite gradient's would be skipped
     assert tr.rollbacks == 1 and terms["generator_skipped"] == 1.0
     assert "1 update(s) left non-finite weights and were undone" in caplog.text
-    assert all(torch.equal(a, b) for a, b in zip(before, snapshot(tr.mask)))
+    assert all(torch.equal(a, b) for a, b in zip(before, snapshot(tr.codesign.mask)))
 
 
 def _params(tr) -> list[torch.Tensor]:
-    return [p.detach().clone() for p in tr.model.parameters()] + snapshot(tr.mask)
+    return [p.detach().clone() for p in tr.model.parameters()] + snapshot(tr.codesign.mask)
 
 
 def test_seeded_runs_reproduce_and_resume_continues_exactly(tmp_path):
@@ -173,7 +173,7 @@ def test_seeded_runs_reproduce_and_resume_continues_exactly(tmp_path):
     d.train_step()
     for x, y in zip(_params(a), _params(d)):
         torch.testing.assert_close(x, y, rtol=1e-5, atol=1e-6)
-    assert d.lsr == pytest.approx(a.lsr, rel=1e-5)
+    assert d.codesign.lsr == pytest.approx(a.codesign.lsr, rel=1e-5)
 
 
 def test_codesign_settings_are_validated_with_the_key_named():

@@ -50,7 +50,7 @@ def test_bf16_step_simulates_in_float32_and_returns_float32_losses(tmp_path):
     ba, bb = a.data.train_batch(0), b.data.train_batch(0)
     assert all(torch.equal(ba[k], bb[k]) for k in ("sensor", "irradiance", "scene"))
     assert bb["sensor"].dtype == torch.float32 and b.data.otf.dtype == torch.complex64
-    out = b.generate(bb)
+    out = b.update.generate(bb)
     assert out["i_b"].dtype == out["features"].dtype == out["b"][1].dtype == torch.float32
     for _ in range(3):
         terms = b.train_step()

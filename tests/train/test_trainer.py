@@ -10,7 +10,7 @@ import torch
 from codesign.train.checkpoint import load_checkpoint, save_checkpoint
 from codesign.models.losses import LossWeights
 from codesign.train.spec import TrainerSpec
-from codesign.train.trainer import EMA
+from codesign.train.optim import EMA
 from codesign.errors import ConfigError
 from tests.train._util import tiny_trainer
 
@@ -27,7 +27,7 @@ def test_critic_step_moves_only_critics(tmp_path):
     tr = tiny_trainer(tmp_path)
     batch = tr.data.train_batch(0)
     g0, d0 = _params(tr.model.generators()), _params(tr.model.critics())
-    terms = tr.critic_step(batch)
+    terms = tr.update.critic_update(batch)
     assert _same(g0, _params(tr.model.generators()))
     assert not _same(d0, _params(tr.model.critics()))
     assert all(p.grad is None for g in tr.model.generators() for p in g.parameters())
@@ -38,7 +38,7 @@ def test_generator_step_freezes_critics(tmp_path):
     tr = tiny_trainer(tmp_path)
     batch = tr.data.train_batch(0)
     g0, d0 = _params(tr.model.generators()), _params(tr.model.critics())
-    tr.generator_step(batch)
+    tr.update.generator_update(batch)
     assert _same(d0, _params(tr.model.critics()))
     assert all(p.grad is None for d in tr.model.critics() for p in d.parameters())
     assert all(p.requires_grad for d in tr.model.critics() for p in d.parameters())  # unfrozen after
@@ -83,17 +83,17 @@ def test_non_finite_loss_skips_update_on_the_device_and_reports_it_at_logging(tm
     tr = tiny_trainer(tmp_path)
     p0 = _params(tr.model.generators())
     loss = sum(p.sum() for p in tr.model.g1.parameters()) * float("nan")
-    applied = tr._apply(tr.opt_g, loss, tr.model.generators())
+    applied = tr.guard(tr.opt_g, loss, tr.model.generators())
     assert isinstance(applied, torch.Tensor) and applied.dim() == 0 and not bool(applied)
     assert tr.skipped == 1 and _same(p0, _params(tr.model.generators()))
     assert all(int(st["step"]) == 0 for st in tr.opt_g.state.values())  # the skipped step is not counted either
     with caplog.at_level("WARNING", logger="codesign.train"):
-        tr.report_skips()
-        tr.report_skips()  # reported once
+        tr.guard.report(tr.step)
+        tr.guard.report(tr.step)  # reported once
     assert caplog.text.count("1 update(s) skipped since the last report (1 non-finite loss, 0 non-finite "
                              "gradient)") == 1
     finite = sum(p.sum() for p in tr.model.g1.parameters())
-    assert bool(tr._apply(tr.opt_g, finite, tr.model.generators())) and not _same(p0, _params(tr.model.generators()))
+    assert bool(tr.guard(tr.opt_g, finite, tr.model.generators())) and not _same(p0, _params(tr.model.generators()))
 
 
 def test_an_update_that_leaves_weights_non_finite_is_undone_with_the_adam_moments(tmp_path, caplog):
@@ -101,20 +101,20 @@ def test_an_update_that_leaves_weights_non_finite_is_undone_with_the_adam_moment
     weights and Adam's moments go back to their values before the step, on the device, and it is reported."""
     tr = tiny_trainer(tmp_path)
     finite = sum(p.sum() for p in tr.model.g1.parameters())
-    assert bool(tr._apply(tr.opt_g, finite, tr.model.generators()))  # one good step: Adam has its moments
+    assert bool(tr.guard(tr.opt_g, finite, tr.model.generators()))  # one good step: Adam has its moments
     p0 = _params(tr.model.generators())
     m0 = {k: v.clone() for st in tr.opt_g.state.values() for k, v in st.items() if k == "exp_avg"}
     states0 = [{k: v.clone() for k, v in st.items()} for st in tr.opt_g.state.values()]
     for group in tr.opt_g.param_groups:
         group["lr"] = 1e39  # times an Adam step of ~1: beyond float32's 3.4e38
     loss = sum(p.sum() for p in tr.model.g1.parameters())
-    applied = tr._apply(tr.opt_g, loss, tr.model.generators())
+    applied = tr.guard(tr.opt_g, loss, tr.model.generators())
     assert m0 and not bool(applied) and tr.rollbacks == 1 and tr.skipped == 0
     assert _same(p0, _params(tr.model.generators()))
     for before, st in zip(states0, tr.opt_g.state.values()):
         assert all(torch.equal(before[k], st[k]) for k in before)
     with caplog.at_level("WARNING", logger="codesign.train"):
-        tr.report_skips()
+        tr.guard.report(tr.step)
     assert "1 update(s) left non-finite weights and were undone since the last report" in caplog.text
 
 
@@ -125,7 +125,7 @@ def test_twenty_steps_lower_the_reconstruction_loss(tmp_path):
     def rec():
         with torch.no_grad():
             out = tr.model(val["sensor"], tr.data.otf)
-            terms = tr.generator_losses(val, out)
+            terms = tr.update.generator_losses(val, out)
         return float(tr.model.weights.l1_stage1 * terms["rec1"] + tr.model.weights.l1_stage2 * terms["rec2"])
 
     before = rec()
@@ -206,7 +206,7 @@ def test_generator_total_is_the_weighted_sum_of_its_terms(tmp_path):
     tr = tiny_trainer(tmp_path, "model=sgan_f")
     batch = tr.data.train_batch(0)
     with torch.no_grad():
-        terms = tr.generator_losses(batch, tr.model(batch["sensor"], tr.data.otf))
+        terms = tr.update.generator_losses(batch, tr.model(batch["sensor"], tr.data.otf))
     w = tr.model.weights
     expected = (w.l1_stage1 * terms["rec1"] + w.l1_stage2 * terms["rec2"] + w.adv * terms["adv"]
                 + w.mdf * terms["mdf"] + w.fft * terms["fft"])
