@@ -7,7 +7,7 @@ from omegaconf import OmegaConf
 
 from hydra.core.config_store import ConfigStore
 
-from codesign.experiments import EXPERIMENTS, experiment_function
+from codesign.experiments import EXPERIMENTS, experiment_function, root_keys
 from tests.cli import run_codesign
 from tests.conftest import REPO_ROOT
 
@@ -36,7 +36,7 @@ def test_every_group_option_composes_with_every_experiment(experiment):
             assert cfg.task == experiment, (group, option)
 
 
-@pytest.mark.parametrize("experiment", ["export", "tolerance"])
+@pytest.mark.parametrize("experiment", [n for n in EXPERIMENTS if "material" in root_keys(n)])
 def test_material_options_compose_with_the_fabrication_experiments(experiment):
     from codesign.fab.materials import Material
 

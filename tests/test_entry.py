@@ -241,11 +241,10 @@ def test_run_experiment_config_error_exits_2(tmp_path, capsys):
 ])
 def test_debug_smoke_applies_and_names_only_what_the_experiment_reads(task, applied):
     """The log line "debug=smoke: applied ..." once named trainer.*, model.* and evaluate.* keys for psf."""
-    from codesign.config.runtime import apply_debug_overrides
-    from codesign.experiments import read_keys
+    from codesign.experiments import apply_debug
 
     cfg = _compose([f"+experiment={task}", "debug=smoke"])
-    assert apply_debug_overrides(cfg, frozenset(), read_keys(task)) == applied
+    assert apply_debug(cfg) == applied
 
 
 def test_every_experiment_declares_only_root_keys_it_accepts():

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
+from typing import Any, Mapping
 
 import torch
 from hydra.core.hydra_config import HydraConfig
@@ -14,19 +15,23 @@ from codesign.spec_base import SpecMixin
 
 
 def apply_debug_overrides(cfg: DictConfig, explicit: frozenset[str] = frozenset(),
-                          reads: tuple[str, ...] | None = None) -> list[str]:
-    """Apply ``cfg.debug.overrides`` (dotted key -> value) after composition; returns the keys applied.
+                          reads: tuple[str, ...] | None = None, own: Mapping[str, Any] | None = None) -> list[str]:
+    """Apply ``cfg.debug.overrides`` (dotted key -> value) after composition, and with debug=smoke the experiment's
+    ``own`` shrink of its own keys (its protocol's ``smoke``); returns the keys applied.
 
     Keys in ``explicit`` (given on the command line) are left alone: what a user types wins over the shrink.
     ``reads``: the root keys the experiment reads (None: all); a key under any other root is not applied, so the
     log of what was applied names only what shrinks this experiment.
     """
     dbg = cfg.get("debug")
-    if not dbg or not dbg.get("overrides"):
+    if not dbg:
         return []
+    overrides = dict(dbg.get("overrides") or {})
+    if dbg.get("name") == "smoke":
+        overrides.update(own or {})
     applied = []
     with open_dict(cfg):
-        for key, value in dbg.overrides.items():
+        for key, value in overrides.items():
             if key in explicit or (reads is not None and key.split(".", 1)[0] not in reads):
                 continue
             parent = key.rsplit(".", 1)[0] if "." in key else None

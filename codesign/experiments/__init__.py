@@ -30,25 +30,20 @@ from codesign.io import files as io
 from codesign.optics.measured import MEASURED_DEFAULTS, load_measured
 from codesign.optics.spec import OpticsSpec
 from codesign.experiments import rundir
+from codesign.experiments.protocol import ALWAYS_READ, COMMON_KEYS, Experiment  # noqa: F401 (re-exported)
 from codesign.train import distributed
 from codesign.train.signals import TrainingInterrupted
 
 log = logging.getLogger("codesign")
 
 
-# Every module of this package but these is an experiment: codesign.experiments.NAME runs +experiment=NAME through its
-# run(cfg, run_dir, device), reads the root keys COMMON_KEYS + its ROOT_KEYS, writes the fixed file names OUTPUTS
-# (checked before any work), continues a killed run on its own folder when it sets RESUMES (rundir.py refuses any
-# other folder holding results), trains under torchrun when it sets DISTRIBUTED, and takes a measured PSF
-# (optics.psf_file, checked here before any work; refused for the others) when it sets MEASURED_PSF.
-# Modules are imported only when their experiment runs (+experiment=psf never loads networks or nlopt).
-_NOT_EXPERIMENTS = ("rundir",)
-EXPERIMENTS: tuple[str, ...] = tuple(sorted(m.name for m in pkgutil.iter_modules(__path__)
-                                            if m.name not in _NOT_EXPERIMENTS))
-
-# Root keys every experiment has (conf/config.yaml and its groups).
-COMMON_KEYS = ("task", "seed", "device", "threads", "deterministic", "optics", "mask", "sensor", "model", "data",
-               "trainer", "metrics", "logging", "evaluate", "debug")
+# Every module of this package but these support modules is an experiment: codesign.experiments.NAME runs
+# +experiment=NAME through its run(cfg, run_dir, device) and declares its protocol as EXPERIMENT (protocol.py: the
+# keys it reads, the files it writes, whether it resumes, trains under torchrun or takes a measured PSF, where its
+# work starts, its debug=smoke shrink). Modules are imported only when their experiment runs (+experiment=psf never
+# loads networks or nlopt).
+_SUPPORT = ("protocol", "rundir")
+EXPERIMENTS: tuple[str, ...] = tuple(sorted(m.name for m in pkgutil.iter_modules(__path__) if m.name not in _SUPPORT))
 
 
 def experiment_module(name: str):
@@ -56,21 +51,31 @@ def experiment_module(name: str):
     return importlib.import_module(f"codesign.experiments.{name}")
 
 
-# The common keys every experiment reads; the others (optics, mask, sensor, model, data, trainer, metrics, evaluate)
-# only where a module's READS names them (all of them without READS).
-ALWAYS_READ = ("task", "seed", "device", "threads", "deterministic", "logging", "debug")
+def protocol(name: str) -> Experiment:
+    """The declared protocol of experiment ``name`` (its module's EXPERIMENT)."""
+    module = experiment_module(name)
+    found = getattr(module, "EXPERIMENT", None)
+    if not isinstance(found, Experiment) or not callable(getattr(module, "run", None)):
+        raise TypeError(f"{module.__name__} is not an experiment: it must define EXPERIMENT = Experiment(...) and "
+                        f"run(cfg, run_dir, device) (codesign/experiments/protocol.py)")
+    return found
 
 
 def root_keys(name: str) -> tuple[str, ...]:
-    """Every root key experiment ``name`` accepts (COMMON_KEYS + its ROOT_KEYS)."""
-    return COMMON_KEYS + tuple(experiment_module(name).ROOT_KEYS)
+    """Every root key experiment ``name`` accepts (COMMON_KEYS + its own)."""
+    return protocol(name).all_root_keys
 
 
 def read_keys(name: str) -> tuple[str, ...]:
     """The root keys experiment ``name`` actually reads: what debug=smoke shrinks and says it shrank."""
-    module = experiment_module(name)
-    reads = getattr(module, "READS", None)
-    return root_keys(name) if reads is None else ALWAYS_READ + tuple(reads) + tuple(module.ROOT_KEYS)
+    return protocol(name).read_keys
+
+
+def apply_debug(cfg: DictConfig, explicit: frozenset[str] = frozenset()) -> list[str]:
+    """Apply ``debug`` (e.g. debug=smoke) to a composed config of ``+experiment=NAME`` as the entry point does: the
+    common overrides and the experiment's own shrink, only on keys it reads, never on the ``explicit`` (typed) ones.
+    Returns the keys applied. Needed after Hydra's compose API, which composes but does not shrink."""
+    return apply_debug_overrides(cfg, explicit, read_keys(cfg.task), protocol(cfg.task).smoke)
 
 
 def check_root_keys(cfg: DictConfig, task: str) -> None:
@@ -84,16 +89,16 @@ def check_root_keys(cfg: DictConfig, task: str) -> None:
 
 
 def check_measured_psf(cfg: DictConfig, task: str) -> None:
-    """optics.psf_file: refused by an experiment that does not set MEASURED_PSF (it computes the PSF of its mask);
+    """optics.psf_file: refused by an experiment that does not take one (its protocol's measured_psf) (it computes the PSF of its mask);
     else the optics.psf_* keys and their files checked now, before any work, and the paths made absolute (a
     checkpoint's configuration then finds them from any folder)."""
     optics = cfg.get("optics")
     if optics is None:
         return
     path = optics.get("psf_file")
-    takes = getattr(experiment_module(task), "MEASURED_PSF", False)
+    takes = protocol(task).measured_psf
     if path is not None and not takes:
-        takers = ", ".join(n for n in EXPERIMENTS if getattr(experiment_module(n), "MEASURED_PSF", False))
+        takers = ", ".join(n for n in EXPERIMENTS if protocol(n).measured_psf)
         raise ConfigError("optics.psf_file", path, f"+experiment={task} computes the PSF of its mask and takes no "
                           f"measured one (a measured PSF replaces the computed one in {takers}): leave it null")
     if not takes or all(optics.get(k, v) == v for k, v in MEASURED_DEFAULTS.items()):
@@ -147,12 +152,12 @@ def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None
         if task not in EXPERIMENTS:
             raise ConfigError("task", task, "choose an experiment with +experiment=NAME; available: "
                               + ", ".join(sorted(EXPERIMENTS)))
-        if ctx.enabled and not getattr(experiment_module(task), "DISTRIBUTED", False):
-            trainers = ", ".join(n for n in EXPERIMENTS if getattr(experiment_module(n), "DISTRIBUTED", False))
+        if ctx.enabled and not protocol(task).distributed:
+            trainers = ", ".join(n for n in EXPERIMENTS if protocol(n).distributed)
             raise ConfigError("task", task, f"does not train networks and runs in one process: start it without "
                               f"torchrun (training experiments under torchrun: {trainers})")
         check_root_keys(cfg, task)
-        applied = apply_debug_overrides(cfg, explicit_keys(), read_keys(task))
+        applied = apply_debug(cfg, explicit_keys())
         if applied:
             log.info("debug=%s: applied %s", cfg.debug.name, ", ".join(applied))
         root = run_spec(cfg)
@@ -164,7 +169,7 @@ def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None
         deterministic = set_deterministic(root.deterministic, device)
         if ctx.is_main:  # the other ranks write nothing
             io.check_writable_dir(run_dir)  # before any work: never an hour of training, then a failed write
-            io.check_output_files(run_dir, getattr(experiment_module(task), "OUTPUTS", ("metrics.json",)))
+            io.check_output_files(run_dir, protocol(task).outputs)
         torch.manual_seed(seed)
         log.info("task=%s device=%s threads=%d deterministic=%s run_dir=%s%s", task, device, threads,
                  "on" if deterministic else "off", run_dir,

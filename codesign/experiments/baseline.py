@@ -22,18 +22,21 @@ from codesign.train.model_setup import build_model, distributed_metrics, run_met
 from codesign.train.spec import InitSpec, TrainerSpec
 from codesign.train.optim import init_weights
 from codesign.train.trainer import Trainer
+from codesign.experiments.protocol import Experiment
 
 log = logging.getLogger("codesign.restoration")
 
 
-# Root keys this experiment reads besides the common ones (conf/experiment/baseline.yaml); any other is refused.
-# init.checkpoint: start the network from a trained checkpoint's weights (fine-tuning, e.g. on a measured PSF).
-ROOT_KEYS: tuple[str, ...] = ("init",)
-# The fixed names it writes in its run dir: each is checked to be writable before any work.
-OUTPUTS = ("metrics.json", "checkpoint.pt", "evaluation.csv")
-RESUMES = True  # a killed run started again on its folder continues from its checkpoint
-DISTRIBUTED = True  # trains networks: runs data-parallel under torchrun
-MEASURED_PSF = True  # optics.psf_file replaces the computed PSF (codesign/optics/measured.py)
+EXPERIMENT = Experiment(
+    summary="train a restorer (SGAN-B/E/F or a plug-in) on the frozen published mask, then evaluate it",
+    first_work="Trainer.fit",
+    root_keys=("init",),
+    outputs=("metrics.json", "checkpoint.pt", "evaluation.csv"),
+    resumes=True,
+    distributed=True,
+    measured_psf=True,
+)
+
 
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     seed = check_seed(cfg)

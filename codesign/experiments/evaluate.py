@@ -19,14 +19,19 @@ from codesign.train.data import SimulatedData
 from codesign.train.evaluation import eval_settings, run_evaluation
 from codesign.train.resume import apply_checkpoint_mask, load_trained
 from codesign.train.model_setup import run_metrics
+from codesign.experiments.protocol import Experiment
 
 log = logging.getLogger("codesign.evaluate")
 
-# Root keys this experiment reads besides the common ones (conf/experiment/evaluate.yaml); any other is refused.
-ROOT_KEYS: tuple[str, ...] = ("checkpoint",)
-# The fixed names it writes in its run dir: each is checked to be writable before any work.
-OUTPUTS = ("metrics.json", "evaluation.csv")
-MEASURED_PSF = True  # optics.psf_file replaces the computed PSF (codesign/optics/measured.py)
+
+EXPERIMENT = Experiment(
+    summary="evaluate a trained checkpoint against the sensor image and classical Wiener",
+    first_work="run_evaluation",
+    root_keys=("checkpoint",),
+    outputs=("metrics.json", "evaluation.csv"),
+    measured_psf=True,
+)
+
 
 def merged_eval_config(cfg: DictConfig, ckpt_cfg: DictConfig, typed: frozenset[str]) -> DictConfig:
     """The checkpoint's physics, model and data split, with the scene-source keys typed on this command line

@@ -20,12 +20,20 @@ from codesign.fab.surface import PlatePhase
 from codesign.fab.writers import write_height_png, write_height_tiff
 from codesign.io import files as io
 from codesign.optics import OpticalSystem, build_mask
+from codesign.experiments.protocol import Experiment
 
 log = logging.getLogger("codesign.export")
 
-ROOT_KEYS: tuple[str, ...] = ("precision", "export", "material")
-READS = ("optics", "mask", "sensor", "data", "metrics")
-OUTPUTS = ("metrics.json", "export.json", "height_m.npy", "height.png", "height.tif", "report.png")
+
+EXPERIMENT = Experiment(
+    summary="a design as surface heights in a material, K levels, on a fabrication grid",
+    first_work="OpticalSystem",
+    root_keys=("precision", "export", "material"),
+    reads=("optics", "mask", "sensor", "data", "metrics"),
+    outputs=("metrics.json", "export.json", "height_m.npy", "height.png", "height.tif", "report.png"),
+    smoke={"export.pitch_m": 8.0e-6},  # a 490 x 490 plate
+)
+
 # the figures of the ideal and the exported design that metrics.json holds, each as ideal_* and exported_*
 FIGURES = ("lsr", "lsr_sampled", "mtf_mean", "psf_energy_in_window", "lsr_limit", "lsr_over_limit",
            "restorability")

@@ -38,14 +38,19 @@ from codesign.train.spec import InitSpec, TrainerSpec
 from codesign.train.summary import comparison_figure, joint_summary
 from codesign.train.optim import init_weights
 from codesign.train.trainer import Trainer
+from codesign.experiments.protocol import Experiment
 
 log = logging.getLogger("codesign.joint")
-# Root keys this experiment reads besides the common ones (conf/experiment/joint.yaml); any other is refused.
-ROOT_KEYS: tuple[str, ...] = ("codesign", "init")
-# The fixed names it writes in its run dir: each is checked to be writable before any work.
-OUTPUTS = ("metrics.json", "checkpoint.pt", "learned_mask.json", "evaluation.csv", "mtf.png")
-RESUMES = True  # a killed run started again on its folder continues from its checkpoint
-DISTRIBUTED = True  # trains networks: runs data-parallel under torchrun
+
+
+EXPERIMENT = Experiment(
+    summary="the main job: mask and restorer trained end to end, compared with the published system",
+    first_work="_train",
+    root_keys=("codesign", "init"),
+    outputs=("metrics.json", "checkpoint.pt", "learned_mask.json", "evaluation.csv", "mtf.png"),
+    resumes=True,
+    distributed=True,
+)
 
 PUBLISHED_DIR = "published"
 COMPARED = "laser_1e6"  # the condition whose restorations the comparison figure shows side by side

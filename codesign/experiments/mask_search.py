@@ -27,14 +27,20 @@ from codesign.errors import ConfigError
 from codesign.io import files as io, plots
 from codesign.io.tensorboard import open_writer, tensorboard_enabled
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask, circular_mtf, metrics
+from codesign.experiments.protocol import Experiment
 
 log = logging.getLogger("codesign.mask_search")
-# Root keys this experiment reads besides the common ones (conf/experiment/mask_search.yaml); any other is refused.
-ROOT_KEYS: tuple[str, ...] = ("search",)
-# The common groups it reads (besides ALWAYS_READ in codesign/experiments/__init__.py).
-READS = ("optics", "mask", "sensor", "data", "metrics")
-# The fixed names it writes in its run dir: each is checked to be writable before any work.
-OUTPUTS = ("metrics.json", "best_mask.json", "evaluations.csv", "mtf.png", "pareto.png")
+
+
+EXPERIMENT = Experiment(
+    summary="mask-only search of any family (nlopt), re-checked on a finer grid and a whole-PSF window",
+    first_work="MaskSearch.run",
+    root_keys=("search",),
+    reads=("optics", "mask", "sensor", "data", "metrics"),
+    outputs=("metrics.json", "best_mask.json", "evaluations.csv", "mtf.png", "pareto.png"),
+    smoke={"search.max_evals": 8, "search.starts": 2, "search.polish_max_evals": 4, "search.pareto_factors": [1.0],
+           "search.pareto_max_evals": 4},
+)
 
 
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:

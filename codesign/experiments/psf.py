@@ -17,16 +17,20 @@ from codesign.io import files as io
 from codesign.io import plots
 from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask, circular_mtf
+from codesign.experiments.protocol import Experiment
 
 log = logging.getLogger("codesign.psf")
 
 
-# Root keys this experiment reads besides the common ones (conf/experiment/psf.yaml); any other is refused.
-ROOT_KEYS: tuple[str, ...] = ("precision", "timing_repeats")
-# The common groups it reads (besides ALWAYS_READ in codesign/experiments/__init__.py).
-READS = ("optics", "mask", "metrics")
-# The fixed names it writes in its run dir: each is checked to be writable before any work.
-OUTPUTS = ("metrics.json", "mask.json", "phase.png", "psf_log.png", "mtf.png", "mtf2d.png")
+EXPERIMENT = Experiment(
+    summary="PSF, LSR, BSR and MTF of a mask against the physical limit: figures, arrays, metrics.json",
+    first_work="time_forward_backward",
+    root_keys=("precision", "timing_repeats"),
+    reads=("optics", "mask", "metrics"),
+    outputs=("metrics.json", "mask.json", "phase.png", "psf_log.png", "mtf.png", "mtf2d.png"),
+    smoke={"timing_repeats": 1},
+)
+
 
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     spec = OpticsSpec.from_config(OmegaConf.to_container(cfg.optics, resolve=True))

@@ -24,16 +24,19 @@ from codesign.io import files as io
 from codesign.io.captures import read_counts, save_png16
 from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
 from codesign.train.resume import apply_checkpoint_mask, load_trained
+from codesign.experiments.protocol import Experiment
 
 log = logging.getLogger("codesign.restore")
-# Root keys this experiment reads besides the common ones (conf/experiment/restore.yaml); any other is refused.
-ROOT_KEYS: tuple[str, ...] = ("input", "checkpoint")
-# The common groups it reads (besides ALWAYS_READ in codesign/experiments/__init__.py): none; optics, sensor, model and
-# data are the checkpoint's (but a measured PSF, optics.psf_*, given on this command line).
-READS = ()
-# The fixed names it writes in its run dir: each is checked to be writable before any work.
-OUTPUTS = ("metrics.json",)
-MEASURED_PSF = True  # optics.psf_file replaces the computed PSF (codesign/optics/measured.py)
+
+
+EXPERIMENT = Experiment(
+    summary="restore 16-bit sensor captures with a trained checkpoint",
+    first_work="build_camera().frozen_optics",
+    root_keys=("input", "checkpoint"),
+    reads=(),  # optics, sensor, model and data are the checkpoint's (but a measured PSF, optics.psf_*, typed here)
+    outputs=("metrics.json",),
+    measured_psf=True,
+)
 
 SUFFIXES = (".png", ".tif", ".tiff")
 

@@ -84,7 +84,7 @@ def check_earlier_run(run_dir: Path, task: str | None, key: str = "hydra.run.dir
     """ConfigError when ``run_dir`` holds another experiment's results, or a finished run of ``task`` that
     cannot be resumed (a rerun would overwrite its metrics.json). The same experiment continues where it
     defines resume (a killed training run started again on its folder)."""
-    from codesign.experiments import EXPERIMENTS, experiment_module
+    from codesign.experiments import EXPERIMENTS, protocol
 
     run_dir = Path(run_dir).absolute()
     if task not in EXPERIMENTS or not run_dir.is_dir():
@@ -99,7 +99,7 @@ def check_earlier_run(run_dir: Path, task: str | None, key: str = "hydra.run.dir
         raise ConfigError(key, str(run_dir), f"holds the results of {found} ({shown or '.hydra/'}); "
                           f"+experiment={task} never writes into another experiment's folder: {choose}")
     finished = (run_dir / "metrics.json").is_file()  # written last: a killed run's leftovers may be replaced
-    if finished and not getattr(experiment_module(task), "RESUMES", False):
+    if finished and not protocol(task).resumes:
         raise ConfigError(key, str(run_dir), f"holds a finished +experiment={task} run ({shown}); {task} does not "
                           f"resume, and a rerun would overwrite it: {choose}")
 

@@ -24,16 +24,22 @@ from codesign.io import files as io
 from codesign.io.captures import save_png16
 from codesign.io.plots import plt
 from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
+from codesign.experiments.protocol import Experiment
 
 log = logging.getLogger("codesign.simulate")
-# Root keys this experiment reads besides the common ones (conf/experiment/simulate.yaml); any other is refused.
-ROOT_KEYS: tuple[str, ...] = ("precision", "simulate")
-# The common groups it reads (besides ALWAYS_READ in codesign/experiments/__init__.py).
-READS = ("optics", "mask", "sensor", "data", "metrics")
-# The fixed names it writes in its run dir: each is checked to be writable before any work (measured_psf.png: with
-# a measured PSF only).
-OUTPUTS = ("metrics.json", "sensor_grid_linear.png", "sensor_grid_log.png", "measured_psf.png")
-MEASURED_PSF = True  # optics.psf_file replaces the computed PSF (codesign/optics/measured.py)
+
+
+EXPERIMENT = Experiment(
+    summary="dazzled 16-bit sensor captures of test scenes at the paper's laser strengths",
+    first_work="build_camera().frozen_optics",
+    root_keys=("precision", "simulate"),
+    reads=("optics", "mask", "sensor", "data", "metrics"),
+    outputs=("metrics.json", "sensor_grid_linear.png", "sensor_grid_log.png", "measured_psf.png"),  # the last: with
+    # a measured PSF only
+    measured_psf=True,
+    smoke={"simulate.scenes": 1, "simulate.alpha_l": [0, 1.0e6], "simulate.timing_repeats": 1},
+)
+
 CAPTURES = "captures"  # the 16-bit sensor captures alone: a folder +experiment=restore takes as input=DIR
 
 SIMULATE_KEYS = ("scenes", "alpha_l", "laser_angle_rad", "params", "timing_repeats")

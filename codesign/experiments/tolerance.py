@@ -21,12 +21,19 @@ from codesign.fab.plate_figures import tolerance_figure
 from codesign.fab.tolerance import SOURCES, Errors, PlateEvaluator, ToleranceSpec, deterministic, draw
 from codesign.io import files as io
 from codesign.optics import OpticalSystem
+from codesign.experiments.protocol import Experiment
 
 log = logging.getLogger("codesign.tolerance")
 
-ROOT_KEYS: tuple[str, ...] = ("precision", "export", "material", "tolerance")
-READS = ("optics", "mask", "metrics")
-OUTPUTS = ("metrics.json", "samples.csv", "tolerance.png")
+
+EXPERIMENT = Experiment(
+    summary="Monte Carlo fabrication and assembly tolerance (yield) of a design",
+    first_work="OpticalSystem",
+    root_keys=("precision", "export", "material", "tolerance"),
+    reads=("optics", "mask", "metrics"),
+    outputs=("metrics.json", "samples.csv", "tolerance.png"),
+    smoke={"export.pitch_m": 8.0e-6, "tolerance.samples": 16, "tolerance.samples_per_source": 4},
+)
 
 
 class _Progress:

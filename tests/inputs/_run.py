@@ -18,37 +18,28 @@ def _work(*args, **kwargs):
     raise WorkStarted
 
 
-def _camera_without_optics(build):
-    """``build_camera`` whose camera starts work (the sentinel) when its optics are first asked for."""
+def _returning_work(factory, attribute: str):
+    """``factory`` whose result starts work (the sentinel) when its ``attribute`` is first used."""
     def wrapped(*args, **kwargs):
-        camera = build(*args, **kwargs)
-        camera.frozen_optics = _work
-        return camera
+        made = factory(*args, **kwargs)
+        setattr(made, attribute, _work)
+        return made
     return wrapped
 
 
 def stop_before_work(monkeypatch) -> None:
-    """Replace the first expensive step of every experiment with the sentinel."""
-    import codesign.experiments.export as export
-    import codesign.experiments.joint as joint
-    import codesign.experiments.tolerance as tolerance
-    import codesign.experiments.psf as psf
-    import codesign.experiments.baseline as restoration
-    import codesign.experiments.evaluate as evaluate
-    import codesign.experiments.restore as restore
-    import codesign.experiments.mask_search as search
-    import codesign.experiments.simulate as simulate
-
-    monkeypatch.setattr(psf, "time_forward_backward", _work)
-    monkeypatch.setattr(simulate, "build_camera", _camera_without_optics(simulate.build_camera))
-    monkeypatch.setattr(restoration.Trainer, "fit", _work)
-    monkeypatch.setattr(restoration, "run_evaluation", _work)
-    monkeypatch.setattr(evaluate, "run_evaluation", _work)
-    monkeypatch.setattr(joint, "_train", _work)
-    monkeypatch.setattr(search.MaskSearch, "run", _work)
-    monkeypatch.setattr(restore, "build_camera", _camera_without_optics(restore.build_camera))
-    monkeypatch.setattr(export, "OpticalSystem", _work)
-    monkeypatch.setattr(tolerance, "OpticalSystem", _work)
+    """Replace the first expensive step of every experiment (its protocol's first_work) with the sentinel."""
+    for name in experiments.EXPERIMENTS:
+        owner, path = experiments.experiment_module(name), experiments.protocol(name).first_work
+        first, _, rest = path.partition(".")
+        if first.endswith("()"):  # factory().method: the factory's product starts work
+            factory = first[:-2]
+            monkeypatch.setattr(owner, factory, _returning_work(getattr(owner, factory), rest))
+            continue
+        if rest:  # Class.method
+            owner, first = getattr(owner, first), rest
+        assert hasattr(owner, first), f"{name}: first_work {path} names nothing"
+        monkeypatch.setattr(owner, first, _work)
 
 
 def compose_cfg(*overrides: str):

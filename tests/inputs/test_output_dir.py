@@ -307,7 +307,7 @@ def test_an_output_path_taken_by_a_folder_is_refused_before_any_work(tmp_path, m
 
 def test_every_experiment_declares_its_fixed_outputs():
     for name in experiments.EXPERIMENTS:
-        outputs = experiments.experiment_module(name).OUTPUTS
+        outputs = experiments.protocol(name).outputs
         assert "metrics.json" in outputs, name
 
 

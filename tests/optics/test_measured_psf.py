@@ -17,7 +17,7 @@ from scipy.special import erf
 
 import codesign.experiments as experiments
 from codesign.camera import build_camera, with_measured_psf
-from codesign.config.runtime import apply_debug_overrides, command_line_keys
+from codesign.config.runtime import command_line_keys
 from codesign.errors import ConfigError
 from codesign.optics import OpticsSpec
 from codesign.optics.measured import centroid_px, integrate_axis, load_measured, resample
@@ -53,7 +53,7 @@ def _binned_gaussian(n: int, pitch: float, sigma: float, centre=(0.0, 0.0)) -> n
 
 def _cfg(*overrides: str):
     cfg = compose_cfg(*overrides)
-    apply_debug_overrides(cfg, command_line_keys(list(overrides)))
+    experiments.apply_debug(cfg, command_line_keys(list(overrides)))
     return cfg
 
 
@@ -338,7 +338,7 @@ def test_the_other_experiments_refuse_a_measured_psf(experiment, files, monkeypa
 
 
 def test_only_the_four_experiments_take_a_measured_psf():
-    takers = {n for n in experiments.EXPERIMENTS if getattr(experiments.experiment_module(n), "MEASURED_PSF", False)}
+    takers = {n for n in experiments.EXPERIMENTS if experiments.protocol(n).measured_psf}
     assert takers == {"simulate", "baseline", "evaluate", "restore"}
 
 
