@@ -69,7 +69,7 @@ def _train(cfg, data, start: dict, dev: torch.device):
     data.load_state_dict(start)  # every method sees the same training batches
     with tempfile.TemporaryDirectory() as tmp:  # the trainer's final checkpoint is not kept
         trainer = Trainer(model=model, data=data, spec=TrainerSpec.from_config(to_container(cfg.trainer)),
-                          run_dir=Path(tmp), device=dev, config={})
+                          run_dir=Path(tmp), device=dev, config={}, seed=0)
         t0 = time.perf_counter()
         trainer.fit(progress_every=10**9)
         seconds = time.perf_counter() - t0

@@ -181,7 +181,7 @@ def recheck(record: Path) -> dict:
     spec = OpticsSpec(**rec["optics"])
     grid = PupilGrid.from_spec(spec, torch.float32, torch.device("cpu"))
     mask = build_mask({"kind": rec["kind"], "init": str(record)}, grid, spec.aperture_diameter_m)
-    check = verify_design(mask.freeze(), spec, MetricsSpec().mtf_band)
+    check = verify_design(mask.freeze(), spec, MetricsSpec().mtf_band, MetricsSpec().recheck_tolerance)
     return {"recheck_deviation": check["max_deviation"], "recheck_agree": float(check["agree"]),
             "window_energy_whole": check["whole"]["window_energy"]}
 

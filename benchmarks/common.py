@@ -261,4 +261,4 @@ def joint_trainer(overrides: list[str], dev: torch.device, run_dir: Path, **opti
     cs = CodesignSpec.from_config({**(to_container(cfg.get("codesign")) or {}), "warmup_fraction": 0.0})
     mask = MaskCodesign(camera=data.camera, spec=cs, lsr_max=1.0, lsr_p=metrics_spec(cfg).lsr_p, steps=spec.steps,
                         device=dev)
-    return Trainer(model=model, data=data, spec=spec, run_dir=run_dir, device=dev, config={}, codesign=mask)
+    return Trainer(model=model, data=data, spec=spec, run_dir=run_dir, device=dev, config={}, seed=0, codesign=mask)

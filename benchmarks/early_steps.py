@@ -33,9 +33,9 @@ PRESETS = ("laser_0", "laser_1e6")
 def scores(model, trainer, data, held_out, scenes, seed: int, presets=PRESETS) -> dict:
     """PSNR aff. of every method under each preset (default alpha_l = 0 and 1e6; baselines tuned for each
     condition on the training distribution)."""
-    from codesign.train.evaluation import Evaluator, centre
+    from codesign.train.evaluation import EvaluateSpec, Evaluator, centre
 
-    ev = Evaluator(model, trainer.restoring_modules(), held_out)
+    ev = Evaluator(model, trainer.restoring_modules(), held_out, batch_size=EvaluateSpec.batch_size)
     ev.tune_per_condition(data.validation_scenes(8), data.validation_noise_seed)
     out = {}
     for preset in presets:

@@ -8,7 +8,6 @@ from omegaconf import OmegaConf
 from hydra.core.config_store import ConfigStore
 
 from codesign.experiments import EXPERIMENTS, experiment_function, root_keys
-from tests.cli import run_codesign
 from tests.conftest import REPO_ROOT
 
 CONF = REPO_ROOT / "conf"
@@ -18,8 +17,9 @@ EXPERIMENT_FILES = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
 # material options to export and tolerance: test_material_options_compose_with_the_fabrication_experiments)
 ROOT_GROUPS = ("optics", "mask", "sensor", "model", "data", "trainer", "metrics", "logging", "evaluate")
 STORED = {(group, name.removesuffix(".yaml")) for group in ROOT_GROUPS for name in ConfigStore.instance().list(group)}
-GROUP_OPTIONS = sorted({(d.name, p.stem) for d in CONF.iterdir() if d.is_dir() and d.name not in ("experiment", "hydra", "material")
-                        for p in d.glob("*.yaml")} | STORED)
+GROUP_OPTIONS = sorted({(d.name, p.stem) for d in CONF.iterdir()
+                        if d.is_dir() and d.name not in ("experiment", "hydra", "material") for p in d.glob("*.yaml")}
+                       | STORED)
 
 
 def test_every_registered_experiment_has_a_config_and_back():
@@ -101,7 +101,14 @@ def test_group_defaults_are_the_spec_dataclasses():
     (("+experiment=joint", "trainer=paper"), "trainer=paper sets the paper's schedule only; the paper's network "
                                             "widths and image sizes are preset=paper"),
 ])
-def test_renamed_keys_name_the_new_key(tmp_path, args, message):
-    proc = run_codesign(*args, f"hydra.run.dir={tmp_path / 'run'}")
-    assert proc.returncode == 2 and f"codesign: configuration error: {message}" in proc.stderr, proc.stderr
+def test_renamed_keys_name_the_new_key(tmp_path, args, message, monkeypatch, capsys):
+    """The entry point refuses them before Hydra composes (in process: the exit-code path itself is
+    tests/test_entry.py's subprocess test)."""
+    from codesign.__main__ import main
+
+    monkeypatch.setattr("sys.argv", ["codesign", *args, f"hydra.run.dir={tmp_path / 'run'}"])
+    with pytest.raises(SystemExit) as info:
+        main()
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and f"codesign: configuration error: {message}" in err, err
     assert not (tmp_path / "run").exists()

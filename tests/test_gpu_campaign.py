@@ -17,6 +17,7 @@ from codesign.train.checkpoint import check_trained, load_checkpoint
 REPO = Path(__file__).resolve().parent.parent
 
 
+@pytest.mark.slow  # 45 s: every campaign step; twin: test_a_partial_run_keeps_the_other_steps_results
 def test_dry_run_runs_every_step_and_writes_its_own_folder(tmp_path):
     docs_before = gpu.DOCS.read_bytes() if gpu.DOCS.is_file() else None
     out = subprocess.run([sys.executable, "-m", "benchmarks.gpu", "--dry-run", "--out", str(tmp_path)],

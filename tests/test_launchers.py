@@ -151,6 +151,7 @@ def test_local_pool_without_the_plugin_fails_before_any_job(tmp_path):
 
 
 # ---- real sweeps with Hydra's basic launcher (one job after the other) -----------------------------------------
+@pytest.mark.slow  # 10 s: a 3-point sweep; twin: test_launcher_keys_are_overridable
 def test_mask_search_floor_sweep(tmp_path):
     sweep = tmp_path / "sweep"
     proc = run_codesign("-m", "+experiment=mask_search", "debug=smoke", "threads=1", "search.mtf_floor=0.05,0.07",
@@ -170,6 +171,7 @@ def test_mask_search_floor_sweep(tmp_path):
     assert floors[0] != floors[1]
 
 
+@pytest.mark.slow  # 8 s: a sweep; twin: test_local_pool_without_the_plugin_fails_before_any_job
 def test_sweep_stops_at_a_refused_value(tmp_path):
     """A value the experiment refuses (0.7 is above the uncoded aperture's mtf_mean) is a configuration error: the
     sweep exits 2 at that job; the jobs before it keep their results, the jobs after it do not run."""
@@ -182,6 +184,7 @@ def test_sweep_stops_at_a_refused_value(tmp_path):
     assert _metrics(sweep / "0")["limits"]["mtf"] == pytest.approx(0.05)
 
 
+@pytest.mark.slow  # 34 s: three trainings
 def test_sgan_variant_ablation_sweep(tmp_path):
     # ~30 s on one thread of a 2-core VM (3 smoke trainings + evaluations)
     sweep = tmp_path / "sweep"

@@ -1,5 +1,6 @@
 """The package layout is the data flow: each package imports only the packages before it, only the entry point
-imports the experiments (codesign.experiments), there are no import cycles, and no module uses another's private names."""
+imports the experiments (codesign.experiments), there are no import cycles, and no module uses another's private
+names."""
 from __future__ import annotations
 
 import ast

@@ -5,8 +5,11 @@ from __future__ import annotations
 import importlib.util
 import os
 import re
+import shlex
 import subprocess
 import sys
+
+import pytest
 
 from tests.conftest import REPO_ROOT
 
@@ -32,6 +35,19 @@ def test_every_picture_of_the_page_has_a_source_and_every_step_its_own_folder():
         assert any(f"+experiment={step} " in c for c in cmds), step
 
 
+def test_every_command_composes():
+    """The cheap twin of the smoke run: every command of the tutorial composes with Hydra (each key it sets exists
+    in its experiment's configuration)."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(REPO_ROOT / "conf"), version_base="1.3"):
+        for command in _script().commands():
+            overrides = [a for a in shlex.split(command)[3:] if not a.startswith("hydra.")]
+            cfg = compose("config", overrides=overrides)
+            assert cfg.task == re.search(r"\+experiment=(\w+)", command).group(1)
+
+
+@pytest.mark.slow  # 94 s: every command of the tutorial in turn; twin: test_every_command_composes
 def test_the_tutorial_runs_at_smoke_size(tmp_path):
     env = {**os.environ, "OMP_NUM_THREADS": "2", "MKL_NUM_THREADS": "2"}
     proc = subprocess.run([sys.executable, str(REPO_ROOT / "docs" / "tutorial.py"), "--smoke", "--root",

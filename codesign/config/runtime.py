@@ -73,6 +73,8 @@ RENAMED_KEYS: dict[str, str] = {
     "search.r_bounds": "mask.r_bounds (the search explores the mask family's own box)",
     "search.theta_bounds": "nothing: theta_n is periodic and the search explores [0, 2 pi)",
     "mask.basis": "the family's own config group: mask=pixel or mask=zernike (mask=freeform keeps mask.basis)",
+    "search.check_tolerance": "metrics.recheck_tolerance (the re-check of every experiment)",
+    "simulate.alpha_l": "simulate.laser_strengths (as evaluate.laser_strengths)",
 }
 
 
@@ -143,6 +145,14 @@ def set_deterministic(mode: bool | str, device: torch.device) -> bool:
 
 def resolve_dtype(key: str, name: str) -> torch.dtype:
     return {"float32": torch.float32, "float64": torch.float64}[require_choice(key, name, ("float32", "float64"))]
+
+
+# Root keys some experiments share, each with its one default, composed at the root by the experiments' YAMLs
+# (``- /root_keys/precision: default``). The groups are not named after the keys: a group named ``precision``
+# would turn ``precision=float64`` on the command line into a choice of group option.
+register("root_keys/precision", "default", {"precision": "float32"}, package="_global_")  # float32 | float64
+register("root_keys/checkpoint", "required", {"checkpoint": None}, package="_global_")  # a checkpoint path, required
+register("root_keys/input", "required", {"input": None}, package="_global_")  # a capture file or folder, required
 
 
 @dataclass(frozen=True)

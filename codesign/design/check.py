@@ -130,7 +130,7 @@ def camera_sampling_report(camera, cfg, log, what: str | None = None) -> dict:
                            what or f"{kind} mask")
 
 
-def verify_design(mask, spec, band, tolerance: float = 0.02, dtype=torch.float32, wide_factor: int = 2) -> dict:
+def verify_design(mask, spec, band, tolerance: float, dtype=torch.float32, wide_factor: int = 2) -> dict:
     """The design, fine and whole evaluations of ``mask`` (designed on ``spec``) and whether they agree."""
     design = evaluate_on(spec, mask, band, dtype)
     fine_spec = fine_grid(spec, mask)

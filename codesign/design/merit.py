@@ -23,10 +23,14 @@ BAND_ALLOWED = ("must be [low, high] with 0 <= low < high <= 1 (frequency normal
 class MetricsSpec(SpecMixin):
     """How every experiment (psf, joint, mask_search) scores a mask. lsr_p: p of the smooth LSR ||h||_p / h0(0)
     (>= the sampled LSR; the differentiable LSR of every objective and constraint); mtf_band: [low, high] of
-    normalized frequency (nu / cutoff) over which mtf_mean and mtf_min summarize the radial MTF."""
+    normalized frequency (nu / cutoff) over which mtf_mean and mtf_min summarize the radial MTF; recheck_tolerance:
+    how far (relative) a design's LSR and mtf_mean, or its gain over the published mask, may move on a pupil grid
+    finer by the family's factor and a window that holds its whole PSF and still count as reproduced
+    (codesign/design/check.py)."""
 
     lsr_p: float = 16.0
     mtf_band: tuple = (0.0, 0.5)
+    recheck_tolerance: float = 0.02
     prefix: str = field(default="metrics", compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -37,6 +41,7 @@ class MetricsSpec(SpecMixin):
                 require_number(f"{p}.mtf_band[1]", band[1]) <= 1:
             raise ConfigError(f"{p}.mtf_band", list(band), BAND_ALLOWED)
         object.__setattr__(self, "mtf_band", (float(band[0]), float(band[1])))
+        require_number(f"{p}.recheck_tolerance", self.recheck_tolerance, lo=0, lo_open=True, hi=1)
 
 
 register("metrics", "default", spec_node(MetricsSpec))

@@ -73,7 +73,7 @@ def start_init(init: str, mask) -> str:
     return mask.search_start if init == "auto" else init
 
 
-def start_vector(init: str, mask, published, defocus_rad: float = 40.0) -> torch.Tensor | None:
+def start_vector(init: str, mask, published, defocus_rad: float) -> torch.Tensor | None:
     """The parameter vector of start 0 (``init`` resolved by start_init): the configured mask (mask), the published
     mask in this family (published), a defocus of ``defocus_rad`` (defocus) or None (random)."""
     if init == "mask":

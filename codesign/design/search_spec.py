@@ -34,7 +34,8 @@ class SearchSpec(SpecMixin):
     ``polish_max_evals``). init: start 0 = auto (the family's: published for half rings, mask for spirals, defocus
     for the pixel, spline and Zernike families), published (the published mask in this family: its r_n, theta_n;
     its phase for the pixel, spline and Zernike families), mask (the configured mask, e.g. mask.init=PATH), defocus
-    (a defocus of ``defocus_rad``, rad at the aperture's edge: a near flat-top PSF) or random; starts:
+    (a defocus of ``defocus_rad``, rad at the aperture's edge: a near flat-top PSF; null: the mask's own
+    mask.defocus_rad) or random; starts:
     number of starts (null: 4 for <= 20 parameters, else 1), the others random (the family's random start) from
     ``seed``; max_evals: evaluations per start (null: 150 for <= 20 parameters, else 2400); xtol_rel, ftol_rel:
     nlopt's relative stopping tolerances (0 = off).
@@ -51,7 +52,8 @@ class SearchSpec(SpecMixin):
     lsr_p_schedule: the continuation on p (auto: 16 .. 1024 for gradient algorithms, [metrics.lsr_p] for
     derivative-free ones) or a list. pareto_factors: floor factors of the Pareto sweep (null or [] = off);
     pareto_starts / pareto_max_evals (null: max_evals / 2): per factor. check: re-check the best design on a pupil
-    grid twice as fine and a window that holds its PSF, within check_tolerance. precision: float32 | float64.
+    grid finer by the family's factor and a window that holds its PSF, within metrics.recheck_tolerance.
+    precision: float32 | float64.
     log_every: evaluations between progress lines.
     """
 
@@ -59,7 +61,7 @@ class SearchSpec(SpecMixin):
     local_algorithm: str | None = "LD_MMA"
     polish_max_evals: int = 50
     init: str = "auto"
-    defocus_rad: float = 40.0
+    defocus_rad: float | None = None
     starts: int | None = None
     seed: int = 0
     max_evals: int | None = None
@@ -78,7 +80,6 @@ class SearchSpec(SpecMixin):
     pareto_starts: int = 2
     pareto_max_evals: int | None = 60
     check: bool = True
-    check_tolerance: float = 0.02
     precision: str = "float32"
     log_every: int = 20
     prefix: str = field(default="search", compare=False, repr=False)
@@ -95,7 +96,8 @@ class SearchSpec(SpecMixin):
             if getattr(self, key) is not None:
                 put(key, require_number(f"{p}.{key}", getattr(self, key), lo=1, hi=10**9, integer=True))
         require_choice(f"{p}.init", self.init, INITS)
-        put("defocus_rad", require_number(f"{p}.defocus_rad", self.defocus_rad, lo=0, hi=1e4))
+        if self.defocus_rad is not None:
+            put("defocus_rad", require_number(f"{p}.defocus_rad", self.defocus_rad, lo=0, hi=1e4))
         require_choice(f"{p}.objective", self.objective, OBJECTIVES)
         for key in ("xtol_rel", "ftol_rel"):
             put(key, require_number(f"{p}.{key}", getattr(self, key), lo=0, hi=1, hi_open=True))
@@ -137,8 +139,6 @@ class SearchSpec(SpecMixin):
         put("pareto_factors", factors or None)
         if not isinstance(self.check, bool):
             raise ConfigError(f"{p}.check", self.check, "must be true or false")
-        put("check_tolerance", require_number(f"{p}.check_tolerance", self.check_tolerance, lo=0, lo_open=True,
-                                              hi=1))
         require_choice(f"{p}.precision", self.precision, ("float32", "float64"))
 
     # ---- what "auto" means for a mask of ``n`` parameters ---------------------------------------------------------

@@ -89,9 +89,9 @@ def check_root_keys(cfg: DictConfig, task: str) -> None:
 
 
 def check_measured_psf(cfg: DictConfig, task: str) -> None:
-    """optics.psf_file: refused by an experiment that does not take one (its protocol's measured_psf) (it computes the PSF of its mask);
-    else the optics.psf_* keys and their files checked now, before any work, and the paths made absolute (a
-    checkpoint's configuration then finds them from any folder)."""
+    """optics.psf_file: refused by an experiment that does not take one (its protocol's measured_psf: it computes
+    the PSF of its mask); else the optics.psf_* keys and their files checked now, before any work, and the paths
+    made absolute (a checkpoint's configuration then finds them from any folder)."""
     optics = cfg.get("optics")
     if optics is None:
         return

@@ -18,7 +18,8 @@ from codesign.design.tradeoff_figures import evaluations_figure
 from codesign.design.limits import MTFLimit
 from codesign.design.merit import MaskMonitor, metrics_spec, published_reference
 from codesign.design.problem import DesignProblem, Limits
-from codesign.design.records import write_record
+from codesign.optics.masks.base import PhaseFitSpec
+from codesign.optics.masks.records import write_record
 from codesign.design.search import MaskSearch, start_points
 from codesign.design.search_spec import SearchSpec
 from codesign.design.search_setup import (quantized_figures, restorability_tools, search_limits, start_init,
@@ -60,7 +61,8 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     base["restorability"] = rest.score(published)
     limits = search_limits(s, mask, base, base_arr, limit, ms.lsr_p)
     init = start_init(s.init, mask)
-    init_x = start_vector(init, mask, published, s.defocus_rad)
+    defocus = s.defocus_rad if s.defocus_rad is not None else mask_cfg.get("defocus_rad", PhaseFitSpec.defocus_rad)
+    init_x = start_vector(init, mask, published, defocus)
     schedule = s.schedule(n, ms.lsr_p)
     lower, upper = (b.numpy() for b in mask.bounds())
     starts = start_points(init_x, init, s.resolved_starts(n), mask.random_vector, s.seed)
@@ -125,12 +127,12 @@ def _outputs(run_dir: Path, s: SearchSpec, ms, system, mask, published, base, ba
     if not feasible:
         log.error("NO FEASIBLE POINT in %d evaluations: the outputs describe the point closest to the constraints "
                   "(violation %.3g)", main.problem.evaluations, main.problem.least.violation)
-    check = verify_design(mask.freeze(), spec, ms.mtf_band, s.check_tolerance) if s.check else None
+    check = verify_design(mask.freeze(), spec, ms.mtf_band, ms.recheck_tolerance) if s.check else None
     if check is not None and not check["agree"]:
         log.warning("the best design does NOT survive the re-check: its LSR / mtf_mean on a pupil grid twice as "
                     "fine and a window twice as wide differ by up to %.1f%% (tolerance %.0f%%): part of its gain is "
                     "the simulation's, not the optics' (metrics.json: check)", 100 * check["max_deviation"],
-                    100 * s.check_tolerance)
+                    100 * ms.recheck_tolerance)
     sampling = report_sampling(sampling_of(check["design"], check["fine"]), log, "the best design") if check \
         else sampling_report(mask.freeze(), spec, ms.mtf_band, log, "the best design")
     quantized = quantized_figures(mask, monitor, rest, (2, 4, 8, 16))

@@ -11,7 +11,7 @@ from codesign.config.runtime import resolve_dtype
 from codesign.design.check import sampling_report
 from codesign.design.limits import MTFLimit
 from codesign.design.merit import MaskMonitor, evaluate_mask, metrics_spec, published_reference, time_forward_backward
-from codesign.design.records import write_record
+from codesign.optics.masks.records import write_record
 from codesign.errors import require_number
 from codesign.io import files as io
 from codesign.io import plots

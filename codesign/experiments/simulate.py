@@ -11,15 +11,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from codesign.camera import build_camera
-from codesign.config.runtime import check_seed, resolve_dtype
+from codesign.config.runtime import check_seed, resolve_dtype, to_container
 from codesign.data.params import fixed_scene_params, sample_scene_params
 from codesign.data.scenes import build_scene_source
+from codesign.data.simulate_spec import SimulateSpec
 from codesign.design.check import camera_sampling_report
 from codesign.design.measured_merit import measured_psf_figure, measured_psf_report
-from codesign.errors import ConfigError, require_number, require_numbers, unknown_keys
 from codesign.io import files as io
 from codesign.io.captures import save_png16
 from codesign.io.plots import plt
@@ -37,13 +37,10 @@ EXPERIMENT = Experiment(
     outputs=("metrics.json", "sensor_grid_linear.png", "sensor_grid_log.png", "measured_psf.png"),  # the last: with
     # a measured PSF only
     measured_psf=True,
-    smoke={"simulate.scenes": 1, "simulate.alpha_l": [0, 1.0e6], "simulate.timing_repeats": 1},
+    smoke={"simulate.scenes": 1, "simulate.laser_strengths": [0, 1.0e6], "simulate.timing_repeats": 1},
 )
 
 CAPTURES = "captures"  # the 16-bit sensor captures alone: a folder +experiment=restore takes as input=DIR
-
-SIMULATE_KEYS = ("scenes", "alpha_l", "laser_angle_rad", "params", "timing_repeats")
-
 
 def _grid_figure(images: np.ndarray, rows: list[str], cols: list[float], log_view: bool, full_scale: float):
     nr, nc = images.shape[:2]
@@ -71,29 +68,10 @@ def _grid_figure(images: np.ndarray, rows: list[str], cols: list[float], log_vie
 
 
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
-    sim_cfg = cfg.get("simulate")
-    if sim_cfg is None:
-        raise ConfigError("simulate", None, "missing: use +experiment=simulate")
-    unknown_keys("simulate", sim_cfg, SIMULATE_KEYS)
+    sim_spec = SimulateSpec.from_config(to_container(cfg.get("simulate")) or {})
     dtype = resolve_dtype("precision", cfg.get("precision"))
-    alphas = require_numbers("simulate.alpha_l", sim_cfg.get("alpha_l"), "must be a list of laser strengths >= 0",
-                             lo=0, hi=1e12)
-    n_scenes = require_number("simulate.scenes", sim_cfg.get("scenes"), lo=1, hi=64, integer=True)
-    angle = require_numbers("simulate.laser_angle_rad", sim_cfg.get("laser_angle_rad"), "must be [n_u, n_v] in radians",
-                            2)
-    repeats = require_number("simulate.timing_repeats", sim_cfg.get("timing_repeats"), lo=1, integer=True)
-    fixed = sim_cfg.get("params")
-    fixed = {} if fixed is None else OmegaConf.to_container(fixed, resolve=True) if OmegaConf.is_config(fixed) \
-        else fixed
-    if not isinstance(fixed, dict):
-        raise ConfigError("simulate.params", fixed, "must be a mapping of scene parameters (alpha_b, c1, ...)")
-    for key in ("alpha_l", "laser_angle_rad"):  # swept / set by their own simulate.* keys
-        if key in fixed:
-            raise ConfigError(f"simulate.params.{key}", fixed[key], f"is set by simulate.{key}, not here")
-    try:  # the fixed scene parameters, checked now rather than after the PSF is computed
-        fixed_scene_params(1, **fixed)
-    except ConfigError as err:
-        raise ConfigError(f"simulate.params.{err.key}", err.value, err.allowed) from None
+    alphas, n_scenes, angle = sim_spec.laser_strengths, sim_spec.scenes, list(sim_spec.laser_angle_rad)
+    repeats, fixed = sim_spec.timing_repeats, sim_spec.params
     source = build_scene_source(cfg.data)
     camera = build_camera(cfg, device, dtype)
     sim = camera.simulator

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from codesign.config.store import register, spec_node
 from codesign.errors import ConfigError, require_number
 from codesign.optics.grid import PupilGrid
 from codesign.optics.spec import OpticsSpec
@@ -180,3 +181,6 @@ class PlatePhase:
 
     def phase(self) -> torch.Tensor:
         return self._phase
+
+
+register("export", "default", spec_node(ExportSpec))

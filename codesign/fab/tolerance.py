@@ -22,6 +22,7 @@ from typing import Callable
 
 import torch
 
+from codesign.config.store import register, spec_node
 from codesign.errors import ConfigError, require_number
 from codesign.fab.materials import Material
 from codesign.fab.surface import Plate, phase_of_height
@@ -146,7 +147,7 @@ class PlateEvaluator:
     """
 
     def __init__(self, plate: Plate, system: OpticalSystem, material: Material, band: tuple[float, float],
-                 noise_gen: torch.Generator, batch: int = 16):
+                 noise_gen: torch.Generator, batch: int):
         self.plate, self.system, self.material, self.band = plate, system, material, band
         self.gen, self.batch = noise_gen, batch
         g = system.grid
@@ -223,3 +224,6 @@ def deterministic(spec: ToleranceSpec, source: str, sign: float, n_levels: int |
     elif source == "defocus":
         e.dz[0] = sig
     return e
+
+
+register("tolerance", "default", spec_node(ToleranceSpec, seed="${seed}"))

@@ -125,7 +125,7 @@ class EfficientAttention(nn.Module):
     O(N^2). Output f + R(E), R a 1x1 convolution initialized to zero so that global context is learned gradually.
     """
 
-    def __init__(self, channels: int, key_channels: int = 8):
+    def __init__(self, channels: int, key_channels: int):
         super().__init__()
         self.query = nn.Conv2d(channels, key_channels, 1)
         self.key = nn.Conv2d(channels, key_channels, 1)

@@ -19,7 +19,7 @@ from codesign.models.blocks import EfficientAttention, FFTConvBlock, conv_norm_a
 
 class PatchDiscriminator(nn.Module):
     def __init__(self, in_channels: int, widths: Sequence[int] = (64, 128, 256, 512), block: str = "conv",
-                 attention: bool = True, key_channels: int = 8):
+                 attention: bool = True, *, key_channels: int):
         super().__init__()
         if block not in ("conv", "ftc"):
             raise ValueError(f"discriminator block must be conv or ftc, got {block!r}")

@@ -166,11 +166,11 @@ class SGAN(Restorer):
         self.spec = spec
         self.weights = weights if weights is not None else LossWeights()
         g, d = spec.generator_block, spec.critic_block
-        self.g1 = ResUNet(3, 1, spec.stem_width, spec.widths, g, spec.attention, spec.key_channels)
+        self.g1 = ResUNet(3, 1, spec.stem_width, spec.widths, g, spec.attention, key_channels=spec.key_channels)
         self.gv = DeconvModule(spec.fe_features, spec.fe_kernel, spec.gamma_init)
         self.g2 = Refiner(spec)
-        self.d1 = PatchDiscriminator(4, spec.d_widths, d, spec.attention, spec.key_channels)
-        self.d2 = nn.ModuleList([PatchDiscriminator(1, spec.d_widths, d, spec.attention, spec.key_channels)
+        self.d1 = PatchDiscriminator(4, spec.d_widths, d, spec.attention, key_channels=spec.key_channels)
+        self.d2 = nn.ModuleList([PatchDiscriminator(1, spec.d_widths, d, spec.attention, key_channels=spec.key_channels)
                                  for _ in range(2)])
         self.vgg, self._vgg_status = None, "off: not prepared for training"
 

@@ -59,8 +59,8 @@ class UNetBody(nn.Module):
     not be multiples of 2^depth (decoder outputs are padded to the skip's size).
     """
 
-    def __init__(self, stem_width: int, widths: Sequence[int], out_channels: int, block: str = "res",
-                 attention: bool = True, key_channels: int = 8, residual_blocks: int = 2):
+    def __init__(self, stem_width: int, widths: Sequence[int], out_channels: int, block: str, attention: bool,
+                 key_channels: int, residual_blocks: int = 2):
         super().__init__()
         widths = list(widths)
         ins = [stem_width] + widths[:-1]
@@ -92,7 +92,7 @@ class ResUNet(nn.Module):
     """G1 (and the single-scale G2): head C (kernel 7) + UNetBody."""
 
     def __init__(self, in_channels: int, out_channels: int, stem_width: int, widths: Sequence[int],
-                 block: str = "res", attention: bool = True, key_channels: int = 8, head_layers: int = 1):
+                 block: str = "res", attention: bool = True, *, key_channels: int, head_layers: int = 1):
         super().__init__()
         self.head = make_head(in_channels, stem_width, head_layers)
         self.body = UNetBody(stem_width, widths, out_channels, block, attention, key_channels)

@@ -85,7 +85,7 @@ class LearnableWiener(nn.Module):
     gamma_i = softplus(rho_i) + gamma_min is kept positive; ``gamma`` reports it.
     """
 
-    def __init__(self, features: int = 16, gamma_init: float = 1e-2, gamma_min: float = 1e-8):
+    def __init__(self, features: int, gamma_init: float, gamma_min: float = 1e-8):
         super().__init__()
         if not gamma_init > gamma_min:
             raise ValueError(f"gamma_init must be > gamma_min ({gamma_min}), got {gamma_init}")
@@ -112,7 +112,7 @@ class DeconvModule(nn.Module):
 
     no_compile = True  # trainer.compile leaves it alone: its complex FFTs gain nothing from torch.compile
 
-    def __init__(self, features: int = 16, kernel: int = 5, gamma_init: float = 1e-2, block: str = "res"):
+    def __init__(self, features: int, kernel: int, gamma_init: float, block: str = "res"):
         super().__init__()
         self.fe = FeatureExtractor(1, features, kernel, block=block)
         self.deconv = LearnableWiener(features, gamma_init)

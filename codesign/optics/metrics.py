@@ -26,7 +26,7 @@ def lsr_sampled(psf: torch.Tensor, uncoded_peak: float) -> torch.Tensor:
     return psf.amax(dim=(-2, -1)) / uncoded_peak
 
 
-def lsr_smooth(psf: torch.Tensor, uncoded_peak: float, p: float = 16.0) -> torch.Tensor:
+def lsr_smooth(psf: torch.Tensor, uncoded_peak: float, p: float) -> torch.Tensor:
     """Differentiable LSR surrogate ||h||_p / h0(0) >= max(h) / h0(0); -> lsr_sampled as p -> inf.
 
     Computed as m ||h / m||_p with m = max(h) (no gradient through m's choice, the value is exact), which keeps

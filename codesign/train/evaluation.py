@@ -42,7 +42,6 @@ from codesign.errors import (
     require_numbers,
 )
 from codesign.io import files as io
-from codesign.io.plots import plt
 from codesign.models import quality
 from codesign.models.wiener import classical_wiener, classical_wiener_sweep
 from codesign.spec_base import SpecMixin
@@ -94,7 +93,7 @@ class Evaluator:
     ``model``: a Restorer; ``generators``: the modules it restores with (its own or EMA copies); ``data``: a
     SimulatedData (batches, the camera's OTF and sensor)."""
 
-    def __init__(self, model, generators, data, perceptual: dict | None = None, batch_size: int = 8):
+    def __init__(self, model, generators, data, perceptual: dict | None = None, *, batch_size: int):
         self.model, self.generators, self.data = model, generators, data
         self.n = data.image_size
         self.perceptual = perceptual if perceptual is not None else quality.perceptual_metrics(None, None)
@@ -259,6 +258,8 @@ def write_csv(path: Path, rows: list[dict]) -> None:
 def panel_figure(images: dict, target: torch.Tensor, names: list[str], preset: str, table: dict):
     cols = list(images) + ["truth"]
     rows = min(len(names), 3)
+    from codesign.io.plots import plt  # matplotlib only when a figure is drawn (import codesign stays light)
+
     fig, axes = plt.subplots(rows, len(cols), figsize=(2.1 * len(cols), 2.2 * rows), squeeze=False)
     for i in range(rows):
         for j, col in enumerate(cols):
@@ -353,7 +354,7 @@ def run_evaluation(ev: dict, model, generators, data, run_dir: Path, seed: int, 
     if not names:
         raise ConfigError("evaluate.split", ev["split"], "has no scenes in this data source")
     scenes = data.source.fixed_batch(names, data.camera.scene_size)
-    evaluator = Evaluator(model, generators, data, ev["perceptual"], ev["batch_size"])
+    evaluator = Evaluator(model, generators, data, ev["perceptual"], batch_size=ev["batch_size"])
     evaluator.tune_per_condition(data.validation_scenes(ev["tuning"]), data.validation_noise_seed)
     presets = conditions(ev["lasers"], ev["stages"])
     results, per_scene, kept = evaluate(evaluator, scenes, names, presets, seed, run_dir, ev["overrides"], keep)

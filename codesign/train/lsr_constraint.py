@@ -109,7 +109,7 @@ class LSRConstraint:
     """The penalty term and the feasibility guard of a mask on an OpticalSystem (see module docstring); ``p``: the
     exponent of the smooth LSR (metrics.lsr_p)."""
 
-    def __init__(self, spec: CodesignSpec, system, lsr_max: float, p: float = 16.0):
+    def __init__(self, spec: CodesignSpec, system, lsr_max: float, p: float):
         self.spec, self.system, self.lsr_max, self.p = spec, system, float(lsr_max), float(p)
         self.shortened = 0  # updates the guard shortened
         self.undone = 0  # updates the guard undid entirely

@@ -104,3 +104,6 @@ class InitSpec(SpecMixin):
     def __post_init__(self) -> None:
         if self.checkpoint is not None and not isinstance(self.checkpoint, str):
             raise ConfigError(f"{self.prefix}.checkpoint", self.checkpoint, "must be a checkpoint path or null")
+
+
+register("init", "default", spec_node(InitSpec))

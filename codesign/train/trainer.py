@@ -56,7 +56,7 @@ class Trainer(TrainContext):
     the training wrappers), ``critics`` (the critics' training wrappers) and ``gradient_penalty``."""
 
     def __init__(self, *, model: Restorer, data, spec: TrainerSpec, run_dir: Path, device: torch.device,
-                 config: dict, seed: int = 0, dist: distributed.DistContext = distributed.SINGLE, writer=None,
+                 config: dict, seed: int, dist: distributed.DistContext = distributed.SINGLE, writer=None,
                  codesign=None):
         self.model, self.data, self.spec, self.codesign = model.to(device), data, spec, codesign
         self.run_dir, self.device, self.config, self.writer, self.dist = Path(run_dir), device, config, writer, dist

@@ -321,10 +321,10 @@ def test_an_aliased_half_ring_is_caught_by_the_recheck():
     system = OpticalSystem(spec)
     mask = build_mask({"kind": "halfring", "preset": None, "r": [1e4] * 5, "theta": [1.86, 1.09, 1.15, 1.21, 1.22],
                        "r_bounds": [0.5, 1e4]}, system.grid, spec.aperture_diameter_m).freeze()
-    check = verify_design(mask, spec, BAND)
+    check = verify_design(mask, spec, BAND, 0.02)
     assert not check["agree"] and abs(check["lsr_fine_deviation"]) > 0.3  # measured -58 % (6 % of the light inside)
     published = build_mask({"kind": "halfring"}, system.grid, spec.aperture_diameter_m).freeze()
-    assert abs(verify_design(published, spec, BAND)["lsr_fine_deviation"]) < 0.05  # measured 3.1 % at 192 across
+    assert abs(verify_design(published, spec, BAND, 0.02)["lsr_fine_deviation"]) < 0.05  # measured 3.1 % at 192 across
 
 
 def test_a_rough_pixel_plate_passes_the_recheck_and_a_smooth_reading_would_not():
@@ -341,7 +341,7 @@ def test_a_rough_pixel_plate_passes_the_recheck_and_a_smooth_reading_would_not()
     rng = torch.Generator().manual_seed(0)
     mask.set_vector(mask.to_vector() + torch.rand(mask.vector_size, generator=rng, dtype=torch.float64) * math.pi)
     mask.freeze()
-    check = verify_design(mask, spec, BAND, dtype=torch.float64)
+    check = verify_design(mask, spec, BAND, 0.02, dtype=torch.float64)
     assert check["fine_factor"] == 3 and check["fine"]["pupil_n"] > 2.5 * system.grid.n
     assert abs(check["lsr_fine_deviation"]) < 0.02 and abs(check["mtf_mean_fine_deviation"]) < 0.02
     plate, _ = mask_figures_of_merit(system, mask, RadialMTF(spec), BAND, 16.0)

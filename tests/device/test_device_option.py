@@ -1,6 +1,7 @@
 """``--device``: a device the machine does not have, or no device at all, stops pytest before any test, named."""
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -23,6 +24,13 @@ def test_a_name_that_is_no_device_is_a_usage_error():
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
 def test_cuda_without_a_gpu_is_a_usage_error():
-    out = _pytest("--device", "cuda", "--collect-only")
-    assert out.returncode == 4
-    assert f"--device cuda: torch {torch.__version__} sees no CUDA device" in out.stderr
+    """In process: conftest's check on a configuration asking for cuda (the exit-code path: the test above)."""
+    from tests.conftest import pytest_configure
+
+    class Config:
+        def getoption(self, name):
+            return "cuda"
+
+    with pytest.raises(pytest.UsageError, match="^" + re.escape(f"--device cuda: torch {torch.__version__} sees no "
+                                                                    "CUDA device")):
+        pytest_configure(Config())

@@ -147,7 +147,7 @@ def test_the_evaluation_tunes_and_scores_on_the_device(tmp_path, device):
     """The evaluator on the device: the first GPU campaign (2026-11-26) found its black-level offset built on the
     CPU (a per-image parameter) and subtracted from a CUDA image, which failed every evaluation on a GPU."""
     tr = tiny_trainer(tmp_path, device=device, **NO_IO)
-    ev = Evaluator(tr.model, tr.model.generators(), tr.data)
+    ev = Evaluator(tr.model, tr.model.generators(), tr.data, batch_size=8)
     ev.tune(tr.data.validation_batch(2))
     scenes = tr.data.source.fixed_batch(tr.data.source.split_names("test"), tr.data.camera.scene_size)
     batch = tr.data.preset_batch(scenes.to(device), "laser_1e6", seed=3)

@@ -1,5 +1,5 @@
-"""``python tests/experiments/kill_after_checkpoint.py N ARGS...``: run ``python -m codesign ARGS`` and SIGKILL the process
-right after its trainers' N-th checkpoint, a kill at a known step (a real SIGKILL: nothing after it runs)."""
+"""``python tests/experiments/kill_after_checkpoint.py N ARGS...``: run ``python -m codesign ARGS`` and SIGKILL the
+process right after its trainers' N-th checkpoint, a kill at a known step (a real SIGKILL: nothing after it runs)."""
 from __future__ import annotations
 
 import os

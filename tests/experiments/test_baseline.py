@@ -108,10 +108,11 @@ def test_rerun_in_the_same_dir_resumes_instead_of_retraining(baseline_run, tmp_p
     assert (copy / "metrics.json").is_file()  # the refused run left the earlier results in place
 
 
-def test_evaluate_without_checkpoint_is_a_config_error(tmp_path):
-    proc = _run("+experiment=evaluate", f"hydra.run.dir={tmp_path / 'e'}")
-    assert proc.returncode == 2
-    assert "codesign: configuration error: checkpoint = None: give the trained model" in proc.stderr
+def test_evaluate_without_checkpoint_is_a_config_error(tmp_path, monkeypatch, capsys):
+    from tests.inputs._run import config_error
+
+    line = config_error(monkeypatch, capsys, tmp_path / "e", "+experiment=evaluate")
+    assert line.startswith("codesign: configuration error: checkpoint = None: give the trained model")
     assert not (tmp_path / "e").exists()
 
 

@@ -90,6 +90,7 @@ def test_joint_tensorboard_holds_losses_mask_constraint_images_and_hparams(joint
     assert any((joint_run / "hparams").iterdir())
 
 
+@pytest.mark.slow  # 25 s: a killed and a resumed process; twins: test_seeded_runs_reproduce_and_resume_continues_exactly, test_resumed_seconds_count_the_checkpoints
 def test_a_run_killed_at_a_step_and_resumed_records_what_an_uninterrupted_run_records(joint_run, tmp_path):
     """SIGKILL right after the joint training's checkpoint at step 2 of 4, then the same command again: every
     value of metrics.json equals the uninterrupted run's (the same command in joint_run), the untrained network's
@@ -150,12 +151,13 @@ def test_warm_start_frozen_mask_continues_the_checkpoint_exactly(joint_run, tmp_
     assert m["lsr_max"] == pytest.approx(m["lsr_smooth_baseline"], rel=1e-6)  # the start is the published mask
 
 
-def test_warm_start_from_other_image_sizes_is_refused_before_work(joint_run, tmp_path):
+def test_warm_start_from_other_image_sizes_is_refused_before_work(joint_run, tmp_path, monkeypatch, capsys):
+    from tests.inputs._run import config_error
+
     ckpt = joint_run / "published" / "checkpoint.pt"
-    proc = run_codesign("+experiment=joint", "debug=smoke", f"init.checkpoint={ckpt}", "data.image_size=64",
-                        "data.padded_size=96", f"hydra.run.dir={tmp_path / 'bad'}", timeout=300)
-    assert proc.returncode == 2
-    assert proc.stderr.strip().splitlines()[-1] == (
+    line = config_error(monkeypatch, capsys, tmp_path / "bad", "+experiment=joint", "debug=smoke",
+                        f"init.checkpoint={ckpt}", "data.image_size=64", "data.padded_size=96")
+    assert line == (
         f"codesign: configuration error: init.checkpoint = '{ckpt}': was trained with different data.image_size, "
         "data.padded_size: a warm start keeps the network, the optics, the sensor and the image sizes (only the "
         "mask may change)")

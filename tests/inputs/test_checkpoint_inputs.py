@@ -194,6 +194,7 @@ def test_evaluate_with_a_truncated_checkpoint_exits_2_before_any_work(trained, t
                     f"again, or use an earlier checkpoint")
 
 
+@pytest.mark.slow  # 4 s: the same refusal through the command line; twin: the in-process test above
 def test_cli_evaluate_with_a_truncated_checkpoint(trained, tmp_path):
     path = _save(tmp_path, trained)
     path.write_bytes(path.read_bytes()[:1000])

@@ -54,15 +54,17 @@ ROWS = [
      "device, threads, deterministic, optics, mask, sensor, model, data, trainer, metrics, logging, evaluate, debug, "
      "init"),
     # ---- simulate and data ---------------------------------------------------------------------------------
-    ("simulate", "simulate.alpha_l=5", "simulate.alpha_l = 5: must be a list of laser strengths >= 0"),
+    ("simulate", "simulate.laser_strengths=5", "simulate.laser_strengths = 5: must be a non-empty list of laser "
+     "strengths >= 0"),
     ("simulate", "simulate.laser_angle_rad=5", "simulate.laser_angle_rad = 5: must be [n_u, n_v] in radians"),
     ("simulate", "simulate.laser_angle_rad=[nan,0]", "simulate.laser_angle_rad[0] = nan: must be a finite number"),
     ("simulate", "simulate.params.alpha_b=-1", "simulate.params.alpha_b = -1: must be a finite number >= 0"),
     ("simulate", "+simulate.params.foo=1", "simulate.params.foo = 1: is not a scene parameter; allowed: alpha_l, "
      "alpha_b, laser_angle_rad, c1, c2, dark_current_mean_e, read_noise_mean_e, read_noise_std_e, exposure_s"),
-    ("simulate", "+simulate.params.alpha_l=1", "simulate.params.alpha_l = 1: is set by simulate.alpha_l, not here"),
+    ("simulate", "+simulate.params.alpha_l=1", "simulate.params.alpha_l = 1: is set by simulate.laser_strengths, "
+     "not here"),
     ("simulate", "+simulate.foo=1",
-     "simulate.foo = 1: unknown key; allowed: alpha_l, laser_angle_rad, params, scenes, timing_repeats"),
+     "simulate.foo = 1: unknown key; allowed: laser_angle_rad, laser_strengths, params, scenes, timing_repeats"),
     ("simulate", "+data.foo=1", "data.foo = 1: unknown key; allowed: batch_size, cache_mb, flips, folder, "
      "image_size, padded_size, params, scenes, split_seed, test_fraction"),
     ("simulate", "data.image_size=4096 data.padded_size=4096", "data.image_size = 4096: must be <= "

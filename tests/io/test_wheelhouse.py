@@ -89,6 +89,7 @@ def test_the_node_environment_sees_what_this_interpreter_sees(tmp_path):
     assert out.stdout.strip() == str(venv)  # its own environment, where pip installs, not this one
 
 
+@pytest.mark.slow  # 17 s: a venv install; twin: test_the_node_environment_sees_what_this_interpreter_sees
 def test_build_then_install_with_no_index_into_a_fresh_environment(tmp_path):
     """This machine's Python as the node: everything installed here is 'had' by the node, so the wheelhouse holds
     the build backend only; the install then reaches no index (pip's own configuration switched off too)."""

@@ -36,20 +36,41 @@ def _np_blur(x: np.ndarray, h: np.ndarray) -> np.ndarray:
     return np.real(np.fft.ifft2(np.fft.fft2(x) * h))
 
 
-@pytest.mark.parametrize("n", [20, 21])
-def test_classical_wiener_equals_numpy_reference(n):
+# Tolerances and the measured errors they bound (benchmarks/bench_accuracy.py reports these errors next to them)
+CLASSICAL_SIZES = [20, 21]  # even and odd image sides
+CLASSICAL_ATOL = 1e-10  # max |classical_wiener - numpy float64 closed form|
+TINY_NSR_ATOL = 1e-8  # max |Wiener(blurred, nsr 1e-12) - unblurred image|, |H| >= 0.2
+LEARNABLE_F64_ATOL = 1e-10  # max |G_v deconvolution - numpy closed form|, float64
+LEARNABLE_F32_OF_MAX = 2e-5  # the same in float32, as a fraction of max |closed form|
+
+
+def _classical_case(n: int):
+    """(y, kernel, nsr, classical_wiener output, numpy float64 reference) for two n x n images."""
     rng = np.random.default_rng(0)
     kernel = _gaussian(5, 1.2)
     kernel[0, 3] += 0.3                       # asymmetric: conj(H) must be the OTF's conjugate, not H
     y = rng.random((2, n, n))
     nsr = 3e-2
     out = classical_wiener(torch.from_numpy(y), otf_from_kernel(torch.from_numpy(kernel), n), nsr)
-    assert out.dtype == torch.float64 and out.shape == y.shape
     ref = np.stack([_np_wiener(im, _np_otf(kernel, n), nsr) for im in y])
-    np.testing.assert_allclose(out.numpy(), ref, rtol=0, atol=1e-10)
+    return y, kernel, nsr, out, ref
+
+
+def classical_wiener_error(n: int, case: tuple | None = None) -> float:
+    """max |classical_wiener - numpy closed form| (``case``: the _classical_case of n, computed when not given)."""
+    *_, out, ref = _classical_case(n) if case is None else case
+    return float(np.abs(out.numpy() - ref).max())
+
+
+@pytest.mark.parametrize("n", CLASSICAL_SIZES)
+def test_classical_wiener_equals_numpy_reference(n):
+    case = _classical_case(n)
+    y, kernel, nsr, out, ref = case
+    assert out.dtype == torch.float64 and out.shape == y.shape
+    assert classical_wiener_error(n, case) <= CLASSICAL_ATOL  # a NaN fails too
     # wiener_filter with power p and noise p * nsr is the same filter
     out2 = wiener_filter(torch.from_numpy(y), otf_from_kernel(torch.from_numpy(kernel), n), 7.0, 7.0 * nsr)
-    np.testing.assert_allclose(out2.numpy(), ref, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(out2.numpy(), ref, rtol=0, atol=CLASSICAL_ATOL)
 
 
 def test_otf_from_kernel_dc_and_centring():
@@ -85,18 +106,34 @@ def test_off_centre_kernel_is_a_convolution_shift():
     torch.testing.assert_close(classical_wiener(blurred, otf_from_kernel(kernel, n), 1e-12), x, rtol=0, atol=1e-10)
 
 
-def test_wiener_with_tiny_nsr_inverts_a_well_conditioned_blur():
+def _tiny_nsr_case():
+    """(kernel, its OTF h, image x, blurred y, Wiener(y, nsr = 1e-12)) on a 32 x 32 grid."""
     n = 32
     rng = np.random.default_rng(1)
     kernel = 0.4 * _gaussian(5, 1.0)
     kernel[2, 2] += 0.6                                         # |H| >= 0.2 everywhere
     h = _np_otf(kernel, n)
-    assert np.abs(h).min() > 0.19
     x = rng.random((n, n))
     y = _np_blur(x, h)
-    assert np.abs(y - x).max() > 0.05                          # the blur is visible
     out = classical_wiener(torch.from_numpy(y), otf_from_kernel(torch.from_numpy(kernel), n), 1e-12)
-    np.testing.assert_allclose(out.numpy(), x, rtol=0, atol=1e-8)
+    return kernel, h, x, y, out
+
+
+def tiny_nsr_inversion_error(case: tuple | None = None) -> float:
+    """max |Wiener(blurred image, nsr 1e-12) - the image| for a blur with |H| >= 0.2 (``case``: computed when not
+    given)."""
+    *_, x, _, out = _tiny_nsr_case() if case is None else case
+    return float(np.abs(out.numpy() - x).max())
+
+
+def test_wiener_with_tiny_nsr_inverts_a_well_conditioned_blur():
+    case = _tiny_nsr_case()
+    kernel, h, x, y, out = case
+    n = x.shape[0]
+    assert np.abs(h).min() > 0.19
+    assert np.abs(y - x).max() > 0.05                          # the blur is visible
+    assert out.shape == x.shape
+    assert tiny_nsr_inversion_error(case) <= TINY_NSR_ATOL  # a NaN fails too
     # a large nsr shrinks towards zero (regularization): the DC gain is H / (H^2 + nsr) < 1 / H
     out_reg = classical_wiener(torch.from_numpy(y), otf_from_kernel(torch.from_numpy(kernel), n), 1.0)
     assert out_reg.mean().item() == pytest.approx(y.mean() * 1.0 / (1.0 + 1.0), rel=1e-10)
@@ -114,7 +151,8 @@ def _np_learnable(f: np.ndarray, h: np.ndarray, gamma: np.ndarray) -> np.ndarray
     return out
 
 
-def test_learnable_wiener_closed_form_float32():
+def _learnable_float32_case():
+    """(features, G_v output, numpy float64 closed form): float32 module, distinct gamma and power per feature."""
     n = 16
     torch.manual_seed(0)
     lw = LearnableWiener(3, gamma_init=0.05)
@@ -123,19 +161,46 @@ def test_learnable_wiener_closed_form_float32():
     f = torch.rand(2, 3, n, n) * torch.tensor([1.0, 0.1, 3.0]).view(1, 3, 1, 1)   # distinct powers
     kernel = _gaussian(5, 1.0)
     out = lw(f, otf_from_kernel(torch.from_numpy(kernel).float(), n))
-    assert out.dtype == torch.float32 and out.shape == f.shape
     ref = _np_learnable(f.double().numpy(), _np_otf(kernel, n), lw.gamma.detach().double().numpy())
-    np.testing.assert_allclose(out.detach().double().numpy(), ref, rtol=0, atol=2e-5 * np.abs(ref).max())
+    return f, out, ref
 
 
-def test_learnable_wiener_closed_form_float64():
+def _learnable_float64_case():
+    """(features, G_v output, numpy closed form): float64 module."""
     n = 16
     lw = LearnableWiener(3, gamma_init=0.05).double()
     f = torch.rand(2, 3, n, n, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
     kernel = _gaussian(5, 1.0)
     out = lw(f, otf_from_kernel(torch.from_numpy(kernel), n))
     ref = _np_learnable(f.numpy(), _np_otf(kernel, n), lw.gamma.detach().numpy())
-    np.testing.assert_allclose(out.detach().numpy(), ref, rtol=0, atol=1e-10)
+    return f, out, ref
+
+
+def learnable_wiener_float32_error(case: tuple | None = None) -> float:
+    """max |float32 G_v deconvolution - numpy float64 closed form| / max |closed form| (``case``: computed when not
+    given)."""
+    _, out, ref = _learnable_float32_case() if case is None else case
+    return float(np.abs(out.detach().double().numpy() - ref).max() / np.abs(ref).max())
+
+
+def learnable_wiener_float64_error(case: tuple | None = None) -> float:
+    """max |float64 G_v deconvolution - numpy closed form| (``case``: computed when not given)."""
+    _, out, ref = _learnable_float64_case() if case is None else case
+    return float(np.abs(out.detach().numpy() - ref).max())
+
+
+def test_learnable_wiener_closed_form_float32():
+    case = _learnable_float32_case()
+    f, out, ref = case
+    assert out.dtype == torch.float32 and out.shape == f.shape
+    assert learnable_wiener_float32_error(case) <= LEARNABLE_F32_OF_MAX  # a NaN fails too
+
+
+def test_learnable_wiener_closed_form_float64():
+    case = _learnable_float64_case()
+    f, out, ref = case
+    assert out.shape == ref.shape
+    assert learnable_wiener_float64_error(case) <= LEARNABLE_F64_ATOL  # a NaN fails too
 
 
 @pytest.mark.parametrize("gamma_init", [1e-6, 1e-2, 1.0, 100.0])
@@ -159,7 +224,7 @@ def test_learnable_wiener_is_finite_at_zero_power_and_otf_zeros():
     zeros = otf.detach().abs() < 1e-12
     assert zeros.any() and zeros[n // 2].all() and zeros[:, n // 2].all()
     otf = torch.where(zeros, torch.zeros_like(otf), otf)        # exact zeros
-    lw = LearnableWiener(2).double()
+    lw = LearnableWiener(2, gamma_init=1e-2).double()
     f = torch.rand(1, 2, n, n, dtype=torch.float64)
     f[:, 1] = 0.0                                               # a dead feature channel (ReLU output)
     f.requires_grad_(True)
@@ -174,14 +239,22 @@ def test_learnable_wiener_is_finite_at_zero_power_and_otf_zeros():
     assert f.grad[:, 0].abs().sum() > 0 and kernel.grad.abs().sum() > 0
 
 
-def test_learnable_wiener_gradcheck_input_and_rho():
+LEARNABLE_GRADCHECK_TOL = dict(eps=1e-6, atol=1e-5, rtol=1e-3)  # torch.autograd.gradcheck's defaults
+
+
+def learnable_wiener_gradcheck_case():
+    """(G_v as a function of (features, rho), (features, rho)): 2 features, 8 x 8, float64."""
     n = 8
     lw = LearnableWiener(2, gamma_init=0.1).double()
     kernel = torch.from_numpy(_gaussian(3, 0.8))
     otf = otf_from_kernel(kernel, n)
     f = torch.rand(1, 2, n, n, dtype=torch.float64, generator=torch.Generator().manual_seed(5)).requires_grad_()
     rho = lw.rho.detach().clone().requires_grad_()
-    assert torch.autograd.gradcheck(lambda f, r: functional_call(lw, {"rho": r}, (f, otf)), (f, rho),
+    return (lambda f, r: functional_call(lw, {"rho": r}, (f, otf))), (f, rho)
+
+
+def test_learnable_wiener_gradcheck_input_and_rho():
+    assert torch.autograd.gradcheck(*learnable_wiener_gradcheck_case(), **LEARNABLE_GRADCHECK_TOL,
                                     raise_exception=False)
 
 

@@ -56,7 +56,7 @@ def test_the_trainer_trains_it_without_critics_and_its_loss_falls(tmp_path):
 
 def test_the_evaluator_scores_it_without_the_g1_baseline(tmp_path):
     tr = tiny_trainer(tmp_path, *TINY)
-    ev = Evaluator(tr.model, tr.model.generators(), tr.data)
+    ev = Evaluator(tr.model, tr.model.generators(), tr.data, batch_size=8)
     ev.tune(tr.data.validation_batch(2))
     assert ev.methods == ("sensor", "wiener", "wiener_unet")  # no pre-restored I_b: no g1_wiener
     scenes = tr.data.source.fixed_batch(tr.data.source.split_names("test")[:2], tr.data.camera.scene_size)

@@ -62,15 +62,35 @@ def test_grid_angle_convention(grid64):
     assert float(grid64.angle[c - 5, c]) == pytest.approx(math.pi, abs=1e-15)
 
 
+def grid64_float64():
+    """The grid64 fixture's grid, for callers outside pytest (benchmarks/bench_accuracy.py)."""
+    return OpticalSystem(OpticsSpec.with_samples_across(64, focal_n=64), dtype=torch.float64).grid
+
+
 # ---- strategies and the equation itself ---------------------------------------------------------------------
-@pytest.mark.parametrize("convention", ["atan2", "atan"])
-@pytest.mark.parametrize("harmonic_sign", ["printed", "fourier"])
-def test_exact_strategy_equals_direct(grid64, convention, harmonic_sign):
+CONVENTIONS, HARMONIC_SIGNS = ["atan2", "atan"], ["printed", "fourier"]
+EXACT_DIRECT_TOL = 1e-11  # max |exact - direct| phase over the window (wrapped), rad
+FLOAT32_PHASE_RMS_TOL = 1e-4  # RMS |float32 - float64| phase on the support (wrapped), rad
+
+
+def _exact_and_direct(grid, convention: str, harmonic_sign: str) -> tuple[torch.Tensor, torch.Tensor]:
     kw = dict(convention=convention, harmonic_sign=harmonic_sign)
-    exact = HalfRingMask(grid64, W_A, strategy="exact", **kw).phase().detach()
-    direct = HalfRingMask(grid64, W_A, strategy="direct", **kw).phase().detach()
+    return tuple(HalfRingMask(grid, W_A, strategy=st, **kw).phase().detach() for st in ("exact", "direct"))
+
+
+def exact_direct_error(convention: str, harmonic_sign: str, phases=None) -> float:
+    """max over the window of |exact - direct| (wrapped) of the published half ring on grid64 (``phases``: the
+    (exact, direct) pair, computed when not given)."""
+    exact, direct = _exact_and_direct(grid64_float64(), convention, harmonic_sign) if phases is None else phases
+    return float(_wrap(exact - direct).abs().max())
+
+
+@pytest.mark.parametrize("convention", CONVENTIONS)
+@pytest.mark.parametrize("harmonic_sign", HARMONIC_SIGNS)
+def test_exact_strategy_equals_direct(grid64, convention, harmonic_sign):
+    exact, direct = _exact_and_direct(grid64, convention, harmonic_sign)
     assert exact.dtype == torch.float64 and exact.shape == (grid64.n, grid64.n)
-    assert float(_wrap(exact - direct).abs().max()) <= 1e-11  # measured 4e-13
+    assert exact_direct_error(convention, harmonic_sign, (exact, direct)) <= EXACT_DIRECT_TOL  # measured 4e-13
     # zero outside the support
     outside = torch.ones(grid64.n * grid64.n, dtype=torch.bool)
     outside[grid64.support] = False
@@ -112,15 +132,25 @@ def test_table_strategy_is_close_to_exact(grid64):
     assert float(_wrap(coarse - exact).pow(2).mean().sqrt()) > float(err.pow(2).mean().sqrt())
 
 
-def test_exact_strategy_float32_close_to_float64():
+def _float32_and_float64_phases():
+    """(float32 phase, float64 phase, float64 grid) of the published half ring, 64 samples across."""
     spec = OpticsSpec.with_samples_across(64, focal_n=64)
     g32 = OpticalSystem(spec, dtype=torch.float32).grid
     g64 = OpticalSystem(spec, dtype=torch.float64).grid
-    p32 = HalfRingMask(g32, W_A).phase().detach()
-    p64 = HalfRingMask(g64, W_A).phase().detach()
-    assert p32.dtype == torch.float32
+    return HalfRingMask(g32, W_A).phase().detach(), HalfRingMask(g64, W_A).phase().detach(), g64
+
+
+def float32_phase_rms(phases=None) -> float:
+    """RMS over the support of |float32 phase - float64 phase| (wrapped), rad."""
+    p32, p64, g64 = _float32_and_float64_phases() if phases is None else phases
     err = _wrap(p32.double() - p64).reshape(-1)[g64.support].abs()
-    assert float(err.pow(2).mean().sqrt()) <= 1e-4
+    return float(err.pow(2).mean().sqrt())
+
+
+def test_exact_strategy_float32_close_to_float64():
+    phases = _float32_and_float64_phases()
+    assert phases[0].dtype == torch.float32
+    assert float32_phase_rms(phases) <= FLOAT32_PHASE_RMS_TOL
 
 
 # ---- conventions --------------------------------------------------------------------------------------------
@@ -278,10 +308,14 @@ def test_gradcheck_field_of_ring_parameters(tiny, strategy, convention):
     assert torch.autograd.gradcheck(field, _inputs(), eps=1e-6, atol=1e-6, rtol=1e-4, fast_mode=True)
 
 
-@pytest.mark.parametrize("convention", ["atan2", "atan"])
-@pytest.mark.parametrize("harmonic_sign", ["printed", "fourier"])
-def test_gradcheck_ring_parameters_to_smooth_lsr(tiny, convention, harmonic_sign):
-    spec, system = tiny
+LSR_GRADCHECK_TOL = dict(eps=1e-6, atol=1e-7, rtol=1e-4)  # torch.autograd.gradcheck's eps, atol, rtol
+
+
+def lsr_gradcheck_case(convention: str, harmonic_sign: str, system: OpticalSystem | None = None):
+    """(smooth LSR (p = 16) as a function of (r, theta), the published (r, theta)) on the tiny system (the
+    tiny_system64 fixture of tests/conftest.py, built when not given)."""
+    if system is None:
+        system = OpticalSystem(OpticsSpec.with_samples_across(24, focal_n=32), dtype=torch.float64)
     mask = HalfRingMask(system.grid, W_A, convention=convention, harmonic_sign=harmonic_sign)
     phase = _phase_fn(mask)
     h0 = system.uncoded_peak
@@ -289,7 +323,14 @@ def test_gradcheck_ring_parameters_to_smooth_lsr(tiny, convention, harmonic_sign
     def lsr(r, theta):
         return metrics.lsr_smooth(system.psf(phase(r, theta)), h0, p=16.0)
 
-    assert torch.autograd.gradcheck(lsr, _inputs(), eps=1e-6, atol=1e-7, rtol=1e-4)
+    return lsr, _inputs()
+
+
+@pytest.mark.parametrize("convention", CONVENTIONS)
+@pytest.mark.parametrize("harmonic_sign", HARMONIC_SIGNS)
+def test_gradcheck_ring_parameters_to_smooth_lsr(tiny, convention, harmonic_sign):
+    spec, system = tiny
+    assert torch.autograd.gradcheck(*lsr_gradcheck_case(convention, harmonic_sign, system), **LSR_GRADCHECK_TOL)
 
 
 def test_gradcheck_ring_parameters_to_mtf_summary(tiny):
@@ -309,7 +350,7 @@ def test_gradcheck_ring_parameters_to_mtf_summary(tiny):
 def test_backward_through_module_parameters(tiny):
     spec, system = tiny
     mask = HalfRingMask(system.grid, W_A)
-    loss = metrics.lsr_smooth(system.psf(mask.phase()), system.uncoded_peak)
+    loss = metrics.lsr_smooth(system.psf(mask.phase()), system.uncoded_peak, p=16.0)
     loss.backward()
     assert mask.r.grad is not None and mask.theta.grad is not None
     assert bool(torch.isfinite(mask.r.grad).all()) and bool(torch.isfinite(mask.theta.grad).all())

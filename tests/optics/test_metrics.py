@@ -61,9 +61,9 @@ def test_lsr_batched(system, psfs):
     stack = torch.stack([psfs["uncoded"], psfs["halfring"]])
     h0 = system.uncoded_peak
     assert lsr_sampled(stack, h0).shape == (2,)
-    assert lsr_smooth(stack, h0).shape == (2,)
+    assert lsr_smooth(stack, h0, 16.0).shape == (2,)
     assert float(lsr_sampled(stack, h0)[0]) == pytest.approx(1.0, abs=1e-9)
-    torch.testing.assert_close(lsr_smooth(stack, h0)[1], lsr_smooth(psfs["halfring"], h0))
+    torch.testing.assert_close(lsr_smooth(stack, h0, 16.0)[1], lsr_smooth(psfs["halfring"], h0, 16.0))
 
 
 def test_lsr_smooth_gradient_is_that_of_the_p_norm(system, psfs):

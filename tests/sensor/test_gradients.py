@@ -48,21 +48,31 @@ def _inputs():
     return r, theta
 
 
-def test_gradcheck_direct_path_with_every_noise_term_on():
+GRADCHECK_TOL = dict(eps=1e-6, atol=1e-8, rtol=1e-4)  # torch.autograd.gradcheck's eps, atol, rtol
+
+
+def direct_path_gradcheck_case():
+    """(the direct-path pipeline (r, theta) -> outputs, the scalar sum(w * sensor) of (r, theta), the published
+    (r, theta)): two samples, laser on the sensor, every noise term on, fixed seed."""
     sim = _sim("direct")
     scene = U.random_scene(sim, batch=2, seed=3)
     p = U.params(2, alpha_b=0.5, alpha_l=20.0, laser_angle_rad=U.laser_angle(sim, 3.3, 3.3), **U.NOISY)
     run = _pipeline(sim, p, scene)
     w = torch.randn(2, 1, 10, 10, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
-    r0, t0 = _inputs()
-    out = run(r0, t0)
-    assert not bool(out["saturated"].any())  # the full-well clamp is not active: the map is smooth
-    assert float(out["laser"].detach().max()) > 0.05  # the laser contributes
 
     def f(r, theta):
         return (run(r, theta)["sensor"] * w).sum()
 
-    assert torch.autograd.gradcheck(f, _inputs(), eps=1e-6, atol=1e-8, rtol=1e-4)
+    return run, f, _inputs()
+
+
+def test_gradcheck_direct_path_with_every_noise_term_on():
+    run, f, inputs = direct_path_gradcheck_case()
+    r0, t0 = _inputs()
+    out = run(r0, t0)
+    assert not bool(out["saturated"].any())  # the full-well clamp is not active: the map is smooth
+    assert float(out["laser"].detach().max()) > 0.05  # the laser contributes
+    assert torch.autograd.gradcheck(f, inputs, **GRADCHECK_TOL)
 
 
 @pytest.mark.parametrize("path", ["direct", "full"])

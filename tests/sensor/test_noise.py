@@ -15,41 +15,68 @@ from . import _util as U
 
 CPU = torch.device("cpu")
 N_SIDE = 640  # 409,600 samples per statistic
-Z = 4.5
+Z = 4.5  # standard errors (benchmarks/bench_accuracy.py reports the largest |z| of the cases below next to it)
 
 
 def _col(v: float) -> torch.Tensor:
     return torch.tensor(v, dtype=torch.float64).reshape(1, 1, 1, 1)
 
 
-def _check_mean_var(x: torch.Tensor, mean: float, var: float) -> None:
-    """Sample mean and variance against the expected values within Z standard errors."""
+def _moments(x: torch.Tensor) -> tuple[float, float, float, float]:
+    """(sample mean, sample variance, standard error of the mean, standard error of the variance)."""
     x = x.reshape(-1).to(torch.float64)
     n = x.numel()
     m = float(x.mean())
     d = x - m
     s2 = float((d**2).mean())
     m4 = float((d**4).mean())
-    se_mean = math.sqrt(max(s2, 1e-300) / n)
-    se_var = math.sqrt(max(m4 - s2**2, 1e-300) / n)
-    assert abs(m - mean) <= Z * se_mean + 1e-12 * abs(mean), f"mean {m} vs {mean} (se {se_mean})"
-    assert abs(s2 - var) <= Z * se_var + 1e-12 * var, f"variance {s2} vs {var} (se {se_var})"
+    return m, s2, math.sqrt(max(s2, 1e-300) / n), math.sqrt(max(m4 - s2**2, 1e-300) / n)
+
+
+def _z_scores(moments: tuple[float, float, float, float], mean: float, var: float) -> tuple[float, float]:
+    """|z| of the sample mean and of the sample variance (``moments``: _moments of the sample) against ``mean`` and
+    ``var``, in standard errors; a deviation within 1e-12 of the expected value (its rounding) counts as none."""
+    m, s2, se_mean, se_var = moments
+    return max(abs(m - mean) - 1e-12 * abs(mean), 0.0) / se_mean, max(abs(s2 - var) - 1e-12 * var, 0.0) / se_var
+
+
+def mean_var_z(x: torch.Tensor, mean: float, var: float) -> float:
+    """The larger |z| of the sample mean and the sample variance against ``mean`` and ``var`` (standard errors
+    from the sample itself); NaN if either is NaN."""
+    zs = _z_scores(_moments(x), mean, var)
+    return math.nan if any(math.isnan(z) for z in zs) else max(zs)
+
+
+def _check_mean_var(x: torch.Tensor, mean: float, var: float) -> None:
+    """Sample mean and variance against the expected values within Z standard errors."""
+    moments = _moments(x)
+    m, s2, se_mean, se_var = moments
+    z_mean, z_var = _z_scores(moments, mean, var)
+    assert z_mean <= Z, f"mean {m} vs {mean} (se {se_mean})"
+    assert z_var <= Z, f"variance {s2} vs {var} (se {se_var})"
 
 
 # ---- photons --------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("mu,c1,c2,scale", [
+PHOTON_CASES = [  # (mu, c1, c2, scale)
     (1e3, 0.0, 1.0, 1.0),     # pure shot noise: variance = mu
     (1e4, 0.2, 1.0, 1.0),     # shot + 20 % signal-proportional
     (50.0, 0.05, 0.9, 0.25),  # direct path of a 4x4 bin: std scaled by 1/4
     (2e5, 0.1, 1.1, 0.5),
     (3e3, 0.25, 0.0, 1.0),    # c2 = 0: only the proportional term
-])
-def test_photons_mean_and_variance(mu, c1, c2, scale):
+]
+
+
+def photon_sample(mu: float, c1: float, c2: float, scale: float, side: int = N_SIDE):
+    """(side x side photon draws at mean mu, their closed-form mean mu_p and variance (c2^2 mu + c1^2 mu^2) k^2)."""
     streams = NoiseStreams(11, CPU)
-    m = torch.full((1, 1, N_SIDE, N_SIDE), mu, dtype=torch.float64)
+    m = torch.full((1, 1, side, side), mu, dtype=torch.float64)
     omega = photons(m, _col(c1), _col(c2), scale, streams)
-    var = (c2**2 * mu + c1**2 * mu**2) * scale**2
-    _check_mean_var(omega, mu, var)
+    return omega, mu, (c2**2 * mu + c1**2 * mu**2) * scale**2
+
+
+@pytest.mark.parametrize("mu,c1,c2,scale", PHOTON_CASES)
+def test_photons_mean_and_variance(mu, c1, c2, scale):
+    _check_mean_var(*photon_sample(mu, c1, c2, scale))
 
 
 def test_photons_per_sample_coefficients_broadcast():
@@ -82,17 +109,27 @@ def test_photons_gradient_is_finite_at_black_pixels():
 
 
 # ---- dark current ---------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("mu_c,n_eff", [(0.002, 1.0), (0.002, 16.0), (3.0, 1.0), (3.0, 97.81), (0.5, 9.0)])
-def test_dark_current_is_poisson_averaged(mu_c, n_eff):
+DARK_CASES = [(0.002, 1.0), (0.002, 16.0), (3.0, 1.0), (3.0, 97.81), (0.5, 9.0)]  # (mu_c, n_eff)
+
+
+def dark_sample(mu_c: float, n_eff: float, side: int = N_SIDE):
+    """(side x side dark-current draws Poisson(n_eff mu_c) / n_eff, their closed-form mean mu_c and variance
+    mu_c / n_eff)."""
     streams = NoiseStreams(5, CPU)
+    like = torch.zeros(1, 1, side, side, dtype=torch.float64)
+    return dark_current(_col(mu_c), like, n_eff, streams), mu_c, mu_c / n_eff
+
+
+@pytest.mark.parametrize("mu_c,n_eff", DARK_CASES)
+def test_dark_current_is_poisson_averaged(mu_c, n_eff):
     like = torch.zeros(1, 1, N_SIDE, N_SIDE, dtype=torch.float64)
-    d = dark_current(_col(mu_c), like, n_eff, streams)
+    d, mean, var = dark_sample(mu_c, n_eff)
     assert d.shape == like.shape and d.dtype == like.dtype
     # Poisson(n_eff mu_c) / n_eff: non-negative multiples of 1 / n_eff
     k = d * n_eff
     assert bool((k >= 0).all())
     torch.testing.assert_close(k, torch.round(k), rtol=0, atol=1e-9)
-    _check_mean_var(d, mu_c, mu_c / n_eff)
+    _check_mean_var(d, mean, var)
 
 
 def test_dark_current_zero_is_skipped_and_float32_draws_match_float64():
@@ -106,13 +143,21 @@ def test_dark_current_zero_is_skipped_and_float32_draws_match_float64():
 
 
 # ---- read noise -----------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("mu_r,sigma_r,scale", [(390.0, 10.5, 1.0), (350.0, 11.0, 0.25), (0.0, 3.0, 1 / 9.89)])
-def test_read_noise_mean_and_std(mu_r, sigma_r, scale):
+READ_CASES = [(390.0, 10.5, 1.0), (350.0, 11.0, 0.25), (0.0, 3.0, 1 / 9.89)]  # (mu_r, sigma_r, scale)
+
+
+def read_sample(mu_r: float, sigma_r: float, scale: float, side: int = N_SIDE):
+    """(side x side read-noise draws, their closed-form mean mu_r and variance (sigma_r k)^2)."""
     streams = NoiseStreams(7, CPU)
-    like = torch.zeros(1, 1, N_SIDE, N_SIDE, dtype=torch.float64)
-    r = read_noise(_col(mu_r), _col(sigma_r), like, scale, streams)
-    assert r.shape == like.shape
-    _check_mean_var(r, mu_r, (sigma_r * scale) ** 2)
+    like = torch.zeros(1, 1, side, side, dtype=torch.float64)
+    return read_noise(_col(mu_r), _col(sigma_r), like, scale, streams), mu_r, (sigma_r * scale) ** 2
+
+
+@pytest.mark.parametrize("mu_r,sigma_r,scale", READ_CASES)
+def test_read_noise_mean_and_std(mu_r, sigma_r, scale):
+    r, mean, var = read_sample(mu_r, sigma_r, scale)
+    assert r.shape == (1, 1, N_SIDE, N_SIDE)
+    _check_mean_var(r, mean, var)
 
 
 def test_read_noise_without_std_is_its_mean():

@@ -90,13 +90,14 @@ def _is_rounding_tie(v: float, on_axis: bool) -> bool:
     return not on_axis and abs((v - math.floor(v)) - 0.5) < 1e-3
 
 
-def _check_sweep(path: str, pos, alphas: list[float]) -> dict:
+AWAY_TOL_DN = 1.0  # |float32 - float64| counts away from the laser's footprint (benchmarks/bench_accuracy.py)
+
+
+def _simulate_sweep(path: str, pos, alphas: list[float]):
+    """(float64 simulator, {dtype: outputs}, the network pixels away from the footprint): one batch per precision,
+    one sample per laser strength, same scene, seed and noise draws."""
     sims = {dt: U.make_sim(U.ODD, R, N, path=path) for dt in (torch.float32, torch.float64)}
     sim = sims[torch.float64]
-    c = _centre(pos)
-    for v in c:  # the grid avoids footprint-rounding ties on both levels (the tie has its own test)
-        on_axis = v == (N - 1) / 2
-        assert not _is_rounding_tie(v, on_axis) and not _is_rounding_tie(_fine(v), on_axis), f"{pos} is a tie"
     angle = 0.0 if pos is None else U.laser_angle(sim, *pos)
     scene64 = U.random_scene(sim, batch=len(alphas), seed=4)
     outs = {}
@@ -105,11 +106,33 @@ def _check_sweep(path: str, pos, alphas: list[float]) -> dict:
         p = U.params(len(alphas), dtype=dt, alpha_b=0.6, laser_angle_rad=angle, **U.NOISY).replace(
             alpha_l=torch.tensor(alphas, dtype=dt))
         outs[dt] = sims[dt](scene64.to(dt), p, coded, seed=11)
+    return sim, outs, ~_footprint(sim, pos, path)
+
+
+def _dn_difference(outs: dict, i: int) -> torch.Tensor:
+    """|float32 - float64| counts of sample i, as an (N, N) float64 map."""
+    return (outs[torch.float32]["sensor_dn"][i, 0].double() - outs[torch.float64]["sensor_dn"][i, 0]).abs()
+
+
+def float32_away_error(path: str, where: str, alphas: list[float] = ALPHAS) -> float:
+    """Largest |float32 - float64| counts away from the footprint over the strengths ``alphas``, the laser at
+    POSITIONS[where] (RANDOM_POSITIONS[where] if not there)."""
+    pos = POSITIONS.get(where, RANDOM_POSITIONS.get(where))
+    _, outs, away = _simulate_sweep(path, pos, alphas)
+    return max(float(_dn_difference(outs, i)[away].max()) for i in range(len(alphas)))
+
+
+def _check_sweep(path: str, pos, alphas: list[float]) -> dict:
+    c = _centre(pos)
+    for v in c:  # the grid avoids footprint-rounding ties on both levels (the tie has its own test)
+        on_axis = v == (N - 1) / 2
+        assert not _is_rounding_tie(v, on_axis) and not _is_rounding_tie(_fine(v), on_axis), f"{pos} is a tie"
+    sim, outs, away = _simulate_sweep(path, pos, alphas)
+    for dt in (torch.float32, torch.float64):
         _finite(outs[dt])
         assert outs[dt]["sensor_dn"].dtype == dt
     o32, o64 = outs[torch.float32], outs[torch.float64]
     fw, s_sat, sq = U.full_well_dn(sim), sim.sensor.saturation_dn, U.quant_std(sim)
-    away = ~_footprint(sim, pos, path)
     assert int(away.sum()) > N * N // 3
     inside_field = bool((~away).any())
     worst = {"away": 0.0, "inside": 0.0}
@@ -128,10 +151,10 @@ def _check_sweep(path: str, pos, alphas: list[float]) -> dict:
                 assert float(dn.max()) <= fw
             # no laser light outside the footprint, in either precision
             assert torch.equal(o["laser"][i, 0][away], torch.zeros_like(o["laser"][i, 0][away]))
-        d = (o32["sensor_dn"][i, 0].double() - o64["sensor_dn"][i, 0]).abs()
+        d = _dn_difference(outs, i)
         worst["away"] = max(worst["away"], float(d[away].max()))
         worst["inside"] = max(worst["inside"], _max(d[~away]))
-        assert float(d[away].max()) <= 1.0, f"alpha_l={a:g}: float32 differs by {float(d[away].max()):.3g} DN"
+        assert float(d[away].max()) <= AWAY_TOL_DN, f"alpha_l={a:g}: float32 differs by {float(d[away].max()):.3g} DN"
         sat32, sat64 = o32["saturated"][i, 0], o64["saturated"][i, 0]
         assert torch.equal(sat32[away], sat64[away]), f"alpha_l={a:g}"
         # inside the footprint the masks may differ only at threshold ties: a pixel saturated in one precision and

@@ -143,7 +143,7 @@ def _sweep(system: OpticalSystem, masks: list, radial: RadialMTF) -> dict:
     assert bool(torch.isfinite(h).all()) and float(h.min()) >= 0
     assert float(h.sum(dim=(-2, -1)).max()) <= 1 + eps  # the window holds at most all the energy
     sampled = lsr_sampled(h, system.uncoded_peak)
-    smooth = lsr_smooth(psf, system.uncoded_peak)
+    smooth = lsr_smooth(psf, system.uncoded_peak, 16.0)
     assert bool(torch.isfinite(sampled).all()) and bool(torch.isfinite(smooth.detach()).all())
     # |sum A exp(i phi) ...| <= sum A: no phase-only mask beats the uncoded on-axis peak
     assert float(sampled.max()) <= 1 + 10 * eps
@@ -281,7 +281,7 @@ def test_gradcheck_phase_psf_lsr_smooth_and_mtf_on_a_sample(tiny_system64, tiny_
 
         def chain(r, theta, mask=mask):
             psf = system.psf(torch.func.functional_call(mask, {"r": r, "theta": theta}, ()))
-            return lsr_smooth(psf, system.uncoded_peak), radial(mtf(psf))[band]
+            return lsr_smooth(psf, system.uncoded_peak, 16.0), radial(mtf(psf))[band]
 
         inputs = (torch.tensor(s["r"], dtype=torch.float64, requires_grad=True),
                   torch.tensor(s["theta"], dtype=torch.float64, requires_grad=True))

@@ -207,7 +207,7 @@ def test_classical_wiener_rejects_a_non_positive_nsr(nsr):
 def test_gamma_min_keeps_float32_gradients_finite_as_rho_runs_away():
     """What training can reach: rho -> -inf (softplus underflows) leaves gamma = gamma_min = 1e-8, where float32
     outputs and gradients stay finite even on an OTF with round-off zeros and a zero-power feature."""
-    lw = LearnableWiener(C)  # default gamma_min
+    lw = LearnableWiener(C, gamma_init=1e-2)  # default gamma_min
     with torch.no_grad():
         lw.rho.fill_(-1e4)
     assert torch.equal(lw.gamma, torch.full((C,), 1e-8))

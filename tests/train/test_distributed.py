@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from codesign.config import resolvers
+from codesign.train import distributed
 from codesign.train.distributed import DistContext
 from codesign.train.data import SimulatedData
 from codesign.errors import ConfigError
@@ -100,6 +101,7 @@ def test_two_gloo_ranks_hold_identical_mask_and_weights_and_match_one_process(tm
     assert max((r0["params"][k] - one["params"][k]).abs().max().item() for k in one["params"]) < 2e-2
 
 
+@pytest.mark.slow  # 26 s: torchrun joint + resume; twin: test_seeded_runs_reproduce_and_resume_continues_exactly
 def test_torchrun_joint_writes_from_rank_zero_and_resumes_in_one_process(tmp_path):
     run_dir = tmp_path / "run"
     common = ["+experiment=joint", "debug=smoke", "threads=1", "codesign.compare_published=false",
@@ -124,6 +126,7 @@ def test_torchrun_joint_writes_from_rank_zero_and_resumes_in_one_process(tmp_pat
     assert m["world_size"] == 1 and m["steps"] == 6
 
 
+@pytest.mark.slow  # 9 s: torchrun; twin: test_a_distributed_run_of_an_experiment_that_does_not_train_is_refused
 def test_torchrun_refuses_experiments_that_do_not_train(tmp_path):
     res = run_torchrun("-m", "codesign", "+experiment=psf", "debug=smoke", f"hydra.run.dir={tmp_path / 'r'}")
     assert res.returncode != 0
@@ -133,3 +136,27 @@ def test_torchrun_refuses_experiments_that_do_not_train(tmp_path):
     res = run_torchrun("-m", "codesign", "-m", "+experiment=baseline", "debug=smoke", "seed=0,1")
     assert res.returncode != 0 and "codesign: configuration error: -m/--multirun cannot run under torchrun" in \
         res.stderr
+
+
+def test_a_distributed_run_of_an_experiment_that_does_not_train_is_refused(tmp_path, monkeypatch, capsys):
+    """In process, as rank 0 of 2 (the torchrun job is the slow level's): the same refusal, before any work."""
+    import codesign.experiments as experiments
+    from tests.inputs._run import compose_cfg
+
+    monkeypatch.setattr(experiments.distributed, "current", lambda: distributed.DistContext(0, 2, 0))
+    with pytest.raises(SystemExit) as info:
+        experiments.run_experiment(compose_cfg("+experiment=psf", "debug=smoke"), run_dir=tmp_path / "r")
+    assert info.value.code == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        "codesign: configuration error: task = 'psf': does not train networks and runs in one process: start it "
+        "without torchrun (training experiments under torchrun: baseline, joint)")
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_sweep_under_torchrun_is_refused_before_the_process_group(monkeypatch, capsys):
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("RANK", "1")
+    with pytest.raises(SystemExit) as info:
+        distributed.launch_setup(["-m", "+experiment=baseline", "seed=0,1"])
+    assert info.value.code == 2
+    assert "codesign: configuration error: -m/--multirun cannot run under torchrun" in capsys.readouterr().err

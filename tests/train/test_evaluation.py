@@ -45,7 +45,7 @@ def test_conditions_and_flat_summary():
 
 def test_evaluator_tunes_and_scores_every_method(tmp_path):
     tr = tiny_trainer(tmp_path)
-    ev = Evaluator(tr.model, tr.model.generators(), tr.data)
+    ev = Evaluator(tr.model, tr.model.generators(), tr.data, batch_size=8)
     calib = ev.tune(tr.data.validation_batch(2))
     assert calib["nsr"]["wiener"] in NSR_GRID and calib["nsr"]["g1_wiener"] in NSR_GRID
     scenes = tr.data.source.fixed_batch(tr.data.source.split_names("test"), tr.data.camera.scene_size)
@@ -66,7 +66,7 @@ def test_classical_wiener_deblurs_a_noise_free_capture(tmp_path):
     tr = tiny_trainer(tmp_path, "data.image_size=96", "data.padded_size=128", "optics.focal_n=480")
     scenes = tr.data.source.fixed_batch(["chelsea", "checkerboard"], tr.data.camera.scene_size)
     quiet = dict(c1=0.0, c2=0.0, read_noise_std_e=0.0, dark_current_mean_e=0.0)
-    ev = Evaluator(tr.model, tr.model.generators(), tr.data)
+    ev = Evaluator(tr.model, tr.model.generators(), tr.data, batch_size=8)
     ev.tune(tr.data.preset_batch(scenes, "laser_0", seed=1, **quiet))
     batch = tr.data.preset_batch(scenes, "laser_0", seed=2, **quiet)
     table = ev.score(ev.restore_all(batch), batch["scene"][..., 16:112, 16:112])
@@ -81,7 +81,7 @@ def test_baselines_are_tuned_for_each_scored_condition(tmp_path):
     least pooled error after the per-image gain/offset match, on the tuning crops under that condition."""
     tr = tiny_trainer(tmp_path, "data.image_size=96", "data.padded_size=128", "optics.focal_n=480")
     scenes = tr.data.source.fixed_batch(tr.data.source.split_names("test"), tr.data.camera.scene_size)
-    ev = Evaluator(tr.model, tr.model.generators(), tr.data)
+    ev = Evaluator(tr.model, tr.model.generators(), tr.data, batch_size=8)
     tuning = tr.data.validation_scenes(8)
     ev.tune_per_condition(tuning, seed=5)
     _, _, _, table = ev.score_preset(scenes, "laser_0", seed=3)

@@ -59,6 +59,7 @@ def test_a_signal_checkpoints_at_the_next_step_and_exits_with_its_code(tmp_path,
     assert not (run / "metrics.json").exists()  # nothing claims the run finished
 
 
+@pytest.mark.slow  # 20 s: an interrupted and a resumed process; twin: test_a_signal_checkpoints_at_the_next_step_and_exits_with_its_code
 def test_the_printed_command_resumes_the_run_to_its_end(tmp_path):
     run = tmp_path / "run"
     proc = _start_and_wait_for_step_2(run, 12)

@@ -58,6 +58,7 @@ def test_deterministic_switch(deterministic_restored):
     assert set_deterministic("auto", torch.device("cuda")) is False  # not touched on CUDA unless asked
 
 
+@pytest.mark.slow  # 21 s: two joint processes on the 640 window; twin: test_mask_gradient_is_bit_identical_in_deterministic_mode
 def test_two_joint_processes_give_identical_metrics(tmp_path):
     """The smoke joint run with the default pupil grid (the smoke grid is below the threaded-accumulation size and
     would pass without the fix), twice in two processes: every value of metrics.json equal but the wall time and

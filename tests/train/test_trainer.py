@@ -14,6 +14,8 @@ from codesign.train.optim import EMA
 from codesign.errors import ConfigError
 from tests.train._util import tiny_trainer
 
+NO_IO = dict(val_every=0, checkpoint_every=0, image_every=0)
+
 
 def _params(modules):
     return [p.detach().clone() for m in modules for p in m.parameters()]
@@ -135,7 +137,13 @@ def test_twenty_steps_lower_the_reconstruction_loss(tmp_path):
     assert after < 0.9 * before, (before, after)
 
 
-def test_resume_reproduces_the_next_steps_exactly(tmp_path):
+RESUME_TOL = 0.0  # resumed against uninterrupted: bit-identical (benchmarks/bench_accuracy.py reports the difference)
+
+
+def _resume_runs(tmp_path):
+    """Two steps, a checkpoint, two more steps; a trainer of another seed loads the checkpoint and does the same two
+    steps. Returns (uninterrupted trainer, resumed trainer, the resumed one's step at load, the uninterrupted run's
+    last two step logs, the resumed run's, the checkpoint path)."""
     a = tiny_trainer(tmp_path / "a", steps=4)
     a.train_step()
     a.train_step()
@@ -143,10 +151,30 @@ def test_resume_reproduces_the_next_steps_exactly(tmp_path):
     later = [a.train_step() for _ in range(2)]
     b = tiny_trainer(tmp_path / "b", steps=4, seed=123)  # different seed: everything must come from the file
     b.load_state_dict(load_checkpoint(path))
-    assert b.step == 2
+    step_at_load = b.step
     again = [b.train_step() for _ in range(2)]
+    return a, b, step_at_load, later, again, path
+
+
+def resume_difference(runs: tuple | None = None, tmp_path=None) -> float:
+    """Largest |difference| between the resumed and the uninterrupted run: their last two steps' logged terms and
+    their weights after them; inf if the logs name other terms, NaN if a value is NaN (``runs``: the _resume_runs
+    result, computed in ``tmp_path`` when not given)."""
+    a, b, _, later, again, _ = _resume_runs(tmp_path) if runs is None else runs
+    if len(later) != len(again) or any(x.keys() != y.keys() for x, y in zip(later, again)):
+        return math.inf
+    diffs = [abs(float(x[k]) - float(y[k])) for x, y in zip(later, again) for k in x]
+    diffs += [float((p - q).abs().max()) for p, q in zip(_params([a.model]), _params([b.model]))]
+    return math.nan if any(math.isnan(d) for d in diffs) else max(diffs)
+
+
+def test_resume_reproduces_the_next_steps_exactly(tmp_path):
+    runs = _resume_runs(tmp_path)
+    a, b, step_at_load, later, again, path = runs
+    assert step_at_load == 2
     assert later == again
     assert _same(_params([a.model]), _params([b.model]))
+    assert resume_difference(runs) <= RESUME_TOL
     st = load_checkpoint(path)
     assert {"model", "opt_g", "opt_d", "sched_g", "sched_d", "step", "rng", "config"} <= set(st)
 
@@ -217,3 +245,16 @@ def test_generator_total_is_the_weighted_sum_of_its_terms(tmp_path):
 def test_mdf_without_adversarial_training_is_refused():
     with pytest.raises(ConfigError, match="model.loss.mdf = 1.0: needs model.loss.adv > 0"):
         LossWeights.from_config({"adv": 0.0, "mdf": 1.0})
+
+
+def test_resumed_seconds_count_the_checkpoints(tmp_path):
+    """A resumed run's train_seconds are the checkpoint's plus its own (in process: the killed-and-resumed process
+    pair is the slow level's test)."""
+    a = tiny_trainer(tmp_path / "a", steps=2, **NO_IO)
+    a.fit()
+    state = a.state_dict()
+    state["seconds"] = 1.0e6
+    b = tiny_trainer(tmp_path / "b", steps=3, **NO_IO)
+    b.load_state_dict(state)
+    b.fit()
+    assert b.step == 3 and 1.0e6 < b.train_seconds < 1.0e6 + 600

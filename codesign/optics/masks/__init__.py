@@ -18,6 +18,7 @@ from codesign.config.store import register
 from codesign.errors import ConfigError, require_choice
 from codesign.optics.masks.base import (
     FAMILIES,
+    NAMED_STARTS,
     Mask,
     MaskSpec,
     check_family_keys,
@@ -25,16 +26,16 @@ from codesign.optics.masks.base import (
 )
 from codesign.optics.masks.halfring import PUBLISHED_R, PUBLISHED_THETA, HalfRingMask
 from codesign.optics.masks.pixel import PixelPhaseMask
-from codesign.optics.masks.records import RECORD_PATH, load_record
+from codesign.optics.masks.records import RECORD_PATH, load_record, write_record
 from codesign.optics.masks.spiral import SpiralMask
 from codesign.optics.masks.spline import SplineMask
-from codesign.optics.masks.zernike import ZernikeMask
+from codesign.optics.masks.zernike import ZernikeMask, ZernikeSpec
 
 log = logging.getLogger("codesign.masks")
 # the keys of mask=freeform, translated to the pixel or Zernike family
 FREEFORM_KEYS = ("kind", "basis", "init", "n_terms", "max_coeff_rad", "init_convention", "levels", "defocus_rad")
-FREEFORM_DEFAULTS = {"kind": "freeform", "basis": "pixel", "init": "published", "init_convention": "atan2",
-                     "n_terms": 36, "max_coeff_rad": 50.0, "levels": None, "defocus_rad": 40.0}
+FREEFORM_DEFAULTS = {**{k: v for k, v in ZernikeSpec.defaults().items() if k in FREEFORM_KEYS}, "kind": "freeform",
+                     "basis": "pixel"}
 
 
 def families() -> tuple[str, ...]:
@@ -74,8 +75,7 @@ def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix:
     check_family_keys(cls, cfg, prefix)
     cls.Spec.from_config({k: v for k, v in cfg.items() if k != "kind"} | {"kind": kind}, prefix)  # levels etc.
     init = cfg.get("init")
-    fits_a_phase = ("pixel", "zernike", "spline")  # families that can start from any phase
-    named = ("published", "zero", "defocus") if kind in fits_a_phase else ()
+    named = NAMED_STARTS if cls.fits_phases else ()
     if init is None or init in named:
         return cls.from_config(cfg, grid, aperture_diameter_m, prefix=prefix)
     allowed = f"must be {'one of ' + ', '.join(named) + ' or ' if named else 'null or '}{RECORD_PATH}"
@@ -83,20 +83,14 @@ def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix:
     if record["kind"] == kind:
         # the record is the design: the settings that fix its phase with its values are the record's
         as_list = lambda v: list(v) if isinstance(v, (list, tuple)) else v  # noqa: E731
-        for k in ("convention", "harmonic_sign", "m_range"):
+        for k in cls.record_settings:
             if k in record and k in cfg and as_list(record[k]) != as_list(cfg[k]):
                 log.warning("%s.init: %s was designed with %s=%s; it keeps it (the configured %s is ignored)",
                             prefix, init, k, record[k], cfg[k])
             if k in record:
                 cfg[k] = record[k]
-        if kind == "pixel":
-            return cls.from_config(cfg, grid, aperture_diameter_m, record_phase(record, grid, aperture_diameter_m),
-                                   prefix=prefix)
-        if kind == "zernike":
-            cfg = {**cfg, "n_terms": len(record["coeffs"]), "max_coeff_rad": record.get("max_coeff_rad",
-                                                                                           cfg.get("max_coeff_rad"))}
-        return cls.from_config(cfg, grid, aperture_diameter_m, record=record, prefix=prefix)
-    if kind not in fits_a_phase:
+        return cls.from_record(cfg, record, grid, aperture_diameter_m, prefix=prefix)
+    if not cls.fits_phases:
         raise ConfigError(f"{prefix}.init", init, f"holds a {record['kind']} mask; a {kind} mask starts only from a "
                           f"{kind} record: use mask={record['kind']} to build it as it is")
     return cls.from_config(cfg, grid, aperture_diameter_m, start_phase=record_phase(record, grid, aperture_diameter_m),
@@ -110,7 +104,7 @@ def config_of_design(cfg: Mapping[str, Any], prefix: str = "mask") -> dict:
     tolerance); the others keep refusing a family mismatch, where it is more likely a mistake."""
     cfg = dict(cfg)
     init = cfg.get("init")
-    if not isinstance(init, (str, os.PathLike)) or init in ("published", "zero", "defocus"):
+    if not isinstance(init, (str, os.PathLike)) or init in NAMED_STARTS:
         return cfg
     record = load_record(init, f"{prefix}.init", f"must be null or {RECORD_PATH}")
     kind = cfg.get("basis") if cfg.get("kind") == "freeform" else cfg.get("kind")
@@ -122,36 +116,11 @@ def config_of_design(cfg: Mapping[str, Any], prefix: str = "mask") -> dict:
 def record_phase(record: dict, grid, aperture_diameter_m: float) -> torch.Tensor:
     """The (n, n) phase of a loaded record's mask on ``grid`` (a pixel record designed on another grid: its plate
     sampled there, cell by cell)."""
-    kind = record["kind"]
-    if kind == "pixel":
-        from codesign.optics.masks.pixel import resample_plate
-
-        values = torch.tensor(record["values"], dtype=torch.float64)
-        if int(record["grid_n"]) == grid.n and abs(float(record["pitch_m"]) / grid.pitch - 1) < 1e-9 and \
-                values.numel() == grid.support.numel():
-            return grid.scatter(values.to(grid.rho)).detach()
-        src = _record_grid(record, grid)
-        if values.numel() != src.support.numel():
-            raise ConfigError("mask.init", record.get("path", "record"), f"holds {values.numel()} pixel values, "
-                              f"its grid ({src.n} x {src.n}) has {src.support.numel()} samples in the aperture")
-        return resample_plate(src.scatter(values), src, grid).to(grid.rho)
-    cfg = {**record, "levels": record.get("levels"), "preset": None}  # the record's own values, not a preset
-    mask = FAMILIES[kind].from_config(cfg, grid, aperture_diameter_m,
-                                      **({"record": record} if kind != "halfring" else {}))
+    cls = FAMILIES[record["kind"]]
+    settings = {k: v for k, v in record.items() if k not in cls.record_values}
+    mask = cls.from_record({**settings, "levels": record.get("levels"), "preset": None}, record, grid,
+                           aperture_diameter_m)
     return mask.freeze().phase().detach()
-
-
-def _record_grid(record: dict, grid):
-    """The pupil grid a pixel record was designed on (its optics, else this grid's aperture at its pitch)."""
-    from codesign.optics.grid import PupilGrid
-    from codesign.optics.spec import OpticsSpec
-
-    optics = record.get("optics") or {}
-    fields = {k: optics[k] for k in ("wavelength_m", "focal_length_m", "aperture_diameter_m",
-                                      "supergaussian_order") if k in optics}
-    spec = OpticsSpec(**fields, pupil_pitch_m=float(record["pitch_m"]), pupil_n=int(record["grid_n"]),
-                      focal_n=8, focal_pitch_m=1e-9)
-    return PupilGrid.from_spec(spec, dtype=torch.float64)
 
 
 def published_mask_config(mask_cfg: Mapping[str, Any]) -> dict:
@@ -176,4 +145,4 @@ register("mask", "freeform", dict(FREEFORM_DEFAULTS))
 
 __all__ = ["Mask", "MaskSpec", "HalfRingMask", "PixelPhaseMask", "ZernikeMask", "SpiralMask", "SplineMask", "FAMILIES",
            "build_mask", "config_of_design", "families", "load_record", "published_halfring", "published_mask_config",
-           "quantize", "record_phase", "PUBLISHED_R", "PUBLISHED_THETA", "RECORD_PATH"]
+           "quantize", "record_phase", "write_record", "PUBLISHED_R", "PUBLISHED_THETA", "RECORD_PATH"]

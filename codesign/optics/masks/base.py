@@ -13,7 +13,7 @@ from typing import Any, ClassVar, Mapping
 
 import torch
 
-from codesign.errors import ConfigError, require_number
+from codesign.errors import ConfigError, require_choice, require_number
 from codesign.optics.grid import PupilGrid
 from codesign.spec_base import SpecMixin
 
@@ -49,6 +49,46 @@ class MaskSpec(SpecMixin):
         return out
 
 
+# the named starts of the families that fit any phase (``Mask.fits_phases``): mask.init=published|zero|defocus
+NAMED_STARTS = ("published", "zero", "defocus")
+
+
+@dataclass(frozen=True)
+class PhaseFitSpec(MaskSpec):
+    """Keys of the families that can start from any phase (``Mask.fits_phases``). init_convention: the published
+    half-ring phase a ``published`` start takes (atan | atan2); defocus_rad: the strength of a ``defocus`` start,
+    phi = defocus_rad (rho / R)^2 [rad at the aperture edge] (a near flat-top PSF: the best start of a search)."""
+
+    init_convention: str = "atan2"
+    defocus_rad: float = 40.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        require_choice(f"{self.prefix}.init_convention", self.init_convention, ("atan", "atan2"))
+        require_number(f"{self.prefix}.defocus_rad", self.defocus_rad, lo=-1e4, hi=1e4)
+
+
+def fill_outside(ph: torch.Tensor, grid: PupilGrid) -> torch.Tensor:
+    """The phase with every sample outside the support set to its nearest support sample's (along rows, then
+    columns, repeatedly): interpolation near the aperture edge then never mixes in the zeros outside."""
+    inside = torch.zeros(grid.n * grid.n, dtype=torch.bool, device=ph.device)
+    inside[grid.support] = True
+    inside = inside.reshape(grid.n, grid.n)
+    out = ph.clone()
+    filled = inside.clone()
+    for _ in range(grid.n):
+        if bool(filled.all()):
+            break
+        grown = filled.clone()
+        for dim, step in ((0, 1), (0, -1), (1, 1), (1, -1)):
+            src_ok = torch.roll(filled, step, dims=dim)
+            take = ~grown & src_ok
+            out = torch.where(take, torch.roll(out, step, dims=dim), out)
+            grown = grown | take
+        filled = grown
+    return out
+
+
 def quantize(phase: torch.Tensor, levels: int) -> torch.Tensor:
     """``phase`` wrapped into [-pi, pi) and rounded to ``levels`` equally spaced values there; the gradient is the
     identity (straight-through), so that search and co-design can move a quantized mask's parameters."""
@@ -74,7 +114,12 @@ class Mask(torch.nn.Module):
     # cap on the phase step between neighbouring pupil samples (None: no cap)
     design_energy_floor: ClassVar[str | float] = 0.98
     resolution_step: ClassVar[float | None] = None
-    fits_phases: ClassVar[bool] = False  # fit_phase works: any phase can start it (random starts: defocus)
+    fits_phases: ClassVar[bool] = False  # fit_phase works: any phase can start it (random starts: defocus), and
+    # mask.init takes the NAMED_STARTS and any family's record (fitted)
+    # what a record of the family holds (mask.init reads it back): its parameter values, name -> "list" (a non-empty
+    # list of numbers) or "number", and its settings besides its Spec's keys (Mask.settings())
+    record_values: ClassVar[dict[str, str]] = {}
+    record_settings: ClassVar[tuple[str, ...]] = ()
     # start 0 of a search with search.init=auto: published (the published mask in this family), mask (the
     # configured one) or defocus (a near flat-top PSF, for the families that fit any phase)
     search_start: ClassVar[str] = "published"
@@ -201,6 +246,20 @@ class Mask(torch.nn.Module):
     def summary(self) -> dict[str, float]:
         """Flat, JSON-ready parameter values for metrics and logging (empty when there are too many)."""
         return {}
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any], grid: PupilGrid, aperture_diameter_m: float,
+                    record: dict | None = None, start_phase: torch.Tensor | None = None,
+                    prefix: str = "mask") -> "Mask":  # pragma: no cover - abstract
+        """Build from a validated ``mask`` mapping; ``record``: a loaded mask.init record of this family (its values
+        win); ``start_phase``: the (n, n) phase of another family's record, fitted (families that fit phases)."""
+        raise NotImplementedError
+
+    @classmethod
+    def from_record(cls, cfg: Mapping[str, Any], record: dict, grid: PupilGrid, aperture_diameter_m: float,
+                    prefix: str = "mask") -> "Mask":
+        """The design a record of this family holds (mask.init), with ``cfg``'s other settings."""
+        return cls.from_config(cfg, grid, aperture_diameter_m, record=record, prefix=prefix)
 
     # ---- other grids --------------------------------------------------------------------------------------------
     def on_grid(self, grid: PupilGrid, aperture_diameter_m: float) -> "Mask":

@@ -173,6 +173,8 @@ class HalfRingMask(Mask):
     """
 
     kind = "halfring"
+    record_values = {"r": "list", "theta": "list"}
+    record_settings = ("convention", "harmonic_sign", "m_range", "r_bounds")
     Spec = HalfRingSpec
     design_energy_floor = "published"  # no half-ring mask keeps its light in the window (docs/codesign.md)
 

@@ -16,28 +16,19 @@ from typing import Any, Mapping
 
 import torch
 
-from codesign.errors import require_choice, require_number
+from codesign.errors import require_choice
 from codesign.optics.grid import PupilGrid
-from codesign.optics.masks.base import Mask, MaskSpec
-
-STARTS = ("published", "zero", "defocus")
-
+from codesign.optics.masks.base import NAMED_STARTS, Mask, PhaseFitSpec, fill_outside
+from codesign.optics.masks.starts import named_start
 
 @dataclass(frozen=True)
-class PixelSpec(MaskSpec):
+class PixelSpec(PhaseFitSpec):
     """init: published (the published half-ring phase under init_convention), zero, defocus (phi = defocus_rad
     (rho / R)^2: a near flat-top PSF, the best start of a search) or the path of a mask record (any family: its
-    phase on this grid); defocus_rad [rad at the aperture edge]."""
+    phase on this grid)."""
 
     kind: str = "pixel"
     init: str | None = "published"
-    init_convention: str = "atan2"
-    defocus_rad: float = 40.0
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        require_choice(f"{self.prefix}.init_convention", self.init_convention, ("atan", "atan2"))
-        require_number(f"{self.prefix}.defocus_rad", self.defocus_rad, lo=-1e4, hi=1e4)
 
 
 class PixelPhaseMask(Mask):
@@ -48,6 +39,7 @@ class PixelPhaseMask(Mask):
     """
 
     kind = "pixel"
+    record_values = {"values": "list", "grid_n": "number", "pitch_m": "number"}
     Spec = PixelSpec
     fits_phases = True
     fine_factor = 3  # cells split exactly into 3 x 3 samples of a centred grid (2 x 2 would cut samples in half)
@@ -113,28 +105,44 @@ class PixelPhaseMask(Mask):
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any], grid: PupilGrid, aperture_diameter_m: float,
-                    start_phase: torch.Tensor | None = None, prefix: str = "mask") -> "PixelPhaseMask":
-        """``start_phase``: the (n, n) phase of a loaded record (any family) on this grid; else ``init``."""
-        if start_phase is None:
-            init = require_choice(f"{prefix}.init", cfg.get("init", PixelSpec.init), STARTS)
-            start_phase = start(init, grid, aperture_diameter_m, cfg)
+                    record: dict | None = None, start_phase: torch.Tensor | None = None,
+                    prefix: str = "mask") -> "PixelPhaseMask":
+        """``record``: a pixel record (its plate, sampled on this grid); ``start_phase``: the (n, n) phase of
+        another family's record on this grid; else ``init``."""
+        if record is not None:
+            start_phase = record_plate(record, grid)
+        elif start_phase is None:
+            init = require_choice(f"{prefix}.init", cfg.get("init", PixelSpec.init), NAMED_STARTS)
+            start_phase = named_start(init, grid, aperture_diameter_m, cfg, prefix)
         return cls(grid, start_phase, levels=cfg.get("levels"))
 
 
-def start(name: str, grid: PupilGrid, aperture_diameter_m: float, cfg: Mapping[str, Any]) -> torch.Tensor | None:
-    """The (n, n) phase of a named start: published (half-ring), zero (None) or defocus."""
-    if name == "zero":
-        return None
-    if name == "defocus":
-        a = require_number("mask.defocus_rad", cfg.get("defocus_rad", PixelSpec.defocus_rad), lo=-1e4, hi=1e4)
-        return a * (grid.rho / (aperture_diameter_m / 2)) ** 2
-    from codesign.optics.masks.halfring import (
-        HalfRingMask,  # the published preset's phase
-    )
+def record_plate(record: dict, grid: PupilGrid) -> torch.Tensor:
+    """The (n, n) phase on ``grid`` of a pixel record's plate (designed on another grid: sampled there, cell by
+    cell)."""
+    from codesign.errors import ConfigError
 
-    conv = require_choice("mask.init_convention", cfg.get("init_convention", PixelSpec.init_convention),
-                          ("atan", "atan2"))
-    return HalfRingMask(grid, aperture_diameter_m, convention=conv).freeze().phase().detach()
+    values = torch.tensor(record["values"], dtype=torch.float64)
+    if int(record["grid_n"]) == grid.n and abs(float(record["pitch_m"]) / grid.pitch - 1) < 1e-9 and \
+            values.numel() == grid.support.numel():
+        return grid.scatter(values.to(grid.rho)).detach()
+    src = _record_grid(record, grid)
+    if values.numel() != src.support.numel():
+        raise ConfigError("mask.init", record.get("path", "record"), f"holds {values.numel()} pixel values, "
+                          f"its grid ({src.n} x {src.n}) has {src.support.numel()} samples in the aperture")
+    return resample_plate(src.scatter(values), src, grid).to(grid.rho)
+
+
+def _record_grid(record: dict, grid: PupilGrid) -> PupilGrid:
+    """The pupil grid a pixel record was designed on (its optics, else this grid's aperture at its pitch)."""
+    from codesign.optics.spec import OpticsSpec
+
+    optics = record.get("optics") or {}
+    fields = {k: optics[k] for k in ("wavelength_m", "focal_length_m", "aperture_diameter_m",
+                                      "supergaussian_order") if k in optics}
+    spec = OpticsSpec(**fields, pupil_pitch_m=float(record["pitch_m"]), pupil_n=int(record["grid_n"]),
+                      focal_n=8, focal_pitch_m=1e-9)
+    return PupilGrid.from_spec(spec, dtype=torch.float64)
 
 
 def resample_plate(phase: torch.Tensor, src: PupilGrid, dst: PupilGrid) -> torch.Tensor:
@@ -146,24 +154,3 @@ def resample_plate(phase: torch.Tensor, src: PupilGrid, dst: PupilGrid) -> torch
     # floor(x + 1/2) with a relative nudge: a sample on a cell's edge (even refinements) goes one way, always
     idx = (torch.floor(pos + 0.5 + 1e-9) + src.n // 2).clamp(0, src.n - 1).long()
     return ph[idx][:, idx].to(phase.dtype)
-
-
-def fill_outside(ph: torch.Tensor, grid: PupilGrid) -> torch.Tensor:
-    """The phase with every sample outside the support set to its nearest support sample's (along rows, then
-    columns, repeatedly): interpolation near the aperture edge then never mixes in the zeros outside."""
-    inside = torch.zeros(grid.n * grid.n, dtype=torch.bool, device=ph.device)
-    inside[grid.support] = True
-    inside = inside.reshape(grid.n, grid.n)
-    out = ph.clone()
-    filled = inside.clone()
-    for _ in range(grid.n):
-        if bool(filled.all()):
-            break
-        grown = filled.clone()
-        for dim, step in ((0, 1), (0, -1), (1, 1), (1, -1)):
-            src_ok = torch.roll(filled, step, dims=dim)
-            take = ~grown & src_ok
-            out = torch.where(take, torch.roll(out, step, dims=dim), out)
-            grown = grown | take
-        filled = grown
-    return out

@@ -1,4 +1,4 @@
-"""Mask records: the JSON that ``mask.init=PATH`` reads back (written by mask_search, joint and psf).
+"""Mask records: the JSON that ``mask.init=PATH`` reads back, and its writer (mask_search, joint and psf).
 
 A record holds ``kind``, the family's settings and parameter values (``Mask.record()``), and usually the optics the
 mask was designed for (``optics``: OpticsSpec fields) and its figures of merit. Records written before families
@@ -10,44 +10,33 @@ from __future__ import annotations
 import json
 import math
 import os
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
 from codesign.errors import ConfigError
+from codesign.io import files as io
 
 RECORD_PATH = ("the path of a mask record (best_mask.json of +experiment=mask_search, learned_mask.json of joint, "
                "mask.json of psf)")
-# the parameter values each family's record must hold: name -> "list" (non-empty list of numbers) or "number"
-RECORD_VALUES: dict[str, dict[str, str]] = {
-    "halfring": {"r": "list", "theta": "list"},
-    "pixel": {"values": "list", "grid_n": "number", "pitch_m": "number"},
-    "zernike": {"coeffs": "list"},
-    "spiral": {"charge": "number", "axicon_cycles": "number", "defocus_rad": "number"},
-    "spline": {"controls": "list", "control_pitch_m": "number", "control_half": "number"},
-}
-
-
-# the family settings a record holds besides its values (Mask.settings()), and the figures of merit the writers add
-# (codesign/design/records.py refuses to write any other): with the family Spec's keys, all a record may hold
-RECORD_SETTINGS: dict[str, tuple[str, ...]] = {
-    "halfring": ("convention", "harmonic_sign", "m_range", "r_bounds"),
-    "zernike": ("n_terms", "max_coeff_rad"),
-    "spiral": ("charge_bounds", "axicon_bounds", "defocus_bounds"),
-    "pixel": (),
-    "spline": (),
-}
+# the figures of merit the writers add (write_record refuses any other): with the family's Spec keys, record_values
+# and record_settings (declared on its class), all a record may hold
 FIGURE_KEYS = ("lsr", "lsr_smooth", "lsr_sampled", "mtf_mean", "window_energy", "lsr_limit", "lsr_over_limit",
                "restorability", "feasible", "check_agree", "phase_resolved")
 
 
+def _families() -> dict:
+    from codesign.optics.masks import FAMILIES, families
+
+    families()  # every family registered
+    return FAMILIES
+
+
 def record_keys(kind: str) -> set[str]:
     """Every key a record of family ``kind`` may hold."""
-    from dataclasses import fields
-
-    from codesign.optics.masks.base import FAMILIES  # registered by the package by the time records are read
-
-    spec = {f.name for f in fields(FAMILIES[kind].Spec)} - {"prefix", "init"} if kind in FAMILIES else set()
-    return {"kind", "levels", "optics", *RECORD_VALUES[kind], *RECORD_SETTINGS[kind], *FIGURE_KEYS} | spec
+    cls = _families()[kind]
+    spec = {f.name for f in fields(cls.Spec)} - {"prefix", "init"}
+    return {"kind", "levels", "optics", *cls.record_values, *cls.record_settings, *FIGURE_KEYS} | spec
 
 
 def _number(v: Any) -> bool:
@@ -66,14 +55,16 @@ def load_record(path: Any, key: str, allowed: str) -> dict:
     except (OSError, UnicodeDecodeError, ValueError) as err:  # JSONDecodeError is a ValueError
         raise ConfigError(key, path, f"{allowed}; cannot be read as JSON ({err})") from None
     kind = data.get("kind") if isinstance(data, dict) else None
-    if kind not in RECORD_VALUES:
+    families = _families()
+    if kind not in families:
         raise ConfigError(key, path, f"{allowed}; the file holds kind {kind!r}, not a mask family "
-                          f"({', '.join(sorted(RECORD_VALUES))})")
+                          f"({', '.join(sorted(families))})")
+    values = families[kind].record_values
     unknown = sorted(set(data) - record_keys(kind))
     if unknown:
         raise ConfigError(key, path, f"{allowed}; its key(s) {', '.join(unknown)} are not keys of a {kind} record "
                           f"(allowed: {', '.join(sorted(record_keys(kind)))})")
-    bad = [name for name, what in RECORD_VALUES[kind].items()
+    bad = [name for name, what in values.items()
            if not (what == "number" and _number(data.get(name))
                    or what == "list" and isinstance(data.get(name), list) and data[name]
                    and all(map(_number, data[name])))]
@@ -83,12 +74,36 @@ def load_record(path: Any, key: str, allowed: str) -> dict:
             raise ConfigError(key, path, f"{allowed}; its r and theta must be non-empty lists of numbers of equal "
                               f"length (got {r!r} and {theta!r})")
     elif bad:
-        raise ConfigError(key, path, f"{allowed}; a {kind} record needs {', '.join(RECORD_VALUES[kind])} "
+        raise ConfigError(key, path, f"{allowed}; a {kind} record needs {', '.join(values)} "
                           f"(missing or not numbers: {', '.join(bad)})")
-    numbers = [v for name in RECORD_VALUES[kind] for v in (data[name] if isinstance(data[name], list)
+    numbers = [v for name in values for v in (data[name] if isinstance(data[name], list)
                                                            else [data[name]])]
     if not all(math.isfinite(v) for v in numbers):  # json reads NaN / Infinity: name the file, not mask.r[i]
         what = f"its r and theta hold NaN or Infinity (got {data['r']!r} and {data['theta']!r})" \
             if kind == "halfring" else "its values hold NaN or Infinity"
         raise ConfigError(key, path, f"{allowed}; {what}")
     return data
+
+
+def optics_record(spec) -> dict:
+    """The OpticsSpec's fields (SI units) as a JSON-ready dict."""
+    return {f.name: getattr(spec, f.name) for f in fields(spec) if f.name != "prefix"}
+
+
+def design_record(mask, spec, figures: dict | None = None) -> dict:
+    """``mask.record()`` plus ``optics`` (the spec it was evaluated on) and the scalar figures of merit (names from
+    FIGURE_KEYS: what mask.init reads back accepts exactly those)."""
+    other = sorted(set(figures or {}) - set(FIGURE_KEYS))
+    if other:  # a writer's new figure must be registered, or the record it writes would be refused when read
+        raise ValueError(f"design_record: figure(s) {', '.join(other)} not in FIGURE_KEYS "
+                         f"(codesign/optics/masks/records.py)")
+    scalars = {k: v for k, v in (figures or {}).items() if isinstance(v, (int, float, str, bool)) or v is None}
+    return {**mask.record(), "optics": optics_record(spec), **scalars}
+
+
+def write_record(path: Path, mask, spec, figures: dict | None = None) -> dict:
+    """Write ``design_record`` atomically to ``path`` (mask_search's best_mask.json, joint's learned_mask.json,
+    psf's mask.json); returns it."""
+    record = design_record(mask, spec, figures)
+    io.write_json(path, record)
+    return record

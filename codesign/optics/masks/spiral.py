@@ -45,6 +45,8 @@ class SpiralMask(Mask):
     """Learnable ``coeffs`` = [charge, axicon_cycles, defocus_rad]; see the module docstring."""
 
     kind = "spiral"
+    record_values = {"charge": "number", "axicon_cycles": "number", "defocus_rad": "number"}
+    record_settings = ("charge_bounds", "axicon_bounds", "defocus_bounds")
     Spec = SpiralSpec
     search_start = "mask"  # the configured spiral: the family has no published member
 

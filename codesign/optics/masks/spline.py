@@ -18,11 +18,12 @@ import torch
 
 from codesign.errors import require_choice, require_number
 from codesign.optics.grid import PupilGrid
-from codesign.optics.masks.base import Mask, MaskSpec
+from codesign.optics.masks.base import NAMED_STARTS, Mask, PhaseFitSpec, fill_outside
+from codesign.optics.masks.starts import named_start
 
 
 @dataclass(frozen=True)
-class SplineSpec(MaskSpec):
+class SplineSpec(PhaseFitSpec):
     """control_spacing: control pitch in pupil samples of the grid the mask is built on (2: the surface varies on
     twice the sampling pitch); init: defocus (phi = defocus_rad (rho / R)^2, exact), published (least-squares fit of
     the published half-ring phase under init_convention), zero, or the path of a mask record (any family: fitted;
@@ -30,8 +31,6 @@ class SplineSpec(MaskSpec):
 
     kind: str = "spline"
     init: str | None = "defocus"
-    init_convention: str = "atan2"
-    defocus_rad: float = 40.0
     control_spacing: float = 2.0
 
 
@@ -57,6 +56,7 @@ class SplineMask(Mask):
     axis (``half`` = K; control_half gives the K that covers an aperture)."""
 
     kind = "spline"
+    record_values = {"controls": "list", "control_pitch_m": "number", "control_half": "number"}
     Spec = SplineSpec
     fits_phases = True
     search_start = "defocus"
@@ -90,8 +90,6 @@ class SplineMask(Mask):
         """Least-squares control values for a full-grid (n, n) phase on the aperture support: the separable
         solution pinv(B) phase pinv(B)^T of the phase extended outside (nearest inside value), refined by
         conjugate gradients on the normal equations restricted to the support."""
-        from codesign.optics.masks.pixel import fill_outside
-
         b = self.b.to(torch.float64)
         inside = torch.zeros(self.grid.n * self.grid.n, dtype=torch.float64, device=b.device)
         inside[self.grid.support] = 1.0
@@ -152,8 +150,6 @@ class SplineMask(Mask):
                     prefix: str = "mask") -> "SplineMask":
         """``record``: a spline record (the same physical surface: its control pitch and values); ``start_phase``:
         the (n, n) phase of another family's record, fitted; else ``init`` (defocus, published, zero), fitted."""
-        from codesign.optics.masks.pixel import start
-
         if record is not None:
             half = int(record["control_half"])
             controls = torch.tensor(record["controls"], dtype=torch.float64).reshape(2 * half + 1, 2 * half + 1)
@@ -165,12 +161,12 @@ class SplineMask(Mask):
         mask = cls(grid, spacing * grid.pitch, control_half(radius, spacing * grid.pitch), levels=cfg.get("levels"),
                    prefix=prefix)
         if start_phase is None:
-            init = require_choice(f"{prefix}.init", cfg.get("init", SplineSpec.init), ("published", "zero", "defocus"))
+            init = require_choice(f"{prefix}.init", cfg.get("init", SplineSpec.init), NAMED_STARTS)
             if init == "defocus":
                 mask.set_defocus(require_number(f"{prefix}.defocus_rad", cfg.get("defocus_rad", SplineSpec.defocus_rad),
                                                 lo=-1e4, hi=1e4), aperture_diameter_m / 2)
                 return mask
-            start_phase = start(init, grid, aperture_diameter_m, cfg)
+            start_phase = named_start(init, grid, aperture_diameter_m, cfg, prefix)
         if start_phase is not None:
             mask.fit(start_phase)
         return mask

@@ -10,11 +10,12 @@ import torch
 
 from codesign.errors import require_choice, require_number
 from codesign.optics.grid import PupilGrid
-from codesign.optics.masks.base import Mask, MaskSpec
+from codesign.optics.masks.base import NAMED_STARTS, Mask, PhaseFitSpec
+from codesign.optics.masks.starts import named_start
 
 
 @dataclass(frozen=True)
-class ZernikeSpec(MaskSpec):
+class ZernikeSpec(PhaseFitSpec):
     """n_terms: Noll modes 1..n_terms; max_coeff_rad: the box [-max, max] of every coefficient [rad RMS]
     (project() clamps into it; the plate's depth budget); init: published | zero | defocus (the phase fitted by
     least squares) or the path of a mask record (any family: fitted); init_convention, defocus_rad: as for the
@@ -22,8 +23,6 @@ class ZernikeSpec(MaskSpec):
 
     kind: str = "zernike"
     init: str | None = "published"
-    init_convention: str = "atan2"
-    defocus_rad: float = 40.0
     n_terms: int = 36
     max_coeff_rad: float = 50.0
 
@@ -32,7 +31,6 @@ class ZernikeSpec(MaskSpec):
         p = self.prefix
         object.__setattr__(self, "n_terms", require_number(f"{p}.n_terms", self.n_terms, lo=1, hi=1000, integer=True))
         require_number(f"{p}.max_coeff_rad", self.max_coeff_rad, lo=0, lo_open=True)
-        require_choice(f"{p}.init_convention", self.init_convention, ("atan", "atan2"))
 
 
 def noll_to_nm(j: int) -> tuple[int, int]:
@@ -70,6 +68,8 @@ class ZernikeMask(Mask):
     """
 
     kind = "zernike"
+    record_values = {"coeffs": "list"}
+    record_settings = ("n_terms", "max_coeff_rad")
     Spec = ZernikeSpec
     fits_phases = True
     search_start = "defocus"
@@ -140,8 +140,6 @@ class ZernikeMask(Mask):
                     prefix: str = "mask") -> "ZernikeMask":
         """``record``: a zernike record (its coefficients); ``start_phase``: the (n, n) phase of another family's
         record, fitted; else ``init`` (published, zero or defocus), fitted."""
-        from codesign.optics.masks.pixel import start
-
         mask = cls(grid, aperture_diameter_m, n_terms=cfg.get("n_terms", ZernikeSpec.n_terms),
                    max_coeff_rad=cfg.get("max_coeff_rad", ZernikeSpec.max_coeff_rad), prefix=prefix,
                    levels=cfg.get("levels"))
@@ -149,8 +147,16 @@ class ZernikeMask(Mask):
             mask.set_vector(torch.tensor(record["coeffs"], dtype=torch.float64)[:mask.coeffs.numel()])
             return mask
         if start_phase is None:
-            init = require_choice(f"{prefix}.init", cfg.get("init", ZernikeSpec.init), ("published", "zero", "defocus"))
-            start_phase = start(init, grid, aperture_diameter_m, cfg)
+            init = require_choice(f"{prefix}.init", cfg.get("init", ZernikeSpec.init), NAMED_STARTS)
+            start_phase = named_start(init, grid, aperture_diameter_m, cfg, prefix)
         if start_phase is not None:
             mask.fit(start_phase)
         return mask
+
+    @classmethod
+    def from_record(cls, cfg: Mapping[str, Any], record: dict, grid: PupilGrid, aperture_diameter_m: float,
+                    prefix: str = "mask") -> "ZernikeMask":
+        """A zernike record: as many terms as it holds, its coefficient box."""
+        cfg = {**cfg, "n_terms": len(record["coeffs"]), "max_coeff_rad": record.get("max_coeff_rad",
+                                                                                   cfg.get("max_coeff_rad"))}
+        return cls.from_config(cfg, grid, aperture_diameter_m, record=record, prefix=prefix)

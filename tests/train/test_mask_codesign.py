@@ -42,13 +42,31 @@ def test_warmup_keeps_the_mask_out_of_the_graph(tmp_path):
     assert not all(torch.equal(a, b) for a, b in zip(before, snapshot(tr.codesign.mask)))
 
 
+def large_mask_step_trainer(tmp_path, steps: int = 4):
+    """The co-design trainer with a mask step 25x the default and no penalty: only the feasibility guard keeps
+    smooth LSR <= lsr_max."""
+    return joint_trainer(tmp_path, steps=steps, mask_lr=0.5, penalty_weight=0.0)
+
+
+def guard_limit(tr) -> float:
+    """The largest smooth LSR / lsr_max the guard lets an update end at: 1 + codesign.guard_tolerance."""
+    return 1 + tr.codesign.spec.guard_tolerance
+
+
+def lsr_ratios(tr, steps: int) -> list[float]:
+    """Trains ``steps`` steps; smooth LSR of the mask / lsr_max after each."""
+    ratios = []
+    for _ in range(steps):
+        tr.train_step()
+        ratios.append(tr.codesign.constraint.measure(tr.codesign.mask) / tr.codesign.constraint.lsr_max)
+    return ratios
+
+
 def test_learned_mask_never_ends_above_lsr_max_under_a_large_mask_step(tmp_path):
     # a mask step 25x the default with no penalty: only the guard keeps the constraint
-    tr = joint_trainer(tmp_path, mask_lr=0.5, penalty_weight=0.0)
-    limit = tr.codesign.constraint.lsr_max * (1 + tr.codesign.spec.guard_tolerance)
-    for _ in range(4):
-        tr.train_step()
-        assert tr.codesign.constraint.measure(tr.codesign.mask) <= limit
+    tr = large_mask_step_trainer(tmp_path)
+    for k, ratio in enumerate(lsr_ratios(tr, 4)):  # benchmarks/bench_accuracy.py reports the largest ratio
+        assert ratio <= guard_limit(tr), f"step {k}: smooth LSR / lsr_max = {ratio!r}"
     assert tr.codesign.lsr == pytest.approx(tr.codesign.constraint.measure(tr.codesign.mask), rel=1e-6)
 
 
@@ -57,7 +75,7 @@ def test_guard_shortens_a_violating_update_and_an_infeasible_start_only_descends
     c, mask = tr.codesign.constraint, tr.codesign.mask
     start, lsr0 = snapshot(mask), c.measure(mask)
     # a tight ceiling (start infeasible): a random large move may only be kept where it lowers the LSR
-    tight = LSRConstraint(tr.codesign.spec, tr.data.camera.system, 0.5 * lsr0)
+    tight = LSRConstraint(tr.codesign.spec, tr.data.camera.system, 0.5 * lsr0, tr.codesign.constraint.p)
     gen = torch.Generator().manual_seed(3)
     lsr = lsr0
     for _ in range(6):
@@ -71,7 +89,7 @@ def test_guard_shortens_a_violating_update_and_an_infeasible_start_only_descends
         lsr = lsr_new
     assert tight.shortened + tight.undone >= 1
     # feasible start, ceiling = its LSR: any update ends at or below it
-    c2 = LSRConstraint(tr.codesign.spec, tr.data.camera.system, lsr0)
+    c2 = LSRConstraint(tr.codesign.spec, tr.data.camera.system, lsr0, tr.codesign.constraint.p)
     from codesign.train.lsr_constraint import restore
 
     restore(mask, start)
