@@ -92,6 +92,20 @@ def test_the_readme_path_simulate_then_restore_works_as_written(baseline_run, tm
     assert len(m["outputs"]) == 2 and m["image_size"] == 128
 
 
+def test_a_rerun_under_another_model_is_refused_before_training(baseline_run, tmp_path, monkeypatch, capsys):
+    """In process (the two processes of the slow test below): the resume check names the file and the key."""
+    import shutil
+
+    from tests.inputs._run import config_error
+
+    copy = tmp_path / "again"
+    shutil.copytree(baseline_run, copy)
+    line = config_error(monkeypatch, capsys, copy, "+experiment=baseline", "debug=smoke", "model=sgan_f")
+    assert f"trainer.resume = '{copy / 'checkpoint.pt'}': was trained with different model" in line
+    assert (copy / "metrics.json").is_file()
+
+
+@pytest.mark.slow  # 10 s: two more processes; twins: the test above, tests/train/test_trainer.py's resume tests
 def test_rerun_in_the_same_dir_resumes_instead_of_retraining(baseline_run, tmp_path):
     import shutil
 

