@@ -30,7 +30,7 @@ from codesign.io import files as io
 from codesign.optics.measured import MEASURED_DEFAULTS, load_measured
 from codesign.optics.spec import OpticsSpec
 from codesign.experiments import rundir
-from codesign.experiments.protocol import ALWAYS_READ, COMMON_KEYS, Experiment  # noqa: F401 (re-exported)
+from codesign.experiments.protocol import Experiment
 from codesign.train import distributed
 from codesign.train.signals import TrainingInterrupted
 

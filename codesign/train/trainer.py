@@ -329,7 +329,7 @@ class Trainer(TrainContext):
             if state.get("ema"):
                 self.ema.load_state_dict(state["ema"])
             else:  # EMA switched on at resume: start the average from the loaded weights, not the random init
-                self.ema = self.update.ema = EMA(self.model.generators(), self.ema.decay)
+                self.ema.load_state_dict([g.state_dict() for g in self.model.generators()])
         rng = state["rng"]
         set_rng_state(rng)
         if rng.get("gp_device", "cpu") == self.gp_gen.device.type:

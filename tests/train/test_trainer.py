@@ -258,3 +258,13 @@ def test_resumed_seconds_count_the_checkpoints(tmp_path):
     b.load_state_dict(state)
     b.fit()
     assert b.step == 3 and 1.0e6 < b.train_seconds < 1.0e6 + 600
+
+
+def test_ema_switched_on_at_resume_starts_from_the_loaded_weights(tmp_path):
+    a = tiny_trainer(tmp_path / "a", steps=1, **NO_IO)
+    a.fit()
+    b = tiny_trainer(tmp_path / "b", steps=2, ema=0.99, seed=5, **NO_IO)  # other initial weights
+    b.load_state_dict(a.state_dict())  # a checkpoint without EMA
+    for shadow, g in zip(b.ema.shadow, a.model.generators()):
+        assert all(torch.equal(s, t) for s, t in zip(shadow.state_dict().values(), g.state_dict().values()))
+        assert not any(p.requires_grad for p in shadow.parameters())

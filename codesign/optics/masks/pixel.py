@@ -16,10 +16,11 @@ from typing import Any, Mapping
 
 import torch
 
-from codesign.errors import require_choice
+from codesign.errors import ConfigError, require_choice
 from codesign.optics.grid import PupilGrid
 from codesign.optics.masks.base import NAMED_STARTS, Mask, PhaseFitSpec, fill_outside
 from codesign.optics.masks.starts import named_start
+from codesign.optics.spec import OpticsSpec
 
 @dataclass(frozen=True)
 class PixelSpec(PhaseFitSpec):
@@ -120,8 +121,6 @@ class PixelPhaseMask(Mask):
 def record_plate(record: dict, grid: PupilGrid) -> torch.Tensor:
     """The (n, n) phase on ``grid`` of a pixel record's plate (designed on another grid: sampled there, cell by
     cell)."""
-    from codesign.errors import ConfigError
-
     values = torch.tensor(record["values"], dtype=torch.float64)
     if int(record["grid_n"]) == grid.n and abs(float(record["pitch_m"]) / grid.pitch - 1) < 1e-9 and \
             values.numel() == grid.support.numel():
@@ -135,8 +134,6 @@ def record_plate(record: dict, grid: PupilGrid) -> torch.Tensor:
 
 def _record_grid(record: dict, grid: PupilGrid) -> PupilGrid:
     """The pupil grid a pixel record was designed on (its optics, else this grid's aperture at its pitch)."""
-    from codesign.optics.spec import OpticsSpec
-
     optics = record.get("optics") or {}
     fields = {k: optics[k] for k in ("wavelength_m", "focal_length_m", "aperture_diameter_m",
                                       "supergaussian_order") if k in optics}
