@@ -344,7 +344,7 @@ def report(data: dict, fig: Path) -> Report:
         f"cutoff), each family's energy floor (the published mask's {pub['window_energy_baseline']:.3f} for half "
         f"rings, 0.98 for the others). The published mask: LSR {pub['lsr_baseline']:.4g}, "
         f"{pub['lsr_over_limit_baseline']:.2f}x the limit, restorability {pub['restorability_baseline']:.2f} dB. "
-        f"LSR is the refined continuous peak; the limit is at each design's own mtf_mean and window energy; "
+        f"LSR is the certified continuous peak; the limit is at each design's own mtf_mean and window energy; "
         f"re-check: the largest deviation of LSR and mtf_mean on a pupil grid twice as fine and a window twice as "
         f"wide (tolerance 2 %).")
     rep.tables.append(markdown_table(

@@ -3,7 +3,7 @@ sampling (float64, MFT onto the 640 x 640 window at the 5.4 um sensor pitch, ban
 
 The readings: the phase convention (atan2 as implemented by default, atan as printed), the harmonic orders
 (m_o = 3..35 as written, or 1..35 with the first order) and the harmonics' signs (as printed, or alternating as a
-Fourier series of a square wave would have them). For each sampling and reading: LSR (refined continuous peak),
+Fourier series of a square wave would have them). For each sampling and reading: LSR (certified continuous peak),
 LSR on the grid, smooth LSR, BSR and the energy in the window, mtf_mean and mtf_min (docs/optics.md Sec. 5).
 
 Formerly ``python -m benchmarks.optics convergence``; its ``speed`` part (the default against the paper's

@@ -238,7 +238,7 @@ def figure(per_run: dict, path: Path) -> Path:
         ys = [v["net_psnr_affine_1e6"] for v in seeds.values()]
         ax.scatter(xs, ys, marker=markers[i % len(markers)], s=40, label=arm)
     ax.set_xscale("log")
-    ax.set_xlabel("LSR (refined peak / uncoded peak), lower protects more")
+    ax.set_xlabel("LSR (continuous peak / uncoded peak), lower protects more")
     ax.set_ylabel("PSNR after gain/offset match at alpha_l = 1e6 [dB]")
     ax.set_title("co-design study: every arm and seed (held-out scenes)")
     ax.grid(True, which="both", alpha=0.3)
@@ -257,8 +257,9 @@ def render(res: dict, fig_name: str) -> str:
              "Mean +- standard deviation over seeds. In brackets: the gain against the frozen published arm, paired "
              "by seed, +- the standard deviation of the paired gains; **bold** when the gain exceeds twice the seed "
              "spread (the larger standard deviation of the two arms, the stricter reading). LSR, mtf_mean "
-             "and LSR / limit: the training optics, refined peak; re-check: the largest relative change of LSR or "
-             "mtf_mean on a pupil grid twice as fine and a window twice as wide (a design counts when <= 0.02).", ""]
+             "and LSR / limit: the training optics, certified continuous peak; re-check: the largest relative "
+             "change of LSR or mtf_mean on a pupil grid twice as fine and a window twice as wide (a design counts "
+             "when <= 0.02).", ""]
     cols = [("lsr", ".3g"), ("mtf_mean", ".4f"), ("lsr_over_limit", ".2f"), ("recheck_deviation", ".3f")] + \
         [(f"net_{k}_{a}", ".2f" if "psnr" in k else ".3f") for a in ALPHAS for k in METRICS]
     names = {"psnr": "PSNR", "ssim": "SSIM", "psnr_affine": "PSNR aff."}

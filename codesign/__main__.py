@@ -11,6 +11,8 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
+from codesign.signals import Interrupted, interruptible
+
 CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
 
 
@@ -29,11 +31,18 @@ def main() -> None:
     if problem:
         print(f"codesign: configuration error: {problem}", file=sys.stderr)
         raise SystemExit(2)
-    distributed.launch_setup(sys.argv[1:])
-    try:
-        _hydra_main()
-    finally:
-        distributed.finish()
+    # from here on SIGINT / SIGTERM raise Interrupted: run_experiment reports one during a run; one before it
+    # (Hydra composing the config, the imports) or after it is reported here, without a traceback
+    with interruptible():
+        try:
+            distributed.launch_setup(sys.argv[1:])
+            try:
+                _hydra_main()
+            finally:
+                distributed.finish()
+        except Interrupted as stop:
+            print(f"codesign: {stop.name}: stopped before the run started or after it ended", file=sys.stderr)
+            raise SystemExit(stop.exit_code) from None
 
 
 if __name__ == "__main__":

@@ -42,13 +42,15 @@ class OpticsOutputs:
 
     state: the window PSF and its uncoded normalizers (sensor simulation); kernel: the PSF integrated over one
     network pixel, (k, k); otf: rfft2 of that kernel on the padded grid, (P, P // 2 + 1); key: cache key of the
-    mask's values (None while the mask trains).
+    mask's values (None while the mask trains); phase: the pupil phase they came from (None for a measured PSF,
+    which the phase does not describe).
     """
 
     state: PSFState
     kernel: torch.Tensor
     otf: torch.Tensor
     key: tuple | None = None
+    phase: torch.Tensor | None = None
 
 
 class Camera(torch.nn.Module):
@@ -137,7 +139,8 @@ class Camera(torch.nn.Module):
             state = self._measured_state(state)
         state.halo = self._halo_source(key) if self.halo_on else None
         kernel = self.simulator.kernel(state, key=key)
-        return OpticsOutputs(state, kernel, otf_from_kernel(kernel, self.padded_size).to(self.device), key)
+        return OpticsOutputs(state, kernel, otf_from_kernel(kernel, self.padded_size).to(self.device), key,
+                             phase if self.measured is None else None)
 
     def _measured_state(self, design: PSFState) -> PSFState:
         """The PSFState of the measured PSF, registered on the mask's computed one (``design``), which it replaces;

@@ -20,7 +20,7 @@ class ParamConfig:
     """
 
     alpha_l_range: tuple[float, float] = (0.0, 2.0e6)      # laser strength, uncoded peak / I_sat
-    alpha_l_levels: int = 10_000                           # number of predetermined, evenly spaced values
+    alpha_l_levels: int = 10_000                           # number of predetermined values, both ends among them
     alpha_l_spacing: str = "linear"                        # linear (the paper's) or log: see sample_scene_params
     angle_three_sigma_fraction: float = 0.36               # 3 sigma of the incidence = this * [W_s/f, H_s/f] rad
     dark_current_mean_e: float = 0.002                     # mu_c, e-; the sampled value is normal around it
@@ -41,11 +41,15 @@ _FIELDS = tuple(f.name for f in dataclasses.fields(ParamConfig))
 SPACINGS = ("linear", "log")
 
 
-def _range(key: str, value: Any) -> tuple[float, float]:
-    allowed = "must be a pair [lo, hi] of finite numbers with 0 <= lo <= hi"
+# The largest laser strength, as simulate.laser_strengths': beyond it the float32 simulation overflows (1e40 is inf).
+ALPHA_L_MAX = 1e12
+
+
+def _range(key: str, value: Any, top: float | None = None) -> tuple[float, float]:
+    allowed = "must be a pair [lo, hi] of finite numbers with 0 <= lo <= hi" + (f" <= {top:g}" if top else "")
     if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != 2:
         raise ConfigError(key, value, allowed)
-    lo, hi = (require_number(key, v, lo=0.0) for v in value)
+    lo, hi = (require_number(key, v, lo=0.0, hi=top) for v in value)
     if lo > hi:
         raise ConfigError(key, list(value), allowed)
     return lo, hi
@@ -74,7 +78,7 @@ def param_config(cfg: ParamConfig | Mapping | None) -> ParamConfig:
     for name in cfg.keys():
         key, v = f"{PREFIX}.{name}", cfg[name]
         if name in _RANGES:
-            out[name] = _range(key, v)
+            out[name] = _range(key, v, ALPHA_L_MAX if name == "alpha_l_range" else None)
         elif name == "alpha_l_spacing":
             out[name] = require_choice(key, v, SPACINGS)
         elif name == "alpha_l_levels":
@@ -84,8 +88,13 @@ def param_config(cfg: ParamConfig | Mapping | None) -> ParamConfig:
         else:  # non-negative scalars: fractions, means, stds, the exposure floor
             out[name] = require_number(key, v, lo=0.0)
     pc = ParamConfig(**out)
-    if pc.alpha_l_spacing == "log" and pc.alpha_l_range[1] < 1:
+    lo, hi = pc.alpha_l_range
+    if pc.alpha_l_spacing == "log" and lo == 0 < hi < 1:
         raise ConfigError(f"{PREFIX}.alpha_l_range", list(pc.alpha_l_range),
-                          "with alpha_l_spacing=log the upper end must be >= 1 (the log levels start at "
-                          "max(lo, 1), the laser at the saturation level)")
+                          "with alpha_l_spacing=log and a lower end of 0 the upper end must be >= 1 (the log levels "
+                          "start at 1, the laser at the saturation level, with 0 as one more level)")
+    if pc.alpha_l_levels < 2 and lo < hi:  # one level cannot be both ends: the range would be ignored
+        raise ConfigError(f"{PREFIX}.alpha_l_levels", pc.alpha_l_levels,
+                          f"cannot span {PREFIX}.alpha_l_range = [{lo:g}, {hi:g}]: must be >= 2 (both ends are "
+                          f"levels), or give a range of one strength [a, a]")
     return pc

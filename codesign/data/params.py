@@ -22,13 +22,18 @@ __all__ = ["SceneParams", "sample_scene_params", "fixed_scene_params", "preset_p
 
 
 def laser_strength_levels(pc: ParamConfig) -> torch.Tensor:
-    """The predetermined laser strengths the training draws from, float64 (see sample_scene_params)."""
+    """The predetermined laser strengths the training draws from, float64 (see sample_scene_params). Both ends of
+    ``alpha_l_range`` are levels (param_config refuses a single level for a range of two values)."""
     (lo, hi), n = pc.alpha_l_range, pc.alpha_l_levels
-    if pc.alpha_l_spacing == "linear":
+    if pc.alpha_l_spacing == "linear" or lo == hi:
         return torch.linspace(lo, hi, n, dtype=torch.float64)
-    zero = lo == 0 and n > 1
-    start = max(lo, 1.0)
-    levels = torch.logspace(math.log10(start), math.log10(hi), n - zero, dtype=torch.float64)
+    zero = lo == 0
+    # geometric from lo (from 1 when lo = 0, with 0 as one more level); one geometric level is the upper end
+    # (torch.logspace of one step gives its start: with lo = 0 and 2 levels the grid was {0, 1}, not {0, hi})
+    count, start = n - zero, lo if lo > 0 else 1.0
+    levels = torch.logspace(math.log10(start), math.log10(hi), count, dtype=torch.float64) \
+        if count > 1 else torch.tensor([hi], dtype=torch.float64)
+    levels[0], levels[-1] = (start if count > 1 else hi), hi  # the ends exactly (10 ** log10(hi) may miss hi)
     return torch.cat([torch.zeros(1, dtype=torch.float64), levels]) if zero else levels
 
 
@@ -137,7 +142,9 @@ def _constant(key: str, value: Any, batch: int, dtype: torch.dtype, device) -> t
             raise ConfigError(key, value, "must be a number or an (n_u, n_v) pair in radians")
         pair = [require_number(key, v) for v in pair]
         return torch.tensor(pair, dtype=dtype, device=device).expand(batch, 2).clone()
-    v = require_number(key, value, lo=0.0)  # every scalar field is a physical, non-negative quantity
+    # every scalar field is a physical, non-negative quantity; a zero exposure would make the sensor blind (the
+    # sampled exposures are clipped up to data.params.exposure_min_s > 0 for the same reason)
+    v = require_number(key, value, lo=0.0, lo_open=key == "exposure_s")
     return torch.full((batch,), v, dtype=dtype, device=device)
 
 
@@ -156,7 +163,7 @@ def sample_scene_params(batch: int, generator: torch.Generator, cfg: ParamConfig
     * alpha_l: uniform over ``alpha_l_levels`` (10,000) predetermined values ``torch.linspace(lo, hi, n)``
       over [0, 2e6]. Our reading of "10K predetermined values uniformly distributed in [0, 2e6]": an evenly
       spaced grid including both ends (step ~200), each value equally likely. ``alpha_l_spacing=log`` (not the
-      paper's) spaces the levels geometrically from max(lo, 1) to hi, with 0 as one of them when lo = 0: the
+      paper's) spaces the levels geometrically from lo to hi (from 1, with 0 as one of them, when lo = 0): the
       linear grid puts 0.5 % of its draws at alpha_l <= 1e4, where a mask that keeps the spot small saturates
       only a few pixels, so a network trained on it has hardly seen that regime (docs/codesign.md Sec. 7).
     * laser_angle_rad: independent normals per axis, mean 0, 3 sigma = 0.36 * [W_s / f, H_s / f]. The paper

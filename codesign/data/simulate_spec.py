@@ -2,6 +2,7 @@
 under which fixed scene parameters (the paper's figure settings unless overridden)."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from codesign.config.store import register, spec_node
@@ -9,13 +10,15 @@ from codesign.data.params import FIGURE_VALUES, LASER_STRENGTHS, fixed_scene_par
 from codesign.errors import ConfigError, require_number, require_numbers
 from codesign.spec_base import SpecMixin
 
+MAX_ANGLE = round(math.pi / 2, 4)  # rad
+
 
 @dataclass(frozen=True)
 class SimulateSpec(SpecMixin):
     """scenes: the first N scenes of the test split; laser_strengths: the laser strengths alpha_l imaged (the
     paper's evaluation strengths, as evaluate.laser_strengths); laser_angle_rad: the laser's incidence (n_u, n_v)
-    [rad] (focal offset f * n: (0.88, -1.32) mm); params: the fixed scene parameters, by default the paper's figure
-    settings (codesign/data/params.py FIGURE_VALUES, supplement Sec. 3);
+    [rad] (focal offset f * n: (0.88, -1.32) mm; |n| <= pi / 2); params: the fixed scene parameters, by default
+    the paper's figure settings (codesign/data/params.py FIGURE_VALUES, supplement Sec. 3);
     timing_repeats: batches timed for the images-per-second figure."""
 
     scenes: int = 3
@@ -35,8 +38,10 @@ class SimulateSpec(SpecMixin):
                                                      hi=1e12)))
         if not self.laser_strengths:
             raise ConfigError(f"{p}.laser_strengths", [], "must be a non-empty list of laser strengths >= 0")
+        # an incidence beyond 90 degrees from the axis never reaches the aperture
         put("laser_angle_rad", tuple(require_numbers(f"{p}.laser_angle_rad", self.laser_angle_rad,
-                                                     "must be [n_u, n_v] in radians", 2)))
+                                                     "must be [n_u, n_v] in radians", 2, lo=-MAX_ANGLE,
+                                                     hi=MAX_ANGLE)))
         put("timing_repeats", require_number(f"{p}.timing_repeats", self.timing_repeats, lo=1, integer=True))
         fixed = self.params if self.params is not None else {}
         if not isinstance(fixed, dict):

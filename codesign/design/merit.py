@@ -1,4 +1,4 @@
-"""Figures of merit of a mask on an optical system: LSR (sampled, smooth, refined continuous peak), BSR, MTF, the
+"""Figures of merit of a mask on an optical system: LSR (sampled, smooth, certified continuous peak), BSR, MTF, the
 energy kept in the optics window; and the cost of the differentiable chain behind them."""
 from __future__ import annotations
 
@@ -13,6 +13,8 @@ from codesign.errors import ConfigError, require_list, require_number
 from codesign.io.tensorboard import log_mask
 from codesign.optics import OpticalSystem, RadialMTF, build_mask, metrics
 from codesign.optics.masks import published_mask_config
+from codesign.optics.metrics import require_band_frequencies
+from codesign.optics.psf import SUBSAMPLE_SHIFTS
 from codesign.spec_base import SpecMixin
 
 BAND_ALLOWED = ("must be [low, high] with 0 <= low < high <= 1 (frequency normalized to the incoherent cutoff, "
@@ -26,9 +28,12 @@ class MetricsSpec(SpecMixin):
     normalized frequency (nu / cutoff) over which mtf_mean and mtf_min summarize the radial MTF; recheck_tolerance:
     how far (relative) a design's LSR and mtf_mean, or its gain over the published mask, may move on a pupil grid
     finer by the family's factor and a window that holds its whole PSF and still count as reproduced
-    (codesign/design/check.py)."""
+    (codesign/design/check.py); lsr_grids: the focal grids the smooth LSR is taken over, 1 (the samples), 2 (and
+    the grid offset by half a sample along both axes) or 4 (and along either): so that an optimizer cannot hide a
+    peak between the samples (the hard LSR is the certified continuous peak whatever this is)."""
 
     lsr_p: float = 16.0
+    lsr_grids: int = 2
     mtf_band: tuple = (0.0, 0.5)
     recheck_tolerance: float = 0.02
     prefix: str = field(default="metrics", compare=False, repr=False)
@@ -42,6 +47,10 @@ class MetricsSpec(SpecMixin):
             raise ConfigError(f"{p}.mtf_band", list(band), BAND_ALLOWED)
         object.__setattr__(self, "mtf_band", (float(band[0]), float(band[1])))
         require_number(f"{p}.recheck_tolerance", self.recheck_tolerance, lo=0, lo_open=True, hi=1)
+        if isinstance(self.lsr_grids, bool) or self.lsr_grids not in SUBSAMPLE_SHIFTS:
+            raise ConfigError(f"{p}.lsr_grids", self.lsr_grids, "must be 1, 2 or 4 (the focal grids the smooth LSR "
+                              "is taken over: the samples, and the grids offset by half a sample)")
+        object.__setattr__(self, "lsr_grids", int(self.lsr_grids))
 
 
 register("metrics", "default", spec_node(MetricsSpec))
@@ -54,23 +63,24 @@ def metrics_spec(cfg) -> MetricsSpec:
 
 @torch.no_grad()
 def mask_figures_of_merit(system, mask, radial: RadialMTF, band: tuple[float, float], p: float,
-                          refine: bool = False) -> tuple[dict, dict]:
-    """(scalars, arrays) of a mask: LSR (sampled, smooth; refined continuous peak when ``refine``), BSR, MTF.
+                          refine: bool = False, grids: int = 1) -> tuple[dict, dict]:
+    """(scalars, arrays) of a mask: LSR (sampled, smooth; certified continuous peak when ``refine``), BSR, MTF.
 
     arrays: phase (n, n), psf (m, m), mtf2d (m, m, DC centred), mtf_radial (n_bins,).
     """
     phase = mask.phase()
     psf = system.psf(phase, mask.plate_cell_m)
     h0 = system.uncoded_peak
-    sampled = float(metrics.lsr_sampled(psf, h0))
-    smooth = float(metrics.lsr_smooth(psf, h0, p))
+    samples = system.lsr_samples(phase, psf, grids, mask.plate_cell_m)
+    sampled = float(metrics.lsr_sampled(samples, h0))
+    smooth = float(metrics.lsr_smooth(samples, h0, p))
     mtf2d = metrics.mtf(psf)
     rad = radial(mtf2d)
     mean, mn = radial.summary(rad, band)
     out = {"lsr_sampled": sampled, "lsr_smooth": smooth, "mtf_mean": float(mean), "mtf_min": float(mn),
            "bsr": float(psf.sum()) / system.uncoded_energy}
     if refine:
-        out["lsr"] = system.refined_peak(phase, psf, cell_m=mask.plate_cell_m) / h0
+        out["lsr"] = system.continuous_peak(phase, cell_m=mask.plate_cell_m).value / h0
         out["lsr_smooth_gap"] = smooth / out["lsr"] - 1
     else:
         out["lsr_smooth_gap"] = smooth / sampled - 1
@@ -98,10 +108,11 @@ def time_forward_backward(system: OpticalSystem, mask, p: float, repeats: int) -
     return statistics.median(r[0] for r in runs), statistics.median(r[1] for r in runs)
 
 
-def evaluate_mask(system: OpticalSystem, mask, band: tuple[float, float], p: float) -> tuple[dict, dict]:
+def evaluate_mask(system: OpticalSystem, mask, band: tuple[float, float], p: float, grids: int = 1
+                  ) -> tuple[dict, dict]:
     """All figures of merit of a mask on a system; returns (flat metrics, arrays for saving/plotting)."""
     radial = RadialMTF(system.spec, device=system.grid.rho.device)
-    values, arr = mask_figures_of_merit(system, mask, radial, band, p, refine=True)
+    values, arr = mask_figures_of_merit(system, mask, radial, band, p, refine=True, grids=grids)
     with torch.no_grad():
         psf0 = system.uncoded_psf()
         rad0 = radial(metrics.mtf(psf0))
@@ -126,15 +137,16 @@ def published_reference(mask_cfg: dict, system):
 class MaskMonitor:
     """A mask's figures of merit on ``system`` against a reference mask (the published one, or None), measured for
     the records and logged to TensorBoard (codesign.io.tensorboard.log_mask). ``band``: the MTF summary band;
-    ``p``: the smooth-LSR exponent (metrics.lsr_p)."""
+    ``p``, ``grids``: the smooth LSR's exponent and focal grids (metrics.lsr_p, metrics.lsr_grids)."""
 
-    def __init__(self, system, reference, band: tuple[float, float], p: float):
-        self.system, self.band, self.p = system, tuple(band), p
+    def __init__(self, system, reference, band: tuple[float, float], p: float, grids: int = 1):
+        require_band_frequencies(system.spec, band)  # a band without a frequency of the window: no MTF to watch
+        self.system, self.band, self.p, self.grids = system, tuple(band), p, grids
         self.radial = RadialMTF(system.spec, device=system.grid.rho.device)
         self.reference = None if reference is None else self.measure(reference)
 
     def measure(self, mask, refine: bool = False) -> tuple[dict, dict]:
-        return mask_figures_of_merit(self.system, mask, self.radial, self.band, self.p, refine)
+        return mask_figures_of_merit(self.system, mask, self.radial, self.band, self.p, refine, self.grids)
 
     def log(self, writer, step: int, mask, images: bool = True, prefix: str = "mask") -> dict:
         """Scalars (and, when ``images``, pictures and histograms) of ``mask`` at ``step``; returns the scalars."""

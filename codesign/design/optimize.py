@@ -14,12 +14,14 @@ from __future__ import annotations
 import logging
 import math
 import re
+import signal
 import time
 
 import nlopt
 import numpy as np
 
 from codesign.errors import ConfigError
+from codesign.signals import Interrupted, stop_requests
 
 log = logging.getLogger("codesign.mask_search")
 
@@ -36,6 +38,10 @@ RESULTS = {nlopt.SUCCESS: "SUCCESS", nlopt.STOPVAL_REACHED: "STOPVAL_REACHED", n
            nlopt.MAXTIME_REACHED: "MAXTIME_REACHED", nlopt.FAILURE: "FAILURE", nlopt.INVALID_ARGS: "INVALID_ARGS",
            nlopt.OUT_OF_MEMORY: "OUT_OF_MEMORY", nlopt.ROUNDOFF_LIMITED: "ROUNDOFF_LIMITED",
            nlopt.FORCED_STOP: "FORCED_STOP"}
+INTERRUPTED = "INTERRUPTED"  # an outcome's result when SIGINT / SIGTERM stopped the run (nlopt: a forced stop)
+# what the search does on SIGINT / SIGTERM (codesign/signals.py: stop_requests)
+_ON_SIGNAL = ("stopping the search at the next evaluation (the best design so far is kept, marked partial; again "
+              "to stop at once)")
 # What nlopt's optimize() raises for its own failure codes (besides RoundoffLimited / ForcedStop): nlopt >= 2.8 has
 # its own exception classes (nlopt.runtime_error is not a RuntimeError), older versions raise the builtin ones.
 _NLOPT_FAILURES = (getattr(nlopt, "exception", RuntimeError), RuntimeError, ValueError, MemoryError)
@@ -62,11 +68,35 @@ def _outcome(algorithm: str, code, exc, evaluations: int) -> dict:
     return out
 
 
+def _stoppable(callback, signals: list):
+    """``callback`` (an nlopt objective or constraint) that first raises nlopt.ForcedStop once ``signals`` holds a
+    signal: nlopt ends optimize() with it at an evaluation boundary. Raising the interrupt itself inside the callback
+    is not an option: depending on where it lands nlopt reports it as its own failure (runtime_error) and the search
+    went on."""
+    def checked(x, grad):
+        if signals:
+            raise nlopt.ForcedStop(f"interrupted by {signal.Signals(signals[0]).name}")
+        return callback(x, grad)
+    return checked
+
+
+def _interrupted(algorithm: str, signals: list, evaluations: int) -> Interrupted:
+    """The Interrupted that ends the search after an nlopt run that ``signals`` stopped; its outcome is logged as
+    what it is (an interrupt, not nlopt's FORCED_STOP or a failure)."""
+    stop = Interrupted(signals[0])
+    stop.outcome = {"algorithm": algorithm, "result_code": int(nlopt.FORCED_STOP), "result": INTERRUPTED,
+                    "exception": None, "evaluations": evaluations, "signal": stop.name}
+    log.warning("%s stopped: %s by %s after %d evaluation(s)", algorithm, INTERRUPTED, stop.name, evaluations)
+    return stop
+
+
 def run_nlopt(problem, algorithm: str, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray, p: float,
               max_evals: int, xtol_rel: float, ftol_rel: float) -> tuple[np.ndarray, dict]:
-    """One nlopt run with the objective and every constraint of ``problem``; returns (last x, outcome)."""
+    """One nlopt run with the objective and every constraint of ``problem``; returns (last x, outcome). SIGINT /
+    SIGTERM: Interrupted (with ``outcome``) at the next evaluation."""
     cache: dict = {}
     error: list = []
+    signals: list = []  # filled by stop_requests below; the callbacks read it
 
     def get(x, need):
         key = x.tobytes()
@@ -102,19 +132,22 @@ def run_nlopt(problem, algorithm: str, x0: np.ndarray, lower: np.ndarray, upper:
     opt = nlopt.opt(getattr(nlopt, algorithm), x0.size)
     opt.set_lower_bounds(lower)
     opt.set_upper_bounds(upper)
-    opt.set_min_objective(objective)
+    opt.set_min_objective(_stoppable(objective, signals))
     for name in problem.limits.active:
-        opt.add_inequality_constraint(constraint(name), 0.0)
+        opt.add_inequality_constraint(_stoppable(constraint(name), signals), 0.0)
     opt.set_maxeval(int(max_evals))
     opt.set_xtol_rel(xtol_rel)
     opt.set_ftol_rel(ftol_rel)
     before, exc, x = problem.evaluations, None, np.clip(x0, lower, upper)
-    try:
-        x = opt.optimize(x)
-    except _NLOPT_ERRORS as err:
-        if error:
-            raise error[0]
-        exc = f"{type(err).__name__}: {err}".rstrip(": ")
+    with stop_requests(_ON_SIGNAL, signals):
+        try:
+            x = opt.optimize(x)
+        except _NLOPT_ERRORS as err:
+            if error and not signals:
+                raise error[0]
+            exc = f"{type(err).__name__}: {err}".rstrip(": ")
+    if signals:
+        raise _interrupted(algorithm, signals, problem.evaluations - before)
     return x, _outcome(algorithm, opt.last_optimize_result(), exc, problem.evaluations - before)
 
 
@@ -146,17 +179,24 @@ def run_al_lbfgs(problem, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray, 
         opt = nlopt.opt(nlopt.LD_LBFGS, x.size)
         opt.set_lower_bounds(lower)
         opt.set_upper_bounds(upper)
-        opt.set_min_objective(merit)
+        signals: list = []  # filled by stop_requests below; the merit reads it
+        opt.set_min_objective(_stoppable(merit, signals))
         opt.set_maxeval(int(budget))
         opt.set_ftol_rel(1e-14)
         opt.set_vector_storage(20)
-        try:
-            x = opt.optimize(x)
-        except (nlopt.RoundoffLimited,) + _NLOPT_FAILURES as err:
-            # LBFGS's line search at round-off, or nlopt's generic failure (a float32 merit's noise can break the
-            # line search's descent test): go on from the inner run's best point
-            exc = f"{type(err).__name__}: {err}".rstrip(": ")
-            x = lowest[1]
+        with stop_requests(_ON_SIGNAL, signals):
+            try:
+                x = opt.optimize(x)
+            except nlopt.ForcedStop:
+                if not signals:  # not ours (e.g. an on_eval callback's): the caller's to handle
+                    raise
+            except (nlopt.RoundoffLimited,) + _NLOPT_FAILURES as err:
+                # LBFGS's line search at round-off, or nlopt's generic failure (a float32 merit's noise can break
+                # the line search's descent test): go on from the inner run's best point
+                exc = f"{type(err).__name__}: {err}".rstrip(": ")
+                x = lowest[1]
+        if signals:
+            raise _interrupted("AL_LBFGS", signals, problem.evaluations - before)
         code = opt.last_optimize_result()
         ev, _ = problem.evaluate(x, p, False)
         for n, v in ev.constraints.items():

@@ -56,6 +56,9 @@ class MaskSearch:
         self.sweeps: list[Sweep] = []
         self.t0 = time.perf_counter()
         self.done = 0
+        self.at = ""  # the start running now ("start 0 of the search"): where an interrupt stopped the search
+        self.finished = False  # every start of every floor ran to its end
+        self.record = None  # the finished record's path, once the task has written it
 
     # ---- progress ---------------------------------------------------------------------------------------------
     def _on_eval(self, sweep_tag: str):
@@ -83,8 +86,10 @@ class MaskSearch:
         problem = self.make_problem(limits)
         problem.on_eval = self._on_eval(tag)
         sweep = Sweep(factor, limits, problem)
+        self.sweeps.append(sweep)  # now, not when done: an interrupted search keeps its best point so far
         t0 = time.perf_counter()
         for label, kind, x0 in starts:
+            self.at = f"start {label} of {'the search' if tag == 'search' else f'the sweep at floor x{factor:g}'}"
             res = {"init": kind, **run_start(problem, label, np.asarray(x0, dtype=np.float64), self.bounds,
                                              self.algorithm, self.s.local_algorithm, self.schedule, max_evals,
                                              self.s.polish_max_evals, self.s.xtol_rel, self.s.ftol_rel)}
@@ -93,7 +98,7 @@ class MaskSearch:
                      f"LSR {res['lsr']:.4g}, mtf_mean {res['mtf_mean']:.4g}" if res["feasible"]
                      else f"no feasible point (violation {res['min_violation']:.3g})")
         sweep.seconds = time.perf_counter() - t0
-        self.sweeps.append(sweep)
+        self.at = ""
         return sweep
 
     def run(self) -> Sweep:
@@ -107,11 +112,17 @@ class MaskSearch:
             limits = replace(self.limits, mtf=None if self.limits.mtf is None
                              else self.limits.mtf / self.s.mtf_floor_factor * f)
             self._run_sweep(f, limits, pts, self.sweep_evals, f"pareto_x{f:g}")
+        self.finished = True
         return main
 
     @property
     def evaluations(self) -> int:
         return sum(sw.problem.evaluations for sw in self.sweeps)
+
+    def position(self) -> str:
+        """Where the search is: "in start 0 of the search after 57 of 816 evaluations"."""
+        where = f"in {self.at} " if self.at else ""
+        return f"{where}after {self.done} of {self.budget} evaluations"
 
 
 def start_points(init_x: torch.Tensor | None, init: str, count: int, random_start, seed: int) -> list:

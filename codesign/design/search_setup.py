@@ -98,7 +98,7 @@ def start_vector(init: str, mask, published, defocus_rad: float) -> torch.Tensor
 
 @torch.no_grad()
 def quantized_figures(mask, monitor, rest, levels=(2, 4, 8, 16)) -> dict:
-    """LSR (refined), mtf_mean, window energy and restorability of ``mask`` with its phase quantized to each
+    """LSR (continuous peak), mtf_mean, window energy and restorability of ``mask`` with its phase quantized to each
     number of levels (the mask is left as it was)."""
     keep, out = mask.levels, {}
     try:

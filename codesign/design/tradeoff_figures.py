@@ -52,7 +52,8 @@ def evaluations_figure(sweeps, front: list[dict], base: dict, limit, p_label: st
         ax.scatter(pts[:, 0], pts[:, 1], s=4, c=colour, label=label)
     ok = sorted((f for f in front if f["feasible"]), key=lambda f: f["mtf_floor"] or 0)
     if ok:
-        ax.plot([f["mtf_mean"] for f in ok], [f["lsr"] for f in ok], "o-", color="C0", label="best per floor (refined)")
+        ax.plot([f["mtf_mean"] for f in ok], [f["lsr"] for f in ok], "o-", color="C0",
+                label="best per floor (continuous peak)")
     ax.plot([base["mtf_mean"]], [base["lsr"]], "*", ms=14, color="C3", label="published mask")
     shown = [f["lsr"] for f in ok] + [base["lsr"]] + [ev.lsr_sampled for ev in evs if ev.feasible]
     mtfs = [ev.mtf_mean for ev in evs] + [base["mtf_mean"]]

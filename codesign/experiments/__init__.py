@@ -9,6 +9,7 @@ import pkgutil
 import shlex
 import shutil
 import sys
+import time
 from pathlib import Path
 from typing import Callable
 
@@ -27,12 +28,13 @@ from codesign.config.runtime import (
 )
 from codesign.errors import ConfigError, OutputWriteError
 from codesign.io import files as io
+from codesign.optics.masks.records import check_mask_init
 from codesign.optics.measured import MEASURED_DEFAULTS, load_measured
 from codesign.optics.spec import OpticsSpec
 from codesign.experiments import rundir
 from codesign.experiments.protocol import Experiment
 from codesign.train import distributed
-from codesign.train.signals import TrainingInterrupted
+from codesign.signals import Interrupted, TrainingInterrupted, interruptible
 
 log = logging.getLogger("codesign")
 
@@ -112,6 +114,11 @@ def check_measured_psf(cfg: DictConfig, task: str) -> None:
         OmegaConf.update(cfg, "optics.psf_dark_file", str(Path(measured.dark_path).resolve()), merge=False)
 
 
+def to_plain(node) -> dict:
+    """A config node as a plain dict (empty when absent)."""
+    return OmegaConf.to_container(node, resolve=True) if node is not None else {}
+
+
 def experiment_function(name: str) -> Callable:
     return experiment_module(name).run
 
@@ -132,7 +139,8 @@ def _discard_empty_run_dir(run_dir: Path) -> None:
     if rundir.existed_before(run_dir):
         rundir.restore_earlier(run_dir)
         return
-    ours = [p for p in run_dir.iterdir() if p.name != ".hydra" and not p.name.endswith(".log")]
+    ours = [p for p in run_dir.iterdir()
+            if p.name != ".hydra" and not p.name.endswith(".log") and not rundir.is_own(p.name)]
     if not ours and run_dir.resolve() != Path.cwd().resolve():
         shutil.rmtree(run_dir, ignore_errors=True)
         parent = run_dir.parent  # outputs/<task>/ that this run may have created
@@ -164,6 +172,8 @@ def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None
         seed = root.seed
         check_logging(cfg)
         check_measured_psf(cfg, task)
+        if "mask" in read_keys(task):  # a mask.init record read whole, and made for these optics, before any work
+            check_mask_init(to_plain(cfg.get("mask")), to_plain(cfg.get("optics")))
         threads = set_threads(root.threads)
         device = resolve_device(root.device, ctx.local_rank if ctx.enabled else None)
         deterministic = set_deterministic(root.deterministic, device)
@@ -174,7 +184,16 @@ def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None
         log.info("task=%s device=%s threads=%d deterministic=%s run_dir=%s%s", task, device, threads,
                  "on" if deterministic else "off", run_dir,
                  f" ranks={ctx.world} ({distributed.backend_name()})" if ctx.enabled else "")
-        return experiment_function(task)(cfg, run_dir, device)
+        if ctx.is_main:
+            removed = rundir.start_work(run_dir, task)  # from here on a killed run is an unfinished one
+            if removed:
+                log.info("removed %d temp file(s) a killed run left: %s", len(removed),
+                         ", ".join(str(p.relative_to(run_dir)) for p in removed))
+        with interruptible():  # SIGINT / SIGTERM: Interrupted, reported below (python -m codesign: from the start)
+            result = experiment_function(task)(cfg, run_dir, device)
+        if ctx.is_main:
+            rundir.finish_work(run_dir, task)  # last, after every output: the run counts as finished
+        return result
     except ConfigError as err:
         distributed.settle(ctx)  # the same error stops every rank: let the others finish creating the run dir
         if ctx.is_main:
@@ -184,10 +203,9 @@ def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None
     except OutputWriteError as err:
         print(f"codesign: output error: {err}", file=sys.stderr)
         raise SystemExit(1) from None
-    except TrainingInterrupted as stop:
+    except Interrupted as stop:
         if ctx.is_main:
-            print(f"codesign: {stop} (checkpoint {stop.checkpoint}); resume with: {resume_command(run_dir, ctx)}",
-                  file=sys.stderr)
+            print(f"codesign: {interrupt_line(stop, run_dir, ctx, cfg.get('task'))}", file=sys.stderr)
         raise SystemExit(stop.exit_code) from None
 
 
@@ -196,6 +214,32 @@ def resume_command(run_dir: Path, ctx) -> str:
     args = [a for a in sys.argv[1:] if not a.startswith("hydra.run.dir=")] + [f"hydra.run.dir={run_dir}"]
     launcher = f"torchrun --nproc_per_node={ctx.world} -m codesign" if ctx.enabled else "python -m codesign"
     return " ".join([launcher, *(shlex.quote(a) for a in args)])
+
+
+# when this process loaded the experiments: a run folder's file changed since then was written by this run (a
+# resumed run's earlier outputs are older)
+_PROCESS_START = time.time()
+_LISTED = 6  # the files an interrupt line names before "and N more"
+
+
+def written_by_this_run(run_dir: Path) -> list[str]:
+    """The output files of ``run_dir`` this process wrote (not Hydra's .hydra/, the log or hidden temp files)."""
+    if not run_dir.is_dir():
+        return []
+    return sorted(p.name for p in run_dir.iterdir() if p.is_file() and not p.name.startswith(".")
+                  and not p.name.endswith(".log") and p.stat().st_mtime >= _PROCESS_START - 1)
+
+
+def interrupt_line(stop: Interrupted, run_dir: Path, ctx, task: str | None) -> str:
+    """The one line an interrupted run prints after "codesign: ": a training, its checkpoint and the resume command;
+    any other run, what stopped it and the files it had finished (each complete: every write is atomic)."""
+    if isinstance(stop, TrainingInterrupted):
+        return f"{stop} (checkpoint {stop.checkpoint}); resume with: {resume_command(run_dir, ctx)}"
+    kept = written_by_this_run(run_dir)
+    shown = ", ".join(kept[:_LISTED]) + (f" and {len(kept) - _LISTED} more" if len(kept) > _LISTED else "")
+    what = stop.detail or f"+experiment={task} stopped before it finished"
+    files = f"kept in {run_dir}: {shown}" if kept else "no output file written"
+    return f"{stop.name}: {what}; {files} (the run is not finished)"
 
 
 def resolved_config_yaml(cfg: DictConfig) -> str:

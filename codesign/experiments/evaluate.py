@@ -17,6 +17,7 @@ from codesign.io import files as io
 from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
 from codesign.train.data import SimulatedData
 from codesign.train.evaluation import eval_settings, run_evaluation
+from codesign.train.checkpoint import nonfinite_summary, stored_config_error
 from codesign.train.resume import apply_checkpoint_mask, load_trained
 from codesign.train.model_setup import run_metrics
 from codesign.experiments.protocol import Experiment
@@ -39,12 +40,59 @@ def merged_eval_config(cfg: DictConfig, ckpt_cfg: DictConfig, typed: frozenset[s
     ``evaluate`` block. Untyped data keys keep the checkpoint's values, so the test split is the one held out
     during training."""
     merged = with_measured_psf(OmegaConf.create(OmegaConf.to_container(ckpt_cfg, resolve=True)), cfg, typed)
-    source_typed = bool({"data", "data.scenes", "data.folder"} & typed)  # scenes and folder go together
-    for key in ("scenes", "folder", "test_fraction", "split_seed", "cache_mb"):
-        if f"data.{key}" in typed or "data" in typed or (key in ("scenes", "folder") and source_typed):
-            merged.data[key] = cfg.data.get(key)
+    for key in data_keys_of_this_run(typed):
+        merged.data[key] = cfg.data.get(key)
     merged.evaluate = cfg.get("evaluate")
     return merged
+
+
+def data_keys_of_this_run(typed: frozenset[str]) -> list[str]:
+    """The data keys evaluate takes from this command line (the scene source, the split), not the checkpoint."""
+    source_typed = bool({"data", "data.scenes", "data.folder"} & typed)  # scenes and folder go together
+    return [key for key in ("scenes", "folder", "test_fraction", "split_seed", "cache_mb")
+            if f"data.{key}" in typed or "data" in typed or (key in ("scenes", "folder") and source_typed)]
+
+
+def from_this_run(err: ConfigError, cfg: DictConfig, typed: frozenset[str]) -> bool:
+    """Whether the key ``err`` names holds this run's value in the merged configuration (typed data keys, the
+    evaluate block, a measured PSF given here); any other key holds the checkpoint's stored value."""
+    key = str(err.key)
+    psf_here = cfg.get("optics") is not None and (cfg.optics.get("psf_file") is not None or "optics" in typed or any(
+        k.startswith("optics.psf_") for k in typed))
+    return (key.startswith("evaluate.") or (key.startswith("optics.psf_") and psf_here)
+            or any(key == f"data.{k}" for k in data_keys_of_this_run(typed)))
+
+
+def simulated_data(merged: DictConfig, cfg: DictConfig, typed: frozenset[str], path, device, seed: int):
+    """The simulator of the merged configuration; a value it refuses that came from the checkpoint is named as
+    stored in that file (it used to read as if typed here: "data.padded_size = 64: must be >= data.image_size")."""
+    try:
+        return SimulatedData(merged, device, seed)
+    except ConfigError as err:
+        if from_this_run(err, cfg, typed):
+            raise
+        raise stored_config_error("checkpoint", path, err) from None
+
+
+class CheckedRestorer:
+    """``model`` whose every restoration is checked: a non-finite output (finite weights that overflow) stops the
+    evaluation with a ConfigError naming the checkpoint, instead of tables and figures of "nan dB"."""
+
+    def __init__(self, model, path):
+        self._model, self._path = model, path
+
+    def __getattr__(self, name):
+        return getattr(self._model, name)
+
+    def restore(self, *args, **kwargs) -> dict:
+        out = self._model.restore(*args, **kwargs)
+        for name, value in out.items():
+            bad = nonfinite_summary(value) if torch.is_tensor(value) else None
+            if bad:
+                raise ConfigError("checkpoint", str(self._path), f"its network's output {name!r} on the evaluation's "
+                                  f"simulated captures holds {bad}: its weights are finite but the network does not "
+                                  f"compute finite images (evaluation stopped, no metrics.json)")
+        return out
 
 
 def refuse_other_model(cfg: DictConfig, ckpt_cfg: DictConfig, typed: frozenset[str], facts: dict, path) -> None:
@@ -69,12 +117,12 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     refuse_other_model(cfg, ckpt_cfg, typed, {"kind": model.kind, **model.summary()}, path)
     merged = merged_eval_config(cfg, ckpt_cfg, typed)
     seed = check_seed(cfg)
-    data = SimulatedData(merged, device, seed)
+    data = simulated_data(merged, cfg, typed, path, device, seed)
     apply_checkpoint_mask(data.camera.mask, state, path)
     data.camera.invalidate()
     metrics = {**run_metrics(merged, model, device), "checkpoint": str(path), "steps": int(state["step"]),
                **camera_sampling_report(data.camera, merged, log), **measured_psf_report(data.camera, merged, log)}
-    metrics.update(run_evaluation(ev, model, generators, data, run_dir, seed))
+    metrics.update(run_evaluation(ev, CheckedRestorer(model, path), generators, data, run_dir, seed))
     io.write_json(run_dir / "metrics.json", metrics)
     log_summary(open_writer(run_dir, tensorboard_enabled(cfg)), {**model.summary(), "checkpoint": str(path)},
                 metrics)

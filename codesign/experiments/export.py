@@ -63,7 +63,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     rest = restorability_tools(cfg, system, mask, None)
     values, arrays = {}, {}
     for name, design in (("ideal", mask), ("exported", surface)):
-        v, arr = evaluate_mask(system, design, band, p)
+        v, arr = evaluate_mask(system, design, band, p, ms.lsr_grids)
         v["lsr_limit"] = limit.lsr_limit(v["mtf_mean"], v["psf_energy_in_window"])
         v["lsr_over_limit"] = v["lsr"] / v["lsr_limit"]
         v["restorability"] = rest.score(design)

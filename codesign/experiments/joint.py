@@ -125,14 +125,15 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     camera = data.camera
     system = camera.system
     reference = published_reference(to_container(cfg.mask), system)
-    monitor = MaskMonitor(system, reference, ms.mtf_band, ms.lsr_p)
+    monitor = MaskMonitor(system, reference, ms.mtf_band, ms.lsr_p, ms.lsr_grids)
     lsr_max, lsr_max_from = _lsr_max(cs, monitor, system, camera.mask)
     start = check_training_fits(model, data, spec, device, "joint")  # before any training
     if ctx.is_main:  # warned about before any training
         sampling = camera_sampling_report(camera, cfg, log, "the start mask")
         start.update(phase_resolved_start=sampling["phase_resolved"], phase_sampling_start=sampling["phase_sampling"],
                      **_check_lsr_max(lsr_max, cs, monitor, system, camera.mask))
-    mask = MaskCodesign(camera=camera, spec=cs, lsr_max=lsr_max, lsr_p=ms.lsr_p, steps=spec.steps, device=device,
+    mask = MaskCodesign(camera=camera, spec=cs, lsr_max=lsr_max, lsr_p=ms.lsr_p, lsr_grids=ms.lsr_grids,
+                        steps=spec.steps, device=device,
                         monitor=monitor, dist=ctx)
     trainer = Trainer(model=model, data=data, spec=spec, run_dir=run_dir, device=device, config=to_container(cfg),
                       seed=seed, dist=ctx, codesign=mask)
@@ -234,7 +235,7 @@ def _network(cfg, init: InitSpec, seed: int) -> tuple:
 def _lsr_max(cs: CodesignSpec, monitor: MaskMonitor, system, mask) -> tuple[float, str]:
     """The smooth-LSR ceiling (codesign.lsr_max) and where it comes from."""
     if cs.lsr_max == "start":
-        return LSRConstraint(cs, system, 1.0, monitor.p).measure(mask), "the start mask's smooth LSR"
+        return LSRConstraint(cs, system, 1.0, monitor.p, monitor.grids).measure(mask), "the start mask's smooth LSR"
     if cs.lsr_max is not None:
         return float(cs.lsr_max), "given"
     return monitor.reference[0]["lsr_smooth"], "the published mask's smooth LSR"
@@ -248,7 +249,7 @@ LSR_MAX_FAR = 10.0
 def _check_lsr_max(lsr_max: float, cs: CodesignSpec, monitor: MaskMonitor, system, mask) -> dict:
     """Warn at the start when codesign.lsr_max cannot be reached by any phase-only mask on this window (below the
     light spread evenly over it: MTFLimit.lsr_limit(0)), or lies far below the start mask's smooth LSR."""
-    start = LSRConstraint(cs, system, 1.0, monitor.p).measure(mask)
+    start = LSRConstraint(cs, system, 1.0, monitor.p, monitor.grids).measure(mask)
     floor = MTFLimit(system, monitor.band).lsr_limit(0.0)
     if lsr_max < floor:
         log.warning("codesign.lsr_max = %.3g is below what any phase-only mask can reach on this %d-sample window "

@@ -29,6 +29,7 @@ from codesign.io import files as io, plots
 from codesign.io.tensorboard import open_writer, tensorboard_enabled
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask, circular_mtf, metrics
 from codesign.experiments.protocol import Experiment
+from codesign.signals import Interrupted
 
 log = logging.getLogger("codesign.mask_search")
 
@@ -42,6 +43,9 @@ EXPERIMENT = Experiment(
     smoke={"search.max_evals": 8, "search.starts": 2, "search.polish_max_evals": 4, "search.pareto_factors": [1.0],
            "search.pareto_max_evals": 4},
 )
+# an interrupted search's best point (SIGINT / SIGTERM): a record marked "partial": true with its "stop_reason",
+# under its own name so that nothing takes it for best_mask.json; a finished search removes it
+PARTIAL_RECORD = "best_mask.partial.json"
 
 
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
@@ -53,7 +57,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     mask = build_mask(mask_cfg, system.grid, spec.aperture_diameter_m)
     n = mask.vector_size
     published = published_reference(mask_cfg, system)  # the same conventions: only the parameters differ
-    monitor = MaskMonitor(system, published, ms.mtf_band, ms.lsr_p)
+    monitor = MaskMonitor(system, published, ms.mtf_band, ms.lsr_p, ms.lsr_grids)
     base, base_arr = monitor.measure(published, refine=True)
     limit = MTFLimit(system, ms.mtf_band)
     needs_restorability = s.objective == "restorability" or s.restorability_floor is not None
@@ -70,7 +74,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
 
     def make_problem(lim: Limits) -> DesignProblem:
         return DesignProblem(system, mask, radial, ms.mtf_band, s.objective, lim,
-                             rest.pair if needs_restorability else None)
+                             rest.pair if needs_restorability else None, lsr_grids=ms.lsr_grids)
 
     search = MaskSearch(s, n, limits, make_problem, starts, mask.random_vector, (lower, upper), schedule,
                         open_writer(run_dir, tensorboard_enabled(cfg)))
@@ -82,10 +86,47 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     try:
         main = search.run()
         out = _outputs(run_dir, s, ms, system, mask, published, base, base_arr, limit, rest, search, main, device)
+    except Interrupted as stop:
+        raise _interrupted(stop, run_dir, search, mask, spec) from None
     finally:
         if search.writer is not None:
             search.writer.close()
     return out["lsr"] if out["feasible"] else float("nan")
+
+
+def _interrupted(stop: Interrupted, run_dir: Path, search: MaskSearch, mask, spec) -> Interrupted:
+    """SIGINT / SIGTERM during the search or its outputs: the best point so far kept as a partial record unless the
+    finished one is written; the Interrupted to report, saying where the search stopped and what it kept."""
+    if search.record is not None:
+        return Interrupted(stop.signum, f"the search finished; stopped while writing its outputs ({search.record} "
+                                        f"is complete)")
+    if search.finished:
+        where = f"the search finished ({search.evaluations} evaluations) but its outputs were not written"
+    else:
+        where = f"the search stopped {search.position()}"
+    path = _write_partial(run_dir / PARTIAL_RECORD, search, mask, spec, f"interrupted by {stop.name}: {where}")
+    if path is None:
+        return Interrupted(stop.signum, f"{where}; no evaluation had finished: no design to keep")
+    return Interrupted(stop.signum, f"{where}; its best design so far: {path} (marked partial; to continue from it: "
+                                    f"mask.init={path} search.init=mask)")
+
+
+def _write_partial(path: Path, search: MaskSearch, mask, spec, reason: str) -> Path | None:
+    """The main floor's best point so far (the feasible one, else the least violating) as a record marked partial,
+    with the figures the search measured (not re-checked); None when no evaluation finished."""
+    problem = search.sweeps[0].problem if search.sweeps else None
+    x, feasible = problem.result_x() if problem is not None else (None, False)
+    if x is None:
+        return None
+    ev = problem.best if feasible else problem.least
+    mask.set_vector(torch.from_numpy(x))
+    write_record(path, mask, spec, {
+        "lsr_sampled": ev.lsr_sampled, "lsr_smooth": ev.lsr_smooth, "mtf_mean": ev.mtf_mean,
+        "window_energy": ev.energy, "restorability": ev.restorability, "feasible": feasible, "partial": True,
+        "stop_reason": reason})
+    log.warning("%s: wrote the best point so far to %s (%s, LSR %.4g, mtf_mean %.4g; marked partial)", reason,
+                path, "feasible" if feasible else "INFEASIBLE", ev.lsr_sampled, ev.mtf_mean)
+    return path
 
 
 def _add_limit(values: dict, arrays: dict, limit) -> None:
@@ -106,7 +147,7 @@ def _outputs(run_dir: Path, s: SearchSpec, ms, system, mask, published, base, ba
              device) -> dict:
     """Measure and re-check the best design, sweep front, files and figures; returns metrics.json's content."""
     spec = system.spec
-    monitor = MaskMonitor(system, None, ms.mtf_band, ms.lsr_p)
+    monitor = MaskMonitor(system, None, ms.mtf_band, ms.lsr_p, ms.lsr_grids)
     front = []
     for sw in search.sweeps:
         x, feasible = sw.problem.result_x()
@@ -141,6 +182,8 @@ def _outputs(run_dir: Path, s: SearchSpec, ms, system, mask, published, base, ba
     write_record(run_dir / "best_mask.json", mask, spec, {**figures, "feasible": feasible,
                                                          "check_agree": check["agree"] if check else None,
                                                          "phase_resolved": sampling["phase_resolved"]})
+    search.record = run_dir / "best_mask.json"
+    (run_dir / PARTIAL_RECORD).unlink(missing_ok=True)  # an earlier interrupted run's: this search finished
     _write_evaluations(run_dir / "evaluations.csv", search.sweeps, mask)
     metrics = {
         **figures, "mtf_min": values["mtf_min"], "bsr": values["bsr"], "feasible": feasible,

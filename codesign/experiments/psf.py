@@ -9,6 +9,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from codesign.config.runtime import resolve_dtype
 from codesign.design.check import sampling_report
+from codesign.optics.metrics import require_band_frequencies
 from codesign.design.limits import MTFLimit
 from codesign.design.merit import MaskMonitor, evaluate_mask, metrics_spec, published_reference, time_forward_backward
 from codesign.optics.masks.records import write_record
@@ -39,6 +40,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     band, p = ms.mtf_band, ms.lsr_p
     repeats = require_number("timing_repeats", cfg.get("timing_repeats"), lo=1, hi=1000, integer=True)
     mask_cfg = OmegaConf.to_container(cfg.mask, resolve=True)
+    require_band_frequencies(spec, band)  # before any work: every MTF figure needs a frequency in the band
 
     system = OpticalSystem(spec, dtype=dtype, device=device)
     mask = build_mask(mask_cfg, system.grid, spec.aperture_diameter_m)
@@ -46,7 +48,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
              spec.grid_n, spec.grid_n, spec.pupil_pitch_m, spec.samples_across_aperture, spec.focal_n,
              spec.focal_pitch_m, system.method, dtype)
     t_fwd, t_bwd = time_forward_backward(system, mask, p, repeats)
-    values, arrays = evaluate_mask(system, mask, band, p)
+    values, arrays = evaluate_mask(system, mask, band, p, ms.lsr_grids)
     limit = MTFLimit(system, band)
     values["lsr_limit"] = limit.lsr_limit(values["mtf_mean"], values["psf_energy_in_window"])
     values["lsr_over_limit"] = values["lsr"] / values["lsr_limit"]
@@ -88,7 +90,8 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     io.write_json(run_dir / "metrics.json", metrics_out)
     writer = open_writer(run_dir, tensorboard_enabled(cfg))
     if writer is not None:
-        MaskMonitor(system, published_reference(mask_cfg, system), band, p).log(writer, 0, mask, images=True)
+        MaskMonitor(system, published_reference(mask_cfg, system), band, p, ms.lsr_grids).log(writer, 0, mask,
+                                                                                             images=True)
     log_summary(writer, {"mask": mask_cfg["kind"], "propagator": system.method, "pupil_n": spec.grid_n}, metrics_out)
     log.info("lsr=%.4g (sampled %.4g, smooth %.4g) bsr=%.4f mtf_mean=%.4g mtf_min=%.4g energy_in_window=%.4f "
              "forward %.3f s backward %.3f s", values["lsr"], values["lsr_sampled"], values["lsr_smooth"],

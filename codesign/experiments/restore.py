@@ -23,6 +23,7 @@ from codesign.errors import ConfigError
 from codesign.io import files as io
 from codesign.io.captures import read_counts, save_png16
 from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
+from codesign.train.checkpoint import nonfinite_summary, stored_config_error
 from codesign.train.resume import apply_checkpoint_mask, load_trained
 from codesign.experiments.protocol import Experiment
 
@@ -80,6 +81,15 @@ def validate(files: list[Path], size: int, saturation_dn: float, padded: int | N
     return images
 
 
+def check_finite_output(restored: torch.Tensor, f: Path, path) -> None:
+    """A restoration holding NaN or inf (finite weights that overflow on this capture) stops the run, naming the
+    checkpoint and the capture: a 16-bit PNG would store NaN as 0, a black image read as a result."""
+    bad = nonfinite_summary(restored)
+    if bad:
+        raise ConfigError("checkpoint", str(path), f"its network restores input {f} to {bad} (not finite): its "
+                          f"weights are finite but the network does not compute finite images; nothing written")
+
+
 def run(cfg, run_dir: Path, device: torch.device) -> float:
     files = input_files(cfg.get("input"))
     if not cfg.get("checkpoint"):
@@ -91,8 +101,7 @@ def run(cfg, run_dir: Path, device: torch.device) -> float:
     except ConfigError as err:  # the checkpoint's own settings: say so, not just the key
         if err.key.startswith("optics.psf_"):  # a measured PSF's file (this run's, or the checkpoint's own)
             raise
-        raise ConfigError("checkpoint", str(cfg.checkpoint), f"its stored configuration is not valid in this "
-                          f"version of codesign: {err}") from None
+        raise stored_config_error("checkpoint", cfg.checkpoint, err) from None
     apply_checkpoint_mask(camera.mask, state, cfg.checkpoint)
     sensor = camera.sensor
     # every file checked before any work
@@ -106,11 +115,14 @@ def run(cfg, run_dir: Path, device: torch.device) -> float:
         for f, arr in zip(files, images):
             x = torch.from_numpy(arr / (sensor.gain_dn_per_e * sensor.full_well_e)).float()[None, None]
             x = F.pad(x, (m, p - n - m, m, p - n - m)).to(device)
-            b = field_of_view(model.restore(x, otf, generators)["restored"], n).clamp(0, 1)[0, 0].cpu().numpy()
-            out = run_dir / f"restored_{f.stem}.png"
-            save_png16(out, b, scale=65535.0)
-            written.append(out.name)
-            restored.append(b)
+            b = field_of_view(model.restore(x, otf, generators)["restored"], n)
+            check_finite_output(b, f, cfg.checkpoint)
+            restored.append(b.clamp(0, 1)[0, 0].cpu().numpy())
+    # written only once every image restored finite: a bad one never leaves a folder of half the outputs
+    for f, b in zip(files, restored):
+        out = run_dir / f"restored_{f.stem}.png"
+        save_png16(out, b, scale=65535.0)
+        written.append(out.name)
     seconds = (time.perf_counter() - t0) / len(files)
     metrics = {**sampling, "inputs": [str(f) for f in files], "outputs": written, "seconds_per_image": seconds,
                "checkpoint": str(cfg.checkpoint), "device": str(device), "image_size": n, "padded_size": p}

@@ -67,6 +67,19 @@ def _grid_figure(images: np.ndarray, rows: list[str], cols: list[float], log_vie
     return fig
 
 
+def warn_laser_off_sensor(angle: list[float], focal_length_m: float, side_m: float, halo: bool) -> bool:
+    """Warn when the laser's spot (at f * angle from the sensor centre) lands beyond the sensor; True then. The
+    captures then hold its halo alone (sensor.laser_halo), or nothing of it: no alpha_l column differs."""
+    spot = [focal_length_m * a for a in angle]
+    if max(abs(x) for x in spot) <= side_m / 2:
+        return False
+    log.warning("simulate.laser_angle_rad = [%g, %g]: the laser's spot lands (%.3g, %.3g) mm from the sensor's centre, "
+                "beyond the sensor (%.3g mm square): %s", angle[0], angle[1], spot[0] * 1e3, spot[1] * 1e3,
+                side_m * 1e3, "only its halo reaches the captures (sensor.laser_halo)" if halo else
+                "nothing of the laser reaches the captures (sensor.laser_halo is off)")
+    return True
+
+
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     sim_spec = SimulateSpec.from_config(to_container(cfg.get("simulate")) or {})
     dtype = resolve_dtype("precision", cfg.get("precision"))
@@ -83,6 +96,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
              sim.sensor.path, sim.sensor.image_size, sim.sensor.image_size, sim.sensor.coarse_pitch_m,
              sim.sensor.bin_factor, sim.scene_size, sim.coarse.ksize)
     sampling = camera_sampling_report(camera, cfg, log)
+    off_sensor = warn_laser_off_sensor(angle, sim.optics.focal_length_m, sim.sensor.side_m, camera.halo_on)
     curves: dict = {}
     measured = measured_psf_report(camera, cfg, log, curves)
     optics = camera.frozen_optics()
@@ -129,7 +143,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     bsr_window = float(state.psf.sum()) / state.uncoded_energy
     metrics.update({
         **sampling, **measured, "seconds_per_image": seconds, "images_per_second": 1.0 / seconds, "batch_size": batch,
-        "sensor_path": sim.sensor.path, "lsr_sampled": lsr,
+        "sensor_path": sim.sensor.path, "lsr_sampled": lsr, "laser_off_sensor": off_sensor,
         # uniform-background ratio of the simulated image: 1 with the out-of-window veil (energy conservation),
         # else the window's (sum h / sum h0); the window's value is always reported
         "bsr": 1.0 if sim.sensor.background_veil else bsr_window,

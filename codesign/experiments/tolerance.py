@@ -22,6 +22,7 @@ from codesign.fab.tolerance import SOURCES, Errors, PlateEvaluator, ToleranceSpe
 from codesign.io import files as io
 from codesign.optics import OpticalSystem
 from codesign.experiments.protocol import Experiment
+from codesign.signals import Interrupted
 
 log = logging.getLogger("codesign.tolerance")
 
@@ -34,6 +35,8 @@ EXPERIMENT = Experiment(
     outputs=("metrics.json", "samples.csv", "tolerance.png"),
     smoke={"export.pitch_m": 8.0e-6, "tolerance.samples": 16, "tolerance.samples_per_source": 4},
 )
+# the samples of the sources that finished when SIGINT / SIGTERM stopped the Monte Carlo (a finished run removes it)
+PARTIAL_SAMPLES = "samples.partial.csv"
 
 
 class _Progress:
@@ -59,6 +62,51 @@ def _stats(lsr: torch.Tensor, mtf: torch.Tensor, ceiling: float) -> dict:
             "mtf_mean_std": float(mtf.std(unbiased=False)), "yield": float((lsr <= ceiling).double().mean())}
 
 
+def _per_source(ts, active, plate, evaluate, gen, ceiling, progress, out) -> None:
+    """Each active source alone: its samples and its +-1 sigma points, appended to ``out`` = (rows, per_source,
+    dist) as each source finishes."""
+    rows, per_source, dist = out
+    for source in active:
+        e = draw(ts, (source,), ts.samples_per_source, plate.n_levels, gen)
+        lsr, mtf = evaluate(e, progress) if len(e) else (torch.zeros(0), torch.zeros(0))
+        stats = _stats(lsr, mtf, ceiling) if len(e) else {}
+        for sign, name in ((1, "plus"), (-1, "minus")):
+            d = deterministic(ts, source, sign, plate.n_levels)
+            if d is not None:
+                at_lsr, at_mtf = evaluate(d)
+                stats[f"lsr_at_{name}_1sigma"] = float(at_lsr[0])
+                stats[f"mtf_mean_at_{name}_1sigma"] = float(at_mtf[0])
+        per_source[source] = {"sigma": ts.sigma(source), **stats}
+        dist[source] = lsr.numpy()
+        rows += [(source, e, lsr, mtf)]
+
+
+def _write_samples(path: Path, rows) -> None:
+    """samples.csv: one line per sample (its errors, LSR and mtf_mean), written atomically."""
+    buf = _io.StringIO()
+    w = csv.writer(buf)
+    cols = list(Errors.zeros(1, None).columns())
+    w.writerow(["source", "sample", *cols, "lsr", "mtf_mean"])
+    for source, e, lsr, mtf in rows:
+        table = e.columns()
+        for i in range(len(e)):
+            w.writerow([source, i, *(f"{float(table[c][i]):.6g}" for c in cols), f"{float(lsr[i]):.6g}",
+                        f"{float(mtf[i]):.6g}"])
+    io.atomic_write_bytes(path, lambda fh: fh.write(buf.getvalue().encode()))
+
+
+def _interrupted(stop: Interrupted, run_dir: Path, rows, progress: _Progress) -> Interrupted:
+    """SIGINT / SIGTERM during the Monte Carlo: the samples of the sources that finished kept in
+    samples.partial.csv (never samples.csv: a finished analysis's); the Interrupted to report."""
+    where = f"the Monte Carlo stopped after {progress.done} of {progress.total} samples"
+    if not rows:
+        return Interrupted(stop.signum, f"{where}; no source had finished: no sample to keep")
+    _write_samples(run_dir / PARTIAL_SAMPLES, rows)
+    sources = ", ".join(source for source, *_ in rows)
+    return Interrupted(stop.signum, f"{where}; the samples of the sources that finished ({sources}) in "
+                                    f"{run_dir / PARTIAL_SAMPLES} (partial: no yield)")
+
+
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     spec, ex, material, mask_cfg, dtype = setup(cfg)
     ts = ToleranceSpec.from_config(to_container(cfg.get("tolerance")))
@@ -76,35 +124,19 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
              f"{plate.n_levels} levels" if plate.n_levels else "continuous", nominal_lsr, nominal_mtf, ceiling,
              ", ".join(f"{s} {ts.sigma(s):.3g}" for s in active) or "none")
     progress = _Progress(ts.samples_per_source * len(active) + ts.samples)
-    rows, per_source, dist = [], {}, {}
-    for source in active:
-        e = draw(ts, (source,), ts.samples_per_source, plate.n_levels, gen)
-        lsr, mtf = evaluate(e, progress) if len(e) else (torch.zeros(0), torch.zeros(0))
-        out = _stats(lsr, mtf, ceiling) if len(e) else {}
-        for sign, name in ((1, "plus"), (-1, "minus")):
-            d = deterministic(ts, source, sign, plate.n_levels)
-            if d is not None:
-                at_lsr, at_mtf = evaluate(d)
-                out[f"lsr_at_{name}_1sigma"], out[f"mtf_mean_at_{name}_1sigma"] = float(at_lsr[0]), float(at_mtf[0])
-        per_source[source] = {"sigma": ts.sigma(source), **out}
-        dist[source] = lsr.numpy()
-        rows += [(source, e, lsr, mtf)]
-    combined = draw(ts, active, ts.samples, plate.n_levels, gen)
-    lsr_all, mtf_all = evaluate(combined, progress)
+    rows, per_source, dist = [], {}, {}  # filled source by source: what an interrupt keeps
+    try:
+        _per_source(ts, active, plate, evaluate, gen, ceiling, progress, (rows, per_source, dist))
+        combined = draw(ts, active, ts.samples, plate.n_levels, gen)
+        lsr_all, mtf_all = evaluate(combined, progress)
+    except Interrupted as stop:
+        raise _interrupted(stop, run_dir, rows, progress) from None
     dist["all sources"] = lsr_all.numpy()
     rows.append(("all", combined, lsr_all, mtf_all))
     overall = _stats(lsr_all, mtf_all, ceiling)
 
-    buf = _io.StringIO()
-    w = csv.writer(buf)
-    cols = list(Errors.zeros(1, None).columns())
-    w.writerow(["source", "sample", *cols, "lsr", "mtf_mean"])
-    for source, e, lsr, mtf in rows:
-        table = e.columns()
-        for i in range(len(e)):
-            w.writerow([source, i, *(f"{float(table[c][i]):.6g}" for c in cols), f"{float(lsr[i]):.6g}",
-                        f"{float(mtf[i]):.6g}"])
-    io.atomic_write_bytes(run_dir / "samples.csv", lambda fh: fh.write(buf.getvalue().encode()))
+    _write_samples(run_dir / "samples.csv", rows)
+    (run_dir / PARTIAL_SAMPLES).unlink(missing_ok=True)  # an earlier interrupted run's: this one finished
     io.save_figure(run_dir / "tolerance.png", tolerance_figure(
         dist, nominal_lsr, ceiling, f"{mask_cfg['kind']} plate, {material.name}: LSR under fabrication and assembly "
         f"errors (nominal {nominal_lsr:.4g})"))

@@ -1,15 +1,19 @@
 """What export and tolerance share: their settings validated before any work, and the design's plate."""
 from __future__ import annotations
 
+import logging
+
 import torch
 from omegaconf import DictConfig
 
 from codesign.config.runtime import resolve_dtype, to_container
+from codesign.optics.metrics import require_band_frequencies
+from codesign.design.merit import metrics_spec
 from codesign.fab.materials import Material
 from codesign.fab.surface import ExportSpec, Plate, fab_grid
 from codesign.fab.writers import FULL_SCALE
 from codesign.optics import OpticsSpec, build_mask
-from codesign.optics.masks import config_of_design
+from codesign.optics.masks import config_of_design, levels_of_design
 
 
 def setup(cfg: DictConfig) -> tuple:
@@ -19,7 +23,13 @@ def setup(cfg: DictConfig) -> tuple:
     material = Material.from_config(to_container(cfg.get("material")))
     material.index(spec.wavelength_m)
     ex.plate_n(spec)
+    require_band_frequencies(spec, metrics_spec(cfg).mtf_band)  # both report mtf_means of the window
     mask_cfg = config_of_design(to_container(cfg.mask))
+    design = levels_of_design(mask_cfg)
+    if ex.levels is None and design is not None and design <= 256:  # an 8-level design is built as 8 levels
+        logging.getLogger("codesign.export").info("export.levels = null: the design has %d levels, so has the "
+                                                  "plate (export.levels chooses others)", design)
+        ex = ex.replace(levels=design)
     dtype = resolve_dtype("precision", cfg.get("precision"))
     return spec, ex, material, mask_cfg, dtype
 

@@ -81,11 +81,38 @@ class ExportSpec(SpecMixin):
                               f"the plate must hold the aperture's support ({support:.4g} m): must be >= "
                               f"{need * self.pitch_m:.4g} m at {self.prefix}.pitch_m = {self.pitch_m:g}, or null")
         if n > MAX_FAB_N:
-            raise ConfigError(f"{self.prefix}.pitch_m", self.pitch_m,
-                              f"gives a plate of {n} x {n} pixels; at most {MAX_FAB_N} per side: raise "
-                              f"{self.prefix}.pitch_m to >= {support / (MAX_FAB_N - 2):.3g} m or lower "
-                              f"{self.prefix}.size_m")
+            raise self._too_large(n, support, need)
         return n
+
+    def _too_large(self, n: int, support: float, need: int) -> ConfigError:
+        """The error of a plate of more than MAX_FAB_N pixels per side, with advice true for these values: the
+        pitch that brings it within the limit (for the size asked, or the aperture's support when size_m is null),
+        rounded up, and the largest size at this pitch, rounded down (the old advice named support / 8190 even
+        when size_m set the size: export.size_m=0.5 asked for a pitch the current one already met)."""
+        p = self.prefix
+        if self.size_m is None:  # n = ceil(support / pitch) + 2, made even: <= MAX_FAB_N from support / (MAX - 2) on
+            return ConfigError(f"{p}.pitch_m", self.pitch_m, f"gives a plate of {n} x {n} pixels (the aperture's "
+                               f"support, {support:.4g} m); at most {MAX_FAB_N} per side: raise {p}.pitch_m to >= "
+                               f"{_round_up(support / (MAX_FAB_N - 2)):.3g} m")
+        # n = round(size / pitch) <= MAX_FAB_N from pitch = size / MAX_FAB_N on; a smaller size must still hold the
+        # support (need pixels)
+        most = _round_down(MAX_FAB_N * self.pitch_m)
+        smaller = f" or lower {p}.size_m to <= {most:.4g} m" if most >= need * self.pitch_m else ""
+        return ConfigError(f"{p}.size_m", self.size_m, f"gives a plate of {n} x {n} pixels at {p}.pitch_m = "
+                           f"{self.pitch_m:g} m; at most {MAX_FAB_N} per side: raise {p}.pitch_m to >= "
+                           f"{_round_up(self.size_m / MAX_FAB_N):.3g} m{smaller}")
+
+
+def _round_up(x: float) -> float:
+    """``x`` rounded up to 3 significant digits: a bound printed with %.3g stays a true bound."""
+    unit = 10.0 ** (math.floor(math.log10(x)) - 2)
+    return math.ceil(x / unit * (1 - 1e-12)) * unit
+
+
+def _round_down(x: float) -> float:
+    """``x`` rounded down to 4 significant digits (printed with %.4g)."""
+    unit = 10.0 ** (math.floor(math.log10(x)) - 3)
+    return math.floor(x / unit * (1 + 1e-12)) * unit
 
 
 def fab_grid(optics: OpticsSpec, pitch_m: float, n: int) -> PupilGrid:

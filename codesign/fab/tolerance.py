@@ -23,6 +23,7 @@ from typing import Callable
 import torch
 
 from codesign.config.store import register, spec_node
+from codesign.optics.metrics import require_band_frequencies
 from codesign.errors import ConfigError, require_number
 from codesign.fab.materials import Material
 from codesign.fab.surface import Plate, phase_of_height
@@ -148,6 +149,7 @@ class PlateEvaluator:
 
     def __init__(self, plate: Plate, system: OpticalSystem, material: Material, band: tuple[float, float],
                  noise_gen: torch.Generator, batch: int):
+        require_band_frequencies(system.spec, band)  # every sample's mtf_mean needs a frequency in the band
         self.plate, self.system, self.material, self.band = plate, system, material, band
         self.gen, self.batch = noise_gen, batch
         g = system.grid

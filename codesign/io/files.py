@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import tempfile
 from pathlib import Path
 from typing import Any, Callable
@@ -11,6 +12,35 @@ from typing import Any, Callable
 import numpy as np
 
 from codesign.errors import ConfigError, OutputWriteError
+
+
+# The temp files of _atomic (mkstemp: ".<stem>." + 8 random characters + "<suffix>.tmp") and of check_writable_dir:
+# only a killed process leaves one behind (every other failure removes it), and the next run in the folder removes it
+TEMP_NAME = re.compile(r"^\..+\.[a-z0-9_]{8}(\.[^.]+)?\.tmp$|^\.codesign-write-test\.[a-z0-9_]{8}$")
+
+
+def is_temp(name: str) -> bool:
+    """Whether ``name`` is a temp file of the atomic writers (or of the writability probe)."""
+    return TEMP_NAME.match(name) is not None
+
+
+def leftover_temps(folder: Path, prune: Callable[[Path], bool] = lambda d: False) -> list[Path]:
+    """The temp files a killed run left in ``folder`` and its subfolders (symlinks not followed, nor the subfolders
+    ``prune`` names: another run's folder inside this one), sorted."""
+    found = []
+    for top, dirs, names in os.walk(folder):
+        dirs[:] = [d for d in dirs if not prune(Path(top) / d)]
+        found += [Path(top) / n for n in names if is_temp(n)]
+    return sorted(found)
+
+
+def remove_temps(folder: Path, prune: Callable[[Path], bool] = lambda d: False) -> list[Path]:
+    """Remove the temp files a killed run left in ``folder`` (call it only while no other run writes there: the
+    run-directory lock); returns them."""
+    found = leftover_temps(folder, prune)
+    for path in found:
+        path.unlink(missing_ok=True)
+    return found
 
 
 def _atomic(path: Path, write: Callable[[str], None], suffix: str) -> Path:

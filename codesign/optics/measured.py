@@ -7,7 +7,10 @@ the files can be wrong is a ConfigError naming the key, the file and what is all
 (which the experiments call before any work): no such file, another format, 8-bit samples, not one 2-D frame, a
 frame smaller than MIN_SIDE pixels, saturated samples (65535 in a 16-bit frame: its peak is clipped), NaN or inf,
 negative samples beyond rounding in a .npy, a dark frame of another kind or size, no light left after the dark
-frame is subtracted. A missing pitch is refused by OpticsSpec (``optics.psf_pitch_m``).
+frame is subtracted, and a frame whose brightest pixel holds more light than diffraction lets into a pixel of its
+pitch (``diffraction_check``: a PSF narrower than the aperture's diffraction limit, an LSR above 1, cannot be; the
+message gives the pitch and the psf_energy that would make it possible). A missing pitch is refused by OpticsSpec
+(``optics.psf_pitch_m``).
 
 Processing (``load_measured``, then ``MeasuredPSF.place`` once the optics window and the design PSF are known):
   1. dark frame  frame - dark, negative samples (noise of an empty background) clipped to 0;
@@ -49,6 +52,12 @@ SATURATED = 65535  # a 16-bit sample at full scale: the light there was clipped
 NEGATIVE_TOLERANCE = 1e-6  # negative .npy samples down to this fraction of the peak are rounding, clipped to 0
 SAME_PITCH = 1e-9  # relative: a file pitch this close to the window's is copied, not interpolated
 OUTSIDE_WARN = 1e-4  # the fraction of the frame's light beyond the window above which a run warns
+# A pixel's share of the light above the diffraction-limited peak x its area by more than this (relative) is refused:
+# the bound holds for every phase mask (|E(x)| <= the aberration-free field's peak), so only rounding of the
+# aperture's sampled sums and sample noise on a near diffraction-limited frame may exceed it at all.
+PEAK_TOLERANCE = 0.01
+MIN_ENERGY = 1e-6  # psf_energy below this is no PSF of the aperture, and 1e-300 underflowed float32 to a NaN MTF
+CLIP_WARN = 0.01  # the share of the frame's samples clipped below the dark frame above which a run warns
 CENTRES = ("design", "centroid", "frame")
 # The OpticsSpec keys of a measured PSF and their defaults (a checkpoint written before they existed had these).
 MEASURED_DEFAULTS = {"psf_file": None, "psf_pitch_m": None, "psf_dark_file": None, "psf_energy": 1.0,
@@ -78,6 +87,22 @@ class MeasuredPSF:
     frame: np.ndarray
     kind: str
     clipped: int  # samples below the dark frame, clipped to 0
+    clipped_light: float = 0.0  # the light the clipping added, as a fraction of the frame's light after it
+
+    @property
+    def clipped_share(self) -> float:
+        """The fraction of the frame's samples clipped below the dark frame."""
+        return self.clipped / self.frame.size
+
+    def clip_warning(self) -> str | None:
+        """The console warning of a dark frame that clips more than CLIP_WARN of the samples, else None."""
+        if self.dark_path is None or self.clipped_share <= CLIP_WARN:
+            return None
+        return (f"optics.psf_dark_file '{self.dark_path}': {self.clipped:,} of the {self.frame.size:,} samples of "
+                f"optics.psf_file '{self.path}' ({100 * self.clipped_share:.1f}%) lie below it and were clipped to 0, "
+                f"which added {100 * self.clipped_light:.2g}% to the frame's light (a dark frame of the same "
+                "exposure and gain leaves about half of an empty background's samples below it: its noise; a "
+                "brighter one clips the PSF's own light)")
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -146,6 +171,10 @@ def load_measured(spec) -> MeasuredPSF | None:
     if spec.psf_file is None:
         return None
     p = spec.prefix
+    if spec.psf_energy < MIN_ENERGY:
+        raise ConfigError(f"{p}.psf_energy", spec.psf_energy, f"a frame holding less than {MIN_ENERGY:g} of the light "
+                          "through the aperture is not its PSF (its samples would underflow the float32 simulation "
+                          f"to 0): must be >= {MIN_ENERGY:g} and <= 1")
     path = Path(spec.psf_file).expanduser()
     frame, kind = _read(path, f"{p}.psf_file")
     h, w = frame.shape
@@ -165,13 +194,67 @@ def load_measured(spec) -> MeasuredPSF | None:
                               "camera settings and size")
         frame = frame - dark
         clipped = int((frame < 0).sum())
+        below = float(-frame[frame < 0].sum())  # the light the clipping adds (a positive floor of rectified noise)
     frame = np.clip(frame, 0.0, None)  # noise below the dark level, and rounding below 0 of a .npy
     total = float(frame.sum())
     if not total > 0:
         raise ConfigError(f"{p}.psf_file", str(path), "holds no light: every sample is 0" + (
             f" after subtracting {p}.psf_dark_file '{dark_path}' (is it the frame itself?)" if dark_path else ""))
-    return MeasuredPSF(str(path), None if dark_path is None else str(dark_path), float(spec.psf_pitch_m),
-                       float(spec.psf_energy), spec.psf_centre, frame / total, kind, clipped)
+    measured = MeasuredPSF(str(path), None if dark_path is None else str(dark_path), float(spec.psf_pitch_m),
+                           float(spec.psf_energy), spec.psf_centre, frame / total, kind, clipped,
+                           below / total if clipped else 0.0)
+    diffraction_check(measured, spec)
+    return measured
+
+
+def diffraction_peak_m2(spec) -> float:
+    """The uncoded PSF's peak irradiance per m^2 at the focal plane for unit energy through the aperture, exact on
+    the spec's pupil grid (OpticalSystem.uncoded_peak / focal_pitch_m^2): (sum A)^2 du^2 / ((lambda f)^2 sum A^2).
+    No phase mask puts more light on any point (|E(x)| <= sum |A| = the uncoded field on the axis)."""
+    import torch
+
+    from codesign.optics.grid import supergaussian_aperture
+
+    # the aperture of PupilGrid.from_spec (integer offsets, zero beyond the support), without its polar tables
+    k = torch.arange(spec.grid_n, dtype=torch.int64) - spec.grid_n // 2
+    r2 = k[:, None] ** 2 + k[None, :] ** 2
+    inside = r2 <= (spec.aperture_support_radius_m / spec.pupil_pitch_m) ** 2
+    a = supergaussian_aperture(torch.sqrt(r2[inside].to(torch.float64)) * spec.pupil_pitch_m,
+                               spec.aperture_diameter_m, spec.supergaussian_order)
+    return float(a.sum() ** 2 / (a**2).sum()) * (spec.pupil_pitch_m / spec.lambda_f) ** 2
+
+
+def _round_up(x: float) -> float:
+    """``x`` rounded up to 3 significant digits (advice printed with %.3g must be true)."""
+    unit = 10.0 ** (math.floor(math.log10(x)) - 2)
+    return math.ceil(x / unit * (1 - 1e-12)) * unit
+
+
+def _round_down(x: float) -> float:
+    unit = 10.0 ** (math.floor(math.log10(x)) - 2)
+    return math.floor(x / unit * (1 + 1e-12)) * unit
+
+
+def diffraction_check(m: MeasuredPSF, spec) -> None:
+    """Refuse a frame whose brightest pixel holds more light than the diffraction-limited peak of the aperture puts
+    into a pixel of its pitch (an LSR above 1 at the file's pitch: a delta, a hot pixel, a pitch given too small or
+    psf_energy too large). The light a pixel of side p receives is at most I0 p^2 (``diffraction_peak_m2``)."""
+    p = spec.prefix
+    share, peak_m2 = float(m.frame.max()) * m.energy, diffraction_peak_m2(spec)
+    bound = peak_m2 * m.pitch_m**2
+    if share <= bound * (1 + PEAK_TOLERANCE):
+        return
+    lsr = share / bound
+    need_pitch = _round_up(math.sqrt(share / peak_m2))
+    most_energy = _round_down(bound / float(m.frame.max()))
+    limit = (f"{100 * _round_down(bound):.3g}%: the diffraction-limited peak of the "
+             f"{spec.aperture_diameter_m * 1e3:g} mm aperture at {p}.wavelength_m = {spec.wavelength_m:g}, "
+             f"f = {spec.focal_length_m:g} m")
+    raise ConfigError(f"{p}.psf_file", m.path, f"its brightest pixel holds {100 * share:.3g}% of the light "
+                      f"({p}.psf_energy = {m.energy:g}), {lsr:.3g}x the most any mask can put into one pixel of "
+                      f"{p}.psf_pitch_m = {m.pitch_m:g} m ({limit}): a PSF narrower than diffraction (LSR "
+                      f"{lsr:.3g} > 1) cannot be; possible with {p}.psf_pitch_m >= {need_pitch:.3g} m or "
+                      f"{p}.psf_energy <= {most_energy:.3g}, or a frame of these optics without a hot pixel")
 
 
 def centroid_px(values: np.ndarray) -> tuple[float, float]:

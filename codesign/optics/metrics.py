@@ -2,8 +2,8 @@
 
 LSR = peak(h) / peak(h0), both unit-energy PSFs of the same aperture. The uncoded peak h0(0) is taken exactly on
 the optical axis (the focal grid always has a sample there, and E0(0) = sum A needs no propagation), so a grid
-that misses the Airy centre cannot bias it. The hard LSR uses the coded PSF's continuous peak (refined between
-samples, see ``OpticalSystem.refined_peak``); ``lsr_sampled`` is the max over the samples; ``lsr_smooth`` is a
+that misses the Airy centre cannot bias it. The hard LSR uses the coded PSF's continuous peak (certified between
+samples, see ``codesign.optics.peak``); ``lsr_sampled`` is the max over the samples; ``lsr_smooth`` is a
 p-norm surrogate of the max (always >= lsr_sampled) for gradient-based optimization.
 
 BSR: a uniform background that fills the focal window gives, at the window centre, the irradiance sum(h) over the
@@ -16,8 +16,11 @@ bin (1 / (m dx)) wide.
 """
 from __future__ import annotations
 
+import math
+
 import torch
 
+from codesign.errors import ConfigError
 from codesign.optics.spec import OpticsSpec
 
 
@@ -100,3 +103,27 @@ def circular_mtf(nu: torch.Tensor) -> torch.Tensor:
     """Analytic diffraction-limited MTF of a circular pupil at normalized frequency nu = f / cutoff."""
     x = nu.clamp(0, 1)
     return (2 / torch.pi) * (torch.acos(x) - x * torch.sqrt(1 - x**2))
+
+
+MAX_FOCAL_N = 16384  # OpticsSpec's bound on optics.focal_n
+
+
+def require_band_frequencies(spec, band, key: str = "metrics.mtf_band") -> None:
+    """ConfigError unless the MTF band holds at least one radial frequency bin of ``spec``'s window (RadialMTF's
+    bins, k / (m dx), in units of the cutoff W_a / (lambda f)): a window narrower than about lambda f / W_a / high
+    has none, and every mtf_mean would be the mean of nothing (it ended in "IndexError: amin(): Expected reduction
+    dim -1 to have non-zero size" for optics.wavelength_m=1e-4)."""
+    m, dx = spec.focal_n, spec.focal_pitch_m
+    lo, hi = band
+    step = 1.0 / (m * dx)
+    freqs = torch.arange(round(math.sqrt(2) * (m // 2)) + 1, dtype=torch.float64) * step / spec.cutoff_frequency
+    if ((freqs > lo) & (freqs <= hi) & (freqs > 0)).any():
+        return
+    need = math.ceil(spec.lambda_f_over_d / (dx * (hi - lo)))  # bins no farther apart than the band is wide
+    wider = f"optics.focal_n >= {need}, or " if need <= MAX_FOCAL_N else ""
+    raise ConfigError(key, list(band), f"holds no frequency of the {m} x {m} optics window: its {m * dx:.3g} m are "
+                      f"{m * dx / spec.lambda_f_over_d:.3g} lambda f / W_a (lambda f / W_a = "
+                      f"{spec.lambda_f_over_d:.3g} m), so its first frequency above 0 is {freqs[1].item():.3g} of the "
+                      f"cutoff W_a / (lambda f); needs {wider}the optics the window was meant for (optics.wavelength_m "
+                      f"= {spec.wavelength_m:g}, optics.focal_length_m = {spec.focal_length_m:g}, "
+                      f"optics.aperture_diameter_m = {spec.aperture_diameter_m:g})")

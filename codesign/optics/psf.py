@@ -16,7 +16,8 @@ import math
 import torch
 
 from codesign.optics.grid import PupilGrid, axis_coords
-from codesign.optics.propagation import Propagator, mft, mft_matrix
+from codesign.optics.peak import Peak, PeakSearch
+from codesign.optics.propagation import Propagator
 from codesign.optics.spec import OpticsSpec
 
 
@@ -42,6 +43,12 @@ def airy_psf(r: torch.Tensor, spec: OpticsSpec) -> torch.Tensor:
     return peak * shape
 
 
+# Sub-sample offsets (in focal samples) of the extra grids a smooth LSR sees, by number of grids
+# (metrics.lsr_grids). Every point lies within 0.71 / 0.5 / 0.35 samples of one of them with 1 / 2 / 4 grids, which
+# caps how far below a peak the samples can read (codesign.optics.peak: the shortfall goes with that distance^2).
+SUBSAMPLE_SHIFTS = {1: (), 2: ((0.5, 0.5),), 4: ((0.5, 0.5), (0.5, 0.0), (0.0, 0.5))}
+
+
 class OpticalSystem(torch.nn.Module):
     """A sampled pupil plus a propagator onto the sensor-pitch focal window.
 
@@ -65,6 +72,7 @@ class OpticalSystem(torch.nn.Module):
         self.uncoded_peak = float(a.sum() ** 2 * scale / (a**2).sum())
         self._uncoded_energy = None
         self._envelopes: dict[float, torch.Tensor] = {}
+        self._peak_search = None
 
     @property
     def uncoded_energy(self) -> float:
@@ -107,39 +115,44 @@ class OpticalSystem(torch.nn.Module):
             self._envelopes[key] = s[:, None] * s[None, :]
         return self._envelopes[key]
 
+    def shifted_psf(self, phase: torch.Tensor, shift: tuple[float, float], cell_m: float | None = None) -> torch.Tensor:
+        """``psf`` at the window's samples moved by ``shift`` = (dy, dx) focal samples: the continuous PSF between
+        the samples, exact for every propagator (E(x + s) is the field of the pupil tilted by -2 pi s u / (lambda
+        f)). Differentiable in ``phase``."""
+        s = self.spec
+        k = -2 * math.pi * s.focal_pitch_m / s.lambda_f
+        tilt = k * (shift[0] * self.grid.v[:, None] + shift[1] * self.grid.u[None, :])
+        psf = self.propagator.intensity(self.field(phase + tilt.to(phase.dtype)))
+        if cell_m is None:
+            return psf
+        coords = axis_coords(s.focal_n, s.focal_pitch_m, device=self.grid.rho.device)
+        ey = self.cell_envelope(cell_m, coords + shift[0] * s.focal_pitch_m)
+        ex = self.cell_envelope(cell_m, coords + shift[1] * s.focal_pitch_m)
+        return psf * (ey[:, None] * ex[None, :]).to(psf)
+
+    def lsr_samples(self, phase: torch.Tensor, psf: torch.Tensor, grids: int, cell_m: float | None = None
+                    ) -> torch.Tensor:
+        """The PSF samples a smooth LSR is taken over, (..., grids * m, m): the window's samples (``psf``, already
+        computed) and, for ``grids`` 2, the grid offset by half a sample along both axes, for 4, by half a sample
+        along either or both (SUBSAMPLE_SHIFTS). An optimizer that flattens the samples cannot hide a peak midway
+        between them from these."""
+        if grids not in SUBSAMPLE_SHIFTS:
+            raise ValueError(f"lsr grids must be one of {sorted(SUBSAMPLE_SHIFTS)}, got {grids!r}")
+        extra = [self.shifted_psf(phase, sh, cell_m) for sh in SUBSAMPLE_SHIFTS[grids]]
+        return torch.cat([psf, *extra], dim=-2) if extra else psf
+
     def uncoded_psf(self) -> torch.Tensor:
         """The uncoded PSF h0 computed through the same propagator (zero phase), (m, m)."""
         return self.psf(torch.zeros_like(self.grid.aperture))
 
     @torch.no_grad()
-    def refined_peak(self, phase: torch.Tensor, psf: torch.Tensor, candidates: int = 8,
-                     oversample: int = 8, cell_m: float | None = None) -> float:
-        """Peak of the continuous PSF (per-pixel units), refined between samples around the top local maxima.
-
-        The sampled PSF can miss its maximum by up to a fraction of a sample; evaluating the field with a small
-        MFT at pitch dx / oversample over +-1 sample around each of the ``candidates`` highest local maxima
-        gives the continuous peak (the physical irradiance peak that damages a sensor). ``cell_m``: as in ``psf``.
-        """
-        s = self.spec
-        p = psf.detach().reshape(s.focal_n, s.focal_n)
-        pooled = torch.nn.functional.max_pool2d(p[None, None], 3, stride=1, padding=1)[0, 0]
-        is_max = (p == pooled) & (p > 0)
-        vals = torch.where(is_max, p, torch.zeros_like(p)).reshape(-1)
-        top = torch.topk(vals, min(candidates, vals.numel())).indices
-        field = self.field(phase.detach())
-        pupil = axis_coords(self.grid.n, s.pupil_pitch_m, device=p.device)
-        off = torch.arange(-oversample, oversample + 1, dtype=torch.float64, device=p.device) / oversample
-        cdtype = field.dtype
-        best = float(p.max())
-        scale = (s.pupil_pitch_m * s.focal_pitch_m / s.lambda_f) ** 2 / float((field.abs() ** 2).sum())
-        for flat in top.tolist():
-            iy, ix = divmod(flat, s.focal_n)
-            yc = (iy - s.focal_n // 2 + off) * s.focal_pitch_m
-            xc = (ix - s.focal_n // 2 + off) * s.focal_pitch_m
-            e = mft(field, mft_matrix(yc, pupil, s.lambda_f, cdtype), mft_matrix(xc, pupil, s.lambda_f, cdtype))
-            irradiance = e.abs() ** 2
-            if cell_m is not None:
-                irradiance = irradiance * (self.cell_envelope(cell_m, yc)[:, None]
-                                           * self.cell_envelope(cell_m, xc)[None, :]).to(irradiance)
-            best = max(best, float(irradiance.max()) * scale)
-        return best
+    def continuous_peak(self, phase: torch.Tensor, cell_m: float | None = None, rel_tol: float = 3e-3) -> Peak:
+        """The peak of the continuous PSF on the window (per-pixel units), certified to ``rel_tol`` between samples
+        (codesign.optics.peak): the irradiance a sensor pixel at the worst place receives. ``cell_m``: as in
+        ``psf``."""
+        if self._peak_search is None:
+            s = self.spec
+            self._peak_search = PeakSearch(axis_coords(self.grid.n, s.pupil_pitch_m, device=self.grid.rho.device),
+                                           s.lambda_f, s.focal_pitch_m, s.focal_n, self.grid.aperture,
+                                           s.pupil_pitch_m)
+        return self._peak_search(self.field(phase.detach()), cell_m, rel_tol)

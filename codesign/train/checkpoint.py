@@ -53,7 +53,56 @@ def load_checkpoint(path: str | Path, key: str = "checkpoint") -> dict:
         raise ConfigError(key, str(path), _unreadable(p, err)) from None
     if not isinstance(state, dict) or "model" not in state or "config" not in state:
         raise ConfigError(key, str(path), "is not a codesign checkpoint (no 'model' / 'config' entries)")
+    bad = first_nonfinite(state)
+    if bad is not None:
+        # refused whole, before anything is built from it: a NaN weight (a diverged run, a damaged copy) turns every
+        # result into NaN (evaluate "nan dB", restore all-zero images, a warm start trained to the end for nothing)
+        where, tensor = bad
+        where = where if len(where) <= 200 else where[:200] + "..."  # a foreign file's keys may be of any length
+        raise ConfigError(key, str(path), f"is not usable: tensor {where} holds {nonfinite_summary(tensor)} (the "
+                          f"first non-finite tensor in the file; results computed from it would be NaN): use an "
+                          f"earlier checkpoint of the run")
     return state
+
+
+def nonfinite_summary(t: torch.Tensor) -> str | None:
+    """``"3 NaN and 1 +inf of 432 values"`` for a tensor with non-finite values, None when every value is finite
+    (integer tensors always are)."""
+    if not (t.is_floating_point() or t.is_complex()):
+        return None
+    x = torch.view_as_real(t) if t.is_complex() else t
+    if bool(torch.isfinite(x).all()):
+        return None
+    counts = {"NaN": int(torch.isnan(x).sum()), "+inf": int((x == float("inf")).sum()),
+              "-inf": int((x == float("-inf")).sum())}
+    return " and ".join(f"{n} {kind}" for kind, n in counts.items() if n) + f" of {x.numel()} values"
+
+
+def first_nonfinite(state) -> tuple[str, torch.Tensor] | None:
+    """(where, tensor) of the first tensor in ``state`` (dicts, lists and tuples, in stored order) holding NaN or
+    inf, ``where`` as it is indexed (``model['g1.head.0.0.weight']``, ``opt_g['state'][0]['exp_avg']``); None when
+    every tensor is finite. Walked with a stack, not recursion: a deeply nested file cannot overflow Python's."""
+    stack = [("", state)]
+    while stack:
+        where, value = stack.pop()
+        if torch.is_tensor(value):
+            if nonfinite_summary(value) is not None:
+                return where, value
+            continue
+        if isinstance(value, dict):
+            items = [(f"{where}[{k!r}]" if where else str(k), v) for k, v in value.items()]
+        elif isinstance(value, (list, tuple)):
+            items = [(f"{where}[{i}]", v) for i, v in enumerate(value)]
+        else:
+            continue
+        stack.extend(reversed(items))  # popped first to last: the first bad tensor in the file's order
+    return None
+
+
+def stored_config_error(key: str, path, err: ConfigError) -> ConfigError:
+    """``err`` raised by a value of a checkpoint's stored configuration, named as coming from that file (not as if
+    it had been typed on this command line)."""
+    return ConfigError(key, str(path), f"its stored configuration is not valid in this version of codesign: {err}")
 
 
 # What a checkpoint written by the trainer holds, and the config blocks a model and its simulator are built from.

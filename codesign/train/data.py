@@ -105,7 +105,7 @@ class SimulatedData:
         optics = self.camera.current_optics()
         out = self.simulate(*self.train_draw(step), optics=optics)
         out["irradiance"] = out["irradiance"].detach()
-        out["otf"], out["psf"] = optics.otf, optics.state.psf
+        out["otf"], out["psf"], out["phase"] = optics.otf, optics.state.psf, optics.phase
         return out
 
     def validation_batch(self, size: int) -> dict:

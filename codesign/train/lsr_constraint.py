@@ -107,19 +107,24 @@ def restore(mask, values: list[torch.Tensor]) -> None:
 
 class LSRConstraint:
     """The penalty term and the feasibility guard of a mask on an OpticalSystem (see module docstring); ``p``: the
-    exponent of the smooth LSR (metrics.lsr_p)."""
+    exponent of the smooth LSR (metrics.lsr_p); ``grids``: the focal grids it is taken over (metrics.lsr_grids)."""
 
-    def __init__(self, spec: CodesignSpec, system, lsr_max: float, p: float):
-        self.spec, self.system, self.lsr_max, self.p = spec, system, float(lsr_max), float(p)
+    def __init__(self, spec: CodesignSpec, system, lsr_max: float, p: float, grids: int = 1):
+        self.spec, self.system, self.lsr_max, self.p, self.grids = spec, system, float(lsr_max), float(p), grids
         self.shortened = 0  # updates the guard shortened
         self.undone = 0  # updates the guard undid entirely
 
-    def smooth_lsr(self, psf: torch.Tensor) -> torch.Tensor:
-        return metrics.lsr_smooth(psf, self.system.uncoded_peak, self.p)
+    def smooth_lsr(self, psf: torch.Tensor, phase: torch.Tensor | None = None, cell_m: float | None = None
+                   ) -> torch.Tensor:
+        """The smooth LSR of the window PSF ``psf`` and, given the ``phase`` it came from, of the grids offset
+        between its samples (``grids``)."""
+        samples = psf if phase is None else self.system.lsr_samples(phase, psf, self.grids, cell_m)
+        return metrics.lsr_smooth(samples, self.system.uncoded_peak, self.p)
 
     @torch.no_grad()
     def measure(self, mask) -> float:
-        return float(self.smooth_lsr(self.system.mask_psf(mask)))
+        phase = mask.phase()
+        return float(self.smooth_lsr(self.system.psf(phase, mask.plate_cell_m), phase, mask.plate_cell_m))
 
     def penalty(self, lsr: torch.Tensor) -> torch.Tensor:
         excess = torch.relu(lsr / self.lsr_max - (1.0 - self.spec.margin))

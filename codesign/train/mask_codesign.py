@@ -28,10 +28,11 @@ from codesign.train.lsr_constraint import CodesignSpec, LSRConstraint, snapshot
 
 class MaskCodesign:
     """The trainable mask of ``camera`` under ``spec`` (codesign.*) with the smooth-LSR ceiling ``lsr_max``
-    (``lsr_p``: its exponent, metrics.lsr_p); ``steps``: the training's length (the warm-up and the mask's
-    schedule); ``monitor``: a MaskMonitor for TensorBoard (None = no mask pictures)."""
+    (``lsr_p``, ``lsr_grids``: its exponent and focal grids, metrics.lsr_p / lsr_grids); ``steps``: the training's
+    length (the warm-up and the mask's schedule); ``monitor``: a MaskMonitor for TensorBoard (None = no mask
+    pictures)."""
 
-    def __init__(self, *, camera, spec: CodesignSpec, lsr_max: float, lsr_p: float, steps: int, device,
+    def __init__(self, *, camera, spec: CodesignSpec, lsr_max: float, lsr_p: float, steps: int, device, lsr_grids=1,
                  monitor=None, dist: distributed.DistContext = distributed.SINGLE):
         self.camera, self.mask, self.spec, self.steps, self.dist = camera, camera.mask, spec, steps, dist
         self.params = list(self.mask.parameters())
@@ -40,7 +41,7 @@ class MaskCodesign:
             camera.set_trainable(True)  # DDP registers the parameters that require a gradient when wrapping
             camera.mask_forward = distributed.wrap(self.mask, dist, device)
             camera.set_trainable(trainable)
-        self.constraint = LSRConstraint(spec, camera.system, lsr_max, lsr_p)
+        self.constraint = LSRConstraint(spec, camera.system, lsr_max, lsr_p, lsr_grids)
         self.monitor = monitor
         self.lsr = self.constraint.measure(self.mask)  # smooth LSR of the current parameters
         self.max_rank_difference = 0.0
@@ -70,7 +71,8 @@ class MaskCodesign:
         """{"lsr_penalty": ...} when the mask trains this step (its batch carries the window PSF), else {}."""
         if "psf" not in batch:
             return {}
-        return {"lsr_penalty": self.constraint.penalty(self.constraint.smooth_lsr(batch["psf"]))}
+        lsr = self.constraint.smooth_lsr(batch["psf"], batch.get("phase"), self.mask.plate_cell_m)
+        return {"lsr_penalty": self.constraint.penalty(lsr)}
 
     def trained_parameters(self) -> list:
         """The mask parameters the generator step updates this step (checked for a finite gradient)."""

@@ -31,7 +31,7 @@ from codesign.train.checkpoint import CHECKPOINT_NAME, rng_state, save_checkpoin
 from codesign.train.gan_update import GANUpdate
 from codesign.train.optim import EMA, GuardedUpdate, adam, param_groups
 from codesign.train.progress import LossRecord
-from codesign.train.signals import TrainingInterrupted, stop_requests
+from codesign.signals import TrainingInterrupted, stop_requests
 from codesign.train.spec import TrainerSpec
 
 log = logging.getLogger("codesign.train")

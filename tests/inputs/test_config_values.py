@@ -58,7 +58,8 @@ ROWS = [
     ("simulate", "simulate.laser_strengths=5", "simulate.laser_strengths = 5: must be a non-empty list of laser "
      "strengths >= 0"),
     ("simulate", "simulate.laser_angle_rad=5", "simulate.laser_angle_rad = 5: must be [n_u, n_v] in radians"),
-    ("simulate", "simulate.laser_angle_rad=[nan,0]", "simulate.laser_angle_rad[0] = nan: must be a finite number"),
+    ("simulate", "simulate.laser_angle_rad=[nan,0]", "simulate.laser_angle_rad[0] = nan: must be a finite number "
+     ">= -1.5708 and <= 1.5708"),  # an incidence beyond 90 degrees never reaches the aperture
     ("simulate", "simulate.params.alpha_b=-1", "simulate.params.alpha_b = -1: must be a finite number >= 0"),
     ("simulate", "+simulate.params.foo=1", "simulate.params.foo = 1: is not a scene parameter; allowed: alpha_l, "
      "alpha_b, laser_angle_rad, c1, c2, dark_current_mean_e, read_noise_mean_e, read_noise_std_e, exposure_s"),
@@ -145,7 +146,8 @@ def test_root_key_allowlist_accepts_every_shipped_config(experiment):
     ('{"kind": "spiral", "charge": 2.0, "axicon_cycles": 3.0, "defocus_rad": 0.0, "charg": 5.0, "note": "x"}',
      "its key(s) charg, note are not keys of a spiral record (allowed: axicon_bounds, axicon_cycles, charge, "
      "charge_bounds, check_agree, defocus_bounds, defocus_rad, feasible, kind, levels, lsr, lsr_limit, "
-     "lsr_over_limit, lsr_sampled, lsr_smooth, mtf_mean, optics, phase_resolved, restorability, window_energy)"),
+     "lsr_over_limit, lsr_sampled, lsr_smooth, mtf_mean, optics, partial, phase_resolved, restorability, "
+     "stop_reason, window_energy)"),
 ], ids=["unequal-rings", "nan", "truncated", "not-a-mask", "unknown-keys"])
 def test_mask_init_file_with_bad_rings(tmp_path, monkeypatch, capsys, content, message):
     path = tmp_path / "best_mask.json"

@@ -287,12 +287,10 @@ def test_the_same_training_experiment_may_continue_on_its_folder(tmp_path):
         rundir.check_earlier_run(run_dir, task)  # no error: resume is defined there
         with pytest.raises(ConfigError, match=rf"holds the results of \+experiment={task} "):
             rundir.check_earlier_run(run_dir, "mask_search")
-    empty, users = tmp_path / "empty", tmp_path / "users"
+    empty = tmp_path / "empty"
     empty.mkdir()
-    users.mkdir()
-    (users / "notes.txt").write_text("mine\n")
-    for folder in (empty, users):  # no run wrote there: any experiment may use it
-        rundir.check_earlier_run(folder, "psf")
+    rundir.check_earlier_run(empty, "psf")  # no run wrote there: any experiment may use it (a folder of the user's
+    # files is refused: tests/inputs/test_run_folders.py)
 
 
 def test_an_output_path_taken_by_a_folder_is_refused_before_any_work(tmp_path, monkeypatch, capsys):

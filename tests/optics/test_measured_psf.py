@@ -62,19 +62,20 @@ def test_unit_energy_and_centring_by_whole_pixels(tmp_path):
     frame = np.zeros((41, 37))
     frame[20 + 7 - 1: 20 + 7 + 2, 18 - 5 - 1: 18 - 5 + 2] = [[1, 2, 1], [2, 6, 2], [1, 2.5, 1]]  # off by (7, -5) px
     frame *= 123.0  # any scale: normalized to unit energy
-    m = load_measured(_spec(tmp_path, frame, psf_centre="centroid"))
+    # psf_energy 0.2: a frame that held all the light in 3 x 3 px would be narrower than diffraction (refused)
+    m = load_measured(_spec(tmp_path, frame, psf_centre="centroid", psf_energy=0.2))
     assert m.frame.sum() == pytest.approx(1.0, abs=1e-15)
     placed = m.place(OpticsSpec.with_samples_across(64, focal_n=64))
     assert placed.shift == (-7, 5) and placed.outside == pytest.approx(0.0, abs=1e-15)
-    assert placed.psf.sum() == pytest.approx(1.0, abs=1e-14)
+    assert placed.psf.sum() == pytest.approx(0.2, abs=1e-14)
     cy, cx = centroid_px(placed.psf)
     assert abs(cy) <= 0.5 and abs(cx) <= 0.5  # the centroid on the axis, to the nearest whole pixel
     # a whole-pixel shift at the window's pitch: the samples themselves, none interpolated
-    np.testing.assert_array_equal(placed.psf[31:34, 31:34], frame[26:29, 12:15] / frame.sum())
+    np.testing.assert_array_equal(placed.psf[31:34, 31:34], frame[26:29, 12:15] / frame.sum() * 0.2)
     # psf_energy: the share of all the light the frame holds; frame = the file's centre pixel on the axis
-    m = load_measured(_spec(tmp_path, frame, psf_energy=0.25, psf_centre="frame"))
+    m = load_measured(_spec(tmp_path, frame, psf_energy=0.125, psf_centre="frame"))
     placed = m.place(OpticsSpec.with_samples_across(64, focal_n=64))
-    assert placed.shift == (0, 0) and placed.psf.sum() == pytest.approx(0.25, abs=1e-15)
+    assert placed.shift == (0, 0) and placed.psf.sum() == pytest.approx(0.125, abs=1e-15)
 
 
 def test_design_centring_puts_the_centroid_where_the_design_psfs_is(tmp_path):
@@ -83,11 +84,12 @@ def test_design_centring_puts_the_centroid_where_the_design_psfs_is(tmp_path):
     design[32 + 9, 32 - 4] = 1.0  # a design PSF 9 px below and 4 px left of the axis
     frame = np.zeros((21, 21))
     frame[10, 10] = 1.0  # the measured spot in the frame's centre: where the axis lies is not known
-    placed = load_measured(_spec(tmp_path, frame)).place(spec, design)
-    assert placed.shift == (9, -4) and placed.psf[41, 28] == 1.0
+    # psf_energy 0.01: one pixel holding all the light would be narrower than diffraction (refused)
+    placed = load_measured(_spec(tmp_path, frame, psf_energy=0.01)).place(spec, design)
+    assert placed.shift == (9, -4) and placed.psf[41, 28] == 0.01
     # at half the window's pitch: the same place in metres, 18 and -8 file pixels
-    placed = load_measured(_spec(tmp_path, frame, psf_pitch_m=PITCH / 2)).place(spec, design)
-    assert placed.shift == (18, -8) and placed.psf.sum() == pytest.approx(1.0, abs=1e-14)
+    placed = load_measured(_spec(tmp_path, frame, psf_pitch_m=PITCH / 2, psf_energy=0.01)).place(spec, design)
+    assert placed.shift == (18, -8) and placed.psf.sum() == pytest.approx(0.01, abs=1e-14)
     assert np.unravel_index(placed.psf.argmax(), placed.psf.shape) == (41, 28)
 
 
@@ -125,7 +127,7 @@ def test_the_dark_frame_is_subtracted_and_what_falls_below_it_clipped(tmp_path):
     frame = np.full((9, 9), 100, np.uint16)
     frame[4, 4], frame[0, 0] = 1100, 97  # 1000 counts of light; one sample 3 counts below the dark level
     dark = np.full((9, 9), 100, np.uint16)
-    spec = OpticsSpec.with_samples_across(64, focal_n=64, psf_file=_png(tmp_path / "f.png", frame),
+    spec = OpticsSpec.with_samples_across(64, focal_n=64, psf_file=_png(tmp_path / "f.png", frame), psf_energy=0.05,
                                           psf_pitch_m=PITCH, psf_dark_file=_png(tmp_path / "d.png", dark))
     m = load_measured(spec)
     assert m.clipped == 1 and m.frame[4, 4] == 1.0 and m.frame.sum() == 1.0 and m.kind == "16-bit"

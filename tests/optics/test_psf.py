@@ -375,7 +375,7 @@ def test_zero_phase_has_unit_lsr(method):
     psf = system.psf(phase)
     h0 = system.uncoded_peak
     assert float(metrics.lsr_sampled(psf, h0)) == pytest.approx(1.0, abs=1e-6)
-    assert system.refined_peak(phase, psf) / h0 == pytest.approx(1.0, abs=1e-6)
+    assert system.continuous_peak(phase).value / h0 == pytest.approx(1.0, abs=1e-6)
     assert float(metrics.lsr_smooth(psf, h0, p=1e4)) == pytest.approx(1.0, abs=1e-3)
 
 
@@ -384,7 +384,7 @@ def test_zero_phase_unit_lsr_float32():
     system = OpticalSystem(spec, dtype=torch.float32)
     psf = system.uncoded_psf()
     assert float(metrics.lsr_sampled(psf, system.uncoded_peak)) == pytest.approx(1.0, abs=1e-5)
-    assert system.refined_peak(torch.zeros_like(system.grid.aperture), psf) / system.uncoded_peak == \
+    assert system.continuous_peak(torch.zeros_like(system.grid.aperture)).value / system.uncoded_peak == \
         pytest.approx(1.0, abs=1e-5)
 
 
@@ -392,7 +392,7 @@ def test_halfring_lowers_lsr(small_system64):
     phase = _phases(small_system64)["halfring"]
     psf = small_system64.psf(phase)
     h0 = small_system64.uncoded_peak
-    refined = small_system64.refined_peak(phase, psf) / h0
+    refined = small_system64.continuous_peak(phase).value / h0
     sampled = float(metrics.lsr_sampled(psf, h0))
     assert 0 < sampled <= refined < 0.1
     assert refined <= sampled * 1.5
@@ -451,7 +451,7 @@ def test_tilt_moves_peak_to_f_alpha(method, axis, shift_px):
     assert tilt_error(method, axis, shift_px, tilted) <= TILT_TOL_PX  # sub-pixel estimate (measured ~0.004 px)
     assert abs(still) <= 1e-6
     # a tilt is lossless: the continuous peak stays h0(0)
-    assert system.refined_peak(phase, psf) / system.uncoded_peak == pytest.approx(1.0, abs=2e-3)
+    assert system.continuous_peak(phase).value / system.uncoded_peak == pytest.approx(1.0, abs=2e-3)
 
 
 # ---- MTF ----------------------------------------------------------------------------------------------------
@@ -551,7 +551,6 @@ def test_default_sampling_lsr_within_one_percent_of_paper_sampling():
         spec = OpticsSpec(pupil_pitch_m=pitch, propagator="mft")
         system = OpticalSystem(spec, dtype=torch.float64)
         phase = published_halfring(system.grid, spec.aperture_diameter_m).phase().detach()
-        psf = system.psf(phase)
-        lsr[pitch] = system.refined_peak(phase, psf) / system.uncoded_peak
+        lsr[pitch] = system.continuous_peak(phase).value / system.uncoded_peak
     assert lsr[9.974e-6] == pytest.approx(lsr[3.74e-6], rel=1e-2)  # measured -0.13 %
     assert 0.005 < lsr[3.74e-6] < 0.02

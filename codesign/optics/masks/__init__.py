@@ -26,7 +26,7 @@ from codesign.optics.masks.base import (
 )
 from codesign.optics.masks.halfring import PUBLISHED_R, PUBLISHED_THETA, HalfRingMask
 from codesign.optics.masks.pixel import PixelPhaseMask
-from codesign.optics.masks.records import RECORD_PATH, load_record, write_record
+from codesign.optics.masks.records import RECORD_PATH, check_mask_init, init_allowed, load_record, write_record
 from codesign.optics.masks.spiral import SpiralMask
 from codesign.optics.masks.spline import SplineMask
 from codesign.optics.masks.zernike import ZernikeMask, ZernikeSpec
@@ -78,8 +78,7 @@ def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix:
     named = NAMED_STARTS if cls.fits_phases else ()
     if init is None or init in named:
         return cls.from_config(cfg, grid, aperture_diameter_m, prefix=prefix)
-    allowed = f"must be {'one of ' + ', '.join(named) + ' or ' if named else 'null or '}{RECORD_PATH}"
-    record = load_record(init, f"{prefix}.init", allowed)
+    record = load_record(init, f"{prefix}.init", init_allowed(kind))
     if record["kind"] == kind:
         # the record is the design: the settings that fix its phase with its values are the record's
         as_list = lambda v: list(v) if isinstance(v, (list, tuple)) else v  # noqa: E731
@@ -89,12 +88,47 @@ def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix:
                             prefix, init, k, record[k], cfg[k])
             if k in record:
                 cfg[k] = record[k]
+        cfg["levels"] = design_levels(cfg, record, prefix)
         return cls.from_record(cfg, record, grid, aperture_diameter_m, prefix=prefix)
     if not cls.fits_phases:
         raise ConfigError(f"{prefix}.init", init, f"holds a {record['kind']} mask; a {kind} mask starts only from a "
                           f"{kind} record: use mask={record['kind']} to build it as it is")
     return cls.from_config(cfg, grid, aperture_diameter_m, start_phase=record_phase(record, grid, aperture_diameter_m),
                            prefix=prefix)
+
+
+_SAID: set = set()  # the levels notes already logged (export and tolerance build one design twice)
+
+
+def _say(level: int, text: str) -> None:
+    if text not in _SAID:
+        _SAID.add(text)
+        log.log(level, "%s", text)
+
+
+def design_levels(cfg: Mapping[str, Any], record: Mapping[str, Any], prefix: str = "mask") -> int | None:
+    """The levels a record's design is built with: its own (an 8-level design stays one), unless ``levels`` is set
+    in the config (quantizing it anew, said when it differs)."""
+    ours, theirs = cfg.get("levels"), record.get("levels")
+    where = f"{prefix}.init {getattr(record, 'path', '(record)')}"
+    if ours is None:
+        if theirs is not None:
+            _say(logging.INFO, f"{where}: levels = {theirs}: the design is quantized to its {theirs} levels")
+        return theirs
+    if ours != theirs:
+        theirs = "null (continuous)" if theirs is None else theirs
+        _say(logging.WARNING, f"{where}: levels = {theirs} (the design's); {prefix}.levels = {ours} is used "
+                              f"instead: the design is quantized to {ours} levels")
+    return ours
+
+
+def levels_of_design(cfg: Mapping[str, Any], prefix: str = "mask") -> int | None:
+    """The levels the design ``cfg`` names is built with (``levels``, else its record's): for a fabrication export
+    that makes a plate of its levels unless told otherwise."""
+    init = cfg.get("init")
+    if cfg.get("levels") is not None or not isinstance(init, (str, os.PathLike)) or init in NAMED_STARTS:
+        return cfg.get("levels")
+    return load_record(init, f"{prefix}.init", f"must be null or {RECORD_PATH}").get("levels")
 
 
 def config_of_design(cfg: Mapping[str, Any], prefix: str = "mask") -> dict:
@@ -110,7 +144,8 @@ def config_of_design(cfg: Mapping[str, Any], prefix: str = "mask") -> dict:
     kind = cfg.get("basis") if cfg.get("kind") == "freeform" else cfg.get("kind")
     if record["kind"] == kind:
         return cfg
-    return {**FAMILIES[record["kind"]].Spec.defaults(), "kind": record["kind"], "init": init}
+    return {**FAMILIES[record["kind"]].Spec.defaults(), "kind": record["kind"], "init": init,
+            "levels": cfg.get("levels")}  # a typed mask.levels holds for any family's design (design_levels)
 
 
 def record_phase(record: dict, grid, aperture_diameter_m: float) -> torch.Tensor:
@@ -144,5 +179,6 @@ for _kind in families():
 register("mask", "freeform", dict(FREEFORM_DEFAULTS))
 
 __all__ = ["Mask", "MaskSpec", "HalfRingMask", "PixelPhaseMask", "ZernikeMask", "SpiralMask", "SplineMask", "FAMILIES",
-           "build_mask", "config_of_design", "families", "load_record", "published_halfring", "published_mask_config",
-           "quantize", "record_phase", "write_record", "PUBLISHED_R", "PUBLISHED_THETA", "RECORD_PATH"]
+           "build_mask", "check_mask_init", "config_of_design", "design_levels", "families", "levels_of_design",
+           "load_record", "published_halfring", "published_mask_config", "quantize", "record_phase", "write_record",
+           "PUBLISHED_R", "PUBLISHED_THETA", "RECORD_PATH"]

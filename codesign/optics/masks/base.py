@@ -18,6 +18,25 @@ from codesign.optics.grid import PupilGrid
 from codesign.spec_base import SpecMixin
 
 FAMILIES: dict[str, type["Mask"]] = {}
+# the bound [rad] of a phase value a record holds (pixel values, spline controls, Zernike coefficients): 100 times
+# the config's bound on a phase (defocus_rad, the search boxes: 1e4), so that every phase a config makes is accepted
+# (the corner controls of a spline, outside the aperture, reach 2.5e4 for the largest defocus, 8e5 with the coarsest
+# control spacing) and a meaningless 1e30 is refused
+PHASE_LIMIT = 1e6
+
+
+def require_levels(key: str, value: Any) -> int | None:
+    """``levels``: null (continuous) or an integer in [2, 65536], as mask.levels and a record's levels."""
+    return None if value is None else require_number(key, value, lo=2, hi=65536, integer=True)
+
+
+def require_phases(key: str, values: list) -> None:
+    """Every value of a record's list of phases [rad] within +-PHASE_LIMIT (the first one outside named as
+    ``key[i]``); a fast pass first: a pixel record holds 10^5 values."""
+    if all(-PHASE_LIMIT <= v <= PHASE_LIMIT for v in values):
+        return
+    for i, v in enumerate(values):
+        require_number(f"{key}[{i}]", v, lo=-PHASE_LIMIT, hi=PHASE_LIMIT)
 
 
 @dataclass(frozen=True)
@@ -33,9 +52,7 @@ class MaskSpec(SpecMixin):
     prefix: str = field(default="mask", compare=False, repr=False)
 
     def __post_init__(self) -> None:
-        if self.levels is not None:
-            object.__setattr__(self, "levels", require_number(f"{self.prefix}.levels", self.levels, lo=2, hi=65536,
-                                                              integer=True))
+        object.__setattr__(self, "levels", require_levels(f"{self.prefix}.levels", self.levels))
 
     @classmethod
     def defaults(cls) -> dict:
@@ -134,8 +151,7 @@ class Mask(torch.nn.Module):
     def __init__(self, grid: PupilGrid, levels: int | None = None):
         super().__init__()
         self.grid = grid
-        self.levels = None if levels is None else require_number("mask.levels", levels, lo=2, hi=65536,
-                                                                  integer=True)
+        self.levels = require_levels("mask.levels", levels)
 
     # ---- the phase ------------------------------------------------------------------------------------------------
     @property
@@ -254,6 +270,11 @@ class Mask(torch.nn.Module):
         """Build from a validated ``mask`` mapping; ``record``: a loaded mask.init record of this family (its values
         win); ``start_phase``: the (n, n) phase of another family's record, fitted (families that fit phases)."""
         raise NotImplementedError
+
+    @classmethod
+    def check_record(cls, record: Mapping[str, Any], prefix: str) -> None:
+        """Every parameter value and setting of a record of this family by the rules of the config keys (the record's
+        key names after ``prefix.``; load_record has checked their JSON types). Default: nothing more to check."""
 
     @classmethod
     def from_record(cls, cfg: Mapping[str, Any], record: dict, grid: PupilGrid, aperture_diameter_m: float,

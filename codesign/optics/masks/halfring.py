@@ -149,6 +149,39 @@ class _OctantSumsFn(torch.autograd.Function):
         return gprof.index_add_(1, rep_radius, gg.view(2 * m, -1)), None, None
 
 
+def check_rings(r: Sequence, theta: Sequence, prefix: str) -> tuple[list[float], list[float]]:
+    """Ring radii in (0, 1e4] (units of lambda f / W_a) and as many angles in [-1e4, 1e4] rad (an angle beyond is
+    noise once multiplied by the orders m_o), as floats; ConfigError naming ``prefix.r[i]`` / ``prefix.theta[i]``."""
+    r, theta = [float(v) for v in r], [float(v) for v in theta]  # numpy / torch scalars too
+    if len(r) == 0 or len(r) != len(theta):
+        raise ConfigError(f"{prefix}.theta", theta, f"must have the same length as {prefix}.r "
+                          f"({len(r)} values) and at least one value")
+    r = [require_number(f"{prefix}.r[{i}]", v, lo=0, lo_open=True, hi=1e4) for i, v in enumerate(r)]
+    theta = [require_number(f"{prefix}.theta[{i}]", v, lo=-1e4, hi=1e4) for i, v in enumerate(theta)]
+    return r, theta
+
+
+def check_m_range(m_range: Any, prefix: str) -> tuple[int, int]:
+    """[m_min, m_max]: integers, 0 <= m_min <= m_max <= 99."""
+    m_range = require_list(f"{prefix}.m_range", m_range, "must be [m_min, m_max]")
+    if len(m_range) != 2:
+        raise ConfigError(f"{prefix}.m_range", list(m_range), "must be [m_min, m_max]")
+    m_lo = require_number(f"{prefix}.m_range[0]", m_range[0], lo=0, hi=99, integer=True)
+    return m_lo, require_number(f"{prefix}.m_range[1]", m_range[1], lo=m_lo, hi=99, integer=True)
+
+
+def check_r_bounds(r_bounds: Any, prefix: str) -> tuple[float, float]:
+    """[lo, hi] with 0 < lo < hi: the box of r."""
+    allowed = "must be [lo, hi] with 0 < lo < hi"
+    r_bounds = require_list(f"{prefix}.r_bounds", r_bounds, allowed)
+    if len(r_bounds) != 2:
+        raise ConfigError(f"{prefix}.r_bounds", list(r_bounds), allowed)
+    lo, hi = (require_number(f"{prefix}.r_bounds[{i}]", v, lo=0, lo_open=True) for i, v in enumerate(r_bounds))
+    if lo >= hi:
+        raise ConfigError(f"{prefix}.r_bounds", list(r_bounds), allowed)
+    return lo, hi
+
+
 def plain_rings(n: int) -> tuple[list[float], list[float]]:
     """A plain start for ``n`` rings: radii geometric from 4 to 90 lambda f / W_a, angles 1.2 rad."""
     if n == 1:
@@ -184,28 +217,13 @@ class HalfRingMask(Mask):
                  strategy: str = HalfRingSpec.strategy, table_size: int = HalfRingSpec.table_size,
                  r_bounds: Sequence[float] = HalfRingSpec.r_bounds, prefix: str = "mask", levels: int | None = None):
         super().__init__(grid, levels)
-        r, theta = [float(v) for v in r], [float(v) for v in theta]
-        if len(r) == 0 or len(r) != len(theta):
-            raise ConfigError(f"{prefix}.theta", theta, f"must have the same length as {prefix}.r "
-                              f"({len(r)} values) and at least one value")
-        for i, v in enumerate(r):
-            require_number(f"{prefix}.r[{i}]", v, lo=0, lo_open=True, hi=1e4)
-        for i, v in enumerate(theta):
-            require_number(f"{prefix}.theta[{i}]", v)
-        if len(m_range) != 2:
-            raise ConfigError(f"{prefix}.m_range", list(m_range), "must be [m_min, m_max]")
-        m_lo = require_number(f"{prefix}.m_range[0]", m_range[0], lo=0, hi=99, integer=True)
-        m_hi = require_number(f"{prefix}.m_range[1]", m_range[1], lo=m_lo, hi=99, integer=True)
+        r, theta = check_rings(r, theta, prefix)
+        m_lo, m_hi = check_m_range(m_range, prefix)
         self.convention = require_choice(f"{prefix}.convention", convention, CONVENTIONS)
         self.harmonic_sign = require_choice(f"{prefix}.harmonic_sign", harmonic_sign, HARMONIC_SIGNS)
         self.strategy = require_choice(f"{prefix}.strategy", strategy, STRATEGIES)
         self.table_size = require_number(f"{prefix}.table_size", table_size, lo=16, hi=2**24, integer=True)
-        if len(r_bounds) != 2:
-            raise ConfigError(f"{prefix}.r_bounds", list(r_bounds), "must be [lo, hi] with 0 < lo < hi")
-        lo, hi = (require_number(f"{prefix}.r_bounds[{i}]", v, lo=0, lo_open=True) for i, v in enumerate(r_bounds))
-        if lo >= hi:
-            raise ConfigError(f"{prefix}.r_bounds", list(r_bounds), "must be [lo, hi] with 0 < lo < hi")
-        self.r_bounds = (lo, hi)
+        self.r_bounds = check_r_bounds(r_bounds, prefix)
         self.aperture_diameter_m = require_number("optics.aperture_diameter_m", aperture_diameter_m, lo=0,
                                                   lo_open=True)
         dtype, device = grid.rho.dtype, grid.rho.device
@@ -314,6 +332,17 @@ class HalfRingMask(Mask):
         v = self.parameter_values()
         return HalfRingMask(grid, aperture_diameter_m, v["r"], v["theta"], self.m_range, self.convention,
                             self.harmonic_sign, "exact", self.table_size, self.r_bounds, levels=self.levels).freeze()
+
+    @classmethod
+    def check_record(cls, record: Mapping[str, Any], prefix: str) -> None:
+        check_rings(record["r"], record["theta"], prefix)
+        if "m_range" in record:
+            check_m_range(record["m_range"], prefix)
+        for key, choices in (("convention", CONVENTIONS), ("harmonic_sign", HARMONIC_SIGNS)):
+            if key in record:
+                require_choice(f"{prefix}.{key}", record[key], choices)
+        if "r_bounds" in record:
+            check_r_bounds(record["r_bounds"], prefix)
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any], grid: PupilGrid, aperture_diameter_m: float,

@@ -16,9 +16,9 @@ from typing import Any, Mapping
 
 import torch
 
-from codesign.errors import ConfigError, require_choice
+from codesign.errors import ConfigError, require_choice, require_number
 from codesign.optics.grid import PupilGrid
-from codesign.optics.masks.base import NAMED_STARTS, Mask, PhaseFitSpec, fill_outside
+from codesign.optics.masks.base import NAMED_STARTS, Mask, PhaseFitSpec, fill_outside, require_phases
 from codesign.optics.masks.starts import named_start
 from codesign.optics.spec import OpticsSpec
 
@@ -105,6 +105,10 @@ class PixelPhaseMask(Mask):
                               levels=self.levels).freeze()
 
     @classmethod
+    def check_record(cls, record: Mapping[str, Any], prefix: str) -> None:
+        check_plate(record, prefix)
+
+    @classmethod
     def from_config(cls, cfg: Mapping[str, Any], grid: PupilGrid, aperture_diameter_m: float,
                     record: dict | None = None, start_phase: torch.Tensor | None = None,
                     prefix: str = "mask") -> "PixelPhaseMask":
@@ -118,6 +122,45 @@ class PixelPhaseMask(Mask):
         return cls(grid, start_phase, levels=cfg.get("levels"))
 
 
+def support_size(n: int, pitch: float, radius_m: float) -> int:
+    """How many samples of an n x n grid at ``pitch`` lie within ``radius_m`` of the axis: PupilGrid.from_spec's
+    support, with its comparison, counted on the box around the disk only (a record's grid is never allocated)."""
+    half = min(n // 2, int(radius_m / pitch) + 1)
+    k = torch.arange(-half, min(n - n // 2 - 1, half) + 1)
+    r2_max = (radius_m / pitch) ** 2
+    return sum(int(((rows[:, None] ** 2 + k[None, :] ** 2).reshape(-1) <= r2_max).sum()) for rows in k.split(256))
+
+
+def record_spec(record: Mapping[str, Any], prefix: str = "optics") -> OpticsSpec:
+    """The optics a pixel record's grid belongs to: its ``optics`` (defaults where it has none) at its pitch."""
+    optics = record.get("optics") or {}
+    fields = {k: optics[k] for k in ("wavelength_m", "focal_length_m", "aperture_diameter_m",
+                                      "supergaussian_order") if k in optics}
+    return OpticsSpec(**fields, pupil_pitch_m=float(record["pitch_m"]), focal_n=8, focal_pitch_m=1e-9, prefix=prefix)
+
+
+def check_plate(record: Mapping[str, Any], prefix: str) -> None:
+    """A pixel record's grid (grid_n, pitch_m: the optics.pupil_* rules, and the grid holds the aperture) and one
+    value per sample of its support, each a phase within +-PHASE_LIMIT."""
+    n = require_number(f"{prefix}.grid_n", record["grid_n"], lo=2, hi=65536, integer=True)
+    require_number(f"{prefix}.pitch_m", record["pitch_m"], lo=0, lo_open=True)
+    spec = record_spec(record, f"{prefix}.optics")
+    if n < spec.min_pupil_n:
+        raise ConfigError(f"{prefix}.grid_n", n, f"its grid ({n} x {spec.pupil_pitch_m:.3g} m) cannot hold the "
+                          f"aperture (W_a = {spec.aperture_diameter_m:.4g} m): must be >= {spec.min_pupil_n}")
+    values = record["values"]
+    radius = spec.aperture_support_radius_m
+    box = (2 * min(n // 2, radius / spec.pupil_pitch_m + 1) + 1) ** 2
+    # counted when the box is at most ~10x the largest record's values (a tiny pitch_m: estimated, never counted)
+    count = support_size(n, spec.pupil_pitch_m, radius) if box <= 2**25 else None
+    if count != len(values):
+        size = f"{count}" if count is not None else f"about {math.pi * (radius / spec.pupil_pitch_m) ** 2:.3g}"
+        raise ConfigError(f"{prefix}.values", values, f"must hold one phase per sample of its grid inside the "
+                          f"aperture ({size} for grid_n = {n}, pitch_m = {spec.pupil_pitch_m:g}), it holds "
+                          f"{len(values)}")
+    require_phases(f"{prefix}.values", values)
+
+
 def record_plate(record: dict, grid: PupilGrid) -> torch.Tensor:
     """The (n, n) phase on ``grid`` of a pixel record's plate (designed on another grid: sampled there, cell by
     cell)."""
@@ -127,18 +170,14 @@ def record_plate(record: dict, grid: PupilGrid) -> torch.Tensor:
         return grid.scatter(values.to(grid.rho)).detach()
     src = _record_grid(record, grid)
     if values.numel() != src.support.numel():
-        raise ConfigError("mask.init", record.get("path", "record"), f"holds {values.numel()} pixel values, "
+        raise ConfigError("mask.init", getattr(record, "path", "record"), f"holds {values.numel()} pixel values, "
                           f"its grid ({src.n} x {src.n}) has {src.support.numel()} samples in the aperture")
     return resample_plate(src.scatter(values), src, grid).to(grid.rho)
 
 
 def _record_grid(record: dict, grid: PupilGrid) -> PupilGrid:
-    """The pupil grid a pixel record was designed on (its optics, else this grid's aperture at its pitch)."""
-    optics = record.get("optics") or {}
-    fields = {k: optics[k] for k in ("wavelength_m", "focal_length_m", "aperture_diameter_m",
-                                      "supergaussian_order") if k in optics}
-    spec = OpticsSpec(**fields, pupil_pitch_m=float(record["pitch_m"]), pupil_n=int(record["grid_n"]),
-                      focal_n=8, focal_pitch_m=1e-9)
+    """The pupil grid a pixel record was designed on (its optics, the defaults where it has none, at its pitch)."""
+    spec = record_spec(record).replace(pupil_n=int(record["grid_n"]))
     return PupilGrid.from_spec(spec, dtype=torch.float64)
 
 

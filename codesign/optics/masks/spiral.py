@@ -22,6 +22,15 @@ from codesign.optics.grid import PupilGrid
 from codesign.optics.masks.base import Mask, MaskSpec
 
 NAMES = ("charge", "axicon_cycles", "defocus_rad")
+BOUND_KEYS = ("charge_bounds", "axicon_bounds", "defocus_bounds")
+
+
+def check_box(pair, key: str) -> tuple[float, float]:
+    """[lo, hi] with -1e4 <= lo < hi <= 1e4: the box of one coefficient."""
+    lo, hi = require_numbers(key, pair, "must be [lo, hi] with lo < hi", 2, lo=-1e4, hi=1e4)
+    if lo >= hi:
+        raise ConfigError(key, [lo, hi], "must be [lo, hi] with lo < hi")
+    return lo, hi
 
 
 @dataclass(frozen=True)
@@ -57,12 +66,7 @@ class SpiralMask(Mask):
         super().__init__(grid, levels)
         values = [require_number(f"{prefix}.{k}", v, lo=-1e4, hi=1e4) for k, v in
                   zip(NAMES, (charge, axicon_cycles, defocus_rad))]
-        self.box = []
-        for key, pair in zip(("charge_bounds", "axicon_bounds", "defocus_bounds"), bounds):
-            lo, hi = require_numbers(f"{prefix}.{key}", pair, "must be [lo, hi] with lo < hi", 2, lo=-1e4, hi=1e4)
-            if lo >= hi:
-                raise ConfigError(f"{prefix}.{key}", [lo, hi], "must be [lo, hi] with lo < hi")
-            self.box.append((lo, hi))
+        self.box = [check_box(pair, f"{prefix}.{key}") for key, pair in zip(BOUND_KEYS, bounds)]
         self.aperture_diameter_m = aperture_diameter_m
         dtype, device = grid.rho.dtype, grid.rho.device
         rho = grid.rho.reshape(-1)[grid.support] / (aperture_diameter_m / 2)
@@ -101,9 +105,17 @@ class SpiralMask(Mask):
                           levels=self.levels).freeze()
 
     @classmethod
+    def check_record(cls, record: Mapping[str, Any], prefix: str) -> None:
+        for k in NAMES:
+            require_number(f"{prefix}.{k}", record[k], lo=-1e4, hi=1e4)
+        for key in BOUND_KEYS:
+            if key in record:
+                check_box(record[key], f"{prefix}.{key}")
+
+    @classmethod
     def from_config(cls, cfg: Mapping[str, Any], grid: PupilGrid, aperture_diameter_m: float,
                     record: dict | None = None, prefix: str = "mask") -> "SpiralMask":
         src = record if record is not None else cfg
-        bounds = tuple(cfg.get(k, getattr(SpiralSpec, k)) for k in ("charge_bounds", "axicon_bounds", "defocus_bounds"))
+        bounds = tuple(cfg.get(k, getattr(SpiralSpec, k)) for k in BOUND_KEYS)
         return cls(grid, aperture_diameter_m, *(src.get(k, getattr(SpiralSpec, k)) for k in NAMES), bounds=bounds,
                    prefix=prefix, levels=cfg.get("levels"))

@@ -16,9 +16,9 @@ from typing import Any, Mapping
 
 import torch
 
-from codesign.errors import require_choice, require_number
+from codesign.errors import ConfigError, require_choice, require_number
 from codesign.optics.grid import PupilGrid
-from codesign.optics.masks.base import NAMED_STARTS, Mask, PhaseFitSpec, fill_outside
+from codesign.optics.masks.base import NAMED_STARTS, Mask, PhaseFitSpec, fill_outside, require_phases
 from codesign.optics.masks.starts import named_start
 
 
@@ -51,6 +51,12 @@ def control_half(support_radius_m: float, control_pitch_m: float) -> int:
     return int(math.ceil(support_radius_m / control_pitch_m)) + 2
 
 
+def check_control_grid(control_pitch_m, half, prefix: str) -> tuple[float, int]:
+    """The control pitch [m] (> 0, at most 10 m: an aperture's bound) and K (an integer in [1, 100000])."""
+    return (require_number(f"{prefix}.control_pitch_m", control_pitch_m, lo=0, lo_open=True, hi=10),
+            require_number(f"{prefix}.control_half", half, lo=1, hi=100000, integer=True))
+
+
 class SplineMask(Mask):
     """Learnable control values ``controls`` (2K+1, 2K+1) [rad] at pitch ``control_pitch_m`` [m], centred on the
     axis (``half`` = K; control_half gives the K that covers an aperture)."""
@@ -67,8 +73,7 @@ class SplineMask(Mask):
     def __init__(self, grid: PupilGrid, control_pitch_m: float, half: int, controls: torch.Tensor | None = None,
                  levels: int | None = None, prefix: str = "mask"):
         super().__init__(grid, levels)
-        self.control_pitch_m = require_number(f"{prefix}.control_pitch_m", control_pitch_m, lo=0, lo_open=True)
-        self.half = require_number(f"{prefix}.control_half", half, lo=1, hi=100000, integer=True)
+        self.control_pitch_m, self.half = check_control_grid(control_pitch_m, half, prefix)
         b = basis(grid.u, control_pitch_m, self.half)
         self.register_buffer("b", b.to(grid.rho.dtype), persistent=False)
         size = 2 * self.half + 1
@@ -143,6 +148,15 @@ class SplineMask(Mask):
 
     def on_grid(self, grid: PupilGrid, aperture_diameter_m: float) -> "SplineMask":
         return SplineMask(grid, self.control_pitch_m, self.half, self.controls.detach(), levels=self.levels).freeze()
+
+    @classmethod
+    def check_record(cls, record: Mapping[str, Any], prefix: str) -> None:
+        _, half = check_control_grid(record["control_pitch_m"], record["control_half"], prefix)
+        controls, size = record["controls"], 2 * half + 1
+        if len(controls) != size * size:
+            raise ConfigError(f"{prefix}.controls", controls, f"must hold (2 control_half + 1)^2 = {size * size} "
+                              f"control values (control_half = {half}), it holds {len(controls)}")
+        require_phases(f"{prefix}.controls", controls)
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any], grid: PupilGrid, aperture_diameter_m: float,

@@ -8,9 +8,9 @@ from typing import Any, Mapping
 
 import torch
 
-from codesign.errors import require_choice, require_number
+from codesign.errors import ConfigError, require_choice, require_number
 from codesign.optics.grid import PupilGrid
-from codesign.optics.masks.base import NAMED_STARTS, Mask, PhaseFitSpec
+from codesign.optics.masks.base import NAMED_STARTS, Mask, PhaseFitSpec, require_phases
 from codesign.optics.masks.starts import named_start
 
 
@@ -30,7 +30,12 @@ class ZernikeSpec(PhaseFitSpec):
         super().__post_init__()
         p = self.prefix
         object.__setattr__(self, "n_terms", require_number(f"{p}.n_terms", self.n_terms, lo=1, hi=1000, integer=True))
-        require_number(f"{p}.max_coeff_rad", self.max_coeff_rad, lo=0, lo_open=True)
+        require_max_coeff(f"{p}.max_coeff_rad", self.max_coeff_rad)
+
+
+def require_max_coeff(key: str, value) -> float:
+    """The coefficients' box [rad RMS]: > 0, at most the config's bound on a phase (1e4 rad)."""
+    return require_number(key, value, lo=0, lo_open=True, hi=1e4)
 
 
 def noll_to_nm(j: int) -> tuple[int, int]:
@@ -80,7 +85,7 @@ class ZernikeMask(Mask):
         super().__init__(grid, levels)
         self.aperture_diameter_m = aperture_diameter_m
         n_terms = require_number(f"{prefix}.n_terms", n_terms, lo=1, hi=1000, integer=True)
-        self.max_coeff_rad = require_number(f"{prefix}.max_coeff_rad", max_coeff_rad, lo=0, lo_open=True)
+        self.max_coeff_rad = require_max_coeff(f"{prefix}.max_coeff_rad", max_coeff_rad)
         rho = grid.rho.reshape(-1)[grid.support] / (aperture_diameter_m / 2)
         ang = torch.atan2(grid.v[:, None].expand(grid.n, grid.n), grid.u[None, :].expand(grid.n, grid.n))
         ang = ang.reshape(-1)[grid.support]
@@ -133,6 +138,17 @@ class ZernikeMask(Mask):
     def on_grid(self, grid: PupilGrid, aperture_diameter_m: float) -> "ZernikeMask":
         return ZernikeMask(grid, aperture_diameter_m, self.coeffs.numel(), self.coeffs.detach(), self.max_coeff_rad,
                            levels=self.levels).freeze()
+
+    @classmethod
+    def check_record(cls, record: Mapping[str, Any], prefix: str) -> None:
+        coeffs = record["coeffs"]
+        n_terms = require_number(f"{prefix}.n_terms", record.get("n_terms", len(coeffs)), lo=1, hi=1000, integer=True)
+        if len(coeffs) != n_terms:
+            raise ConfigError(f"{prefix}.coeffs", coeffs, f"must hold n_terms = {n_terms} coefficients, it holds "
+                              f"{len(coeffs)}")
+        if "max_coeff_rad" in record:
+            require_max_coeff(f"{prefix}.max_coeff_rad", record["max_coeff_rad"])
+        require_phases(f"{prefix}.coeffs", coeffs)
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any], grid: PupilGrid, aperture_diameter_m: float,
