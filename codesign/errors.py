@@ -68,3 +68,16 @@ def unknown_keys(prefix: str, cfg: Any, known) -> None:
 
 class OutputWriteError(OSError):
     """An output file could not be written; the file that was there before (if any) is unchanged."""
+
+
+def round_up(x: float, digits: int = 3) -> float:
+    """``x`` > 0 rounded up to ``digits`` significant digits: a bound an error message prints (%.{digits}g) stays a
+    true bound, so the advice holds for the value it names."""
+    unit = 10.0 ** (math.floor(math.log10(x)) - (digits - 1))
+    return math.ceil(x / unit * (1 - 1e-12)) * unit
+
+
+def round_down(x: float, digits: int = 3) -> float:
+    """``x`` > 0 rounded down to ``digits`` significant digits (see round_up)."""
+    unit = 10.0 ** (math.floor(math.log10(x)) - (digits - 1))
+    return math.floor(x / unit * (1 + 1e-12)) * unit

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import torch
 
 from codesign.config.store import register, spec_node
-from codesign.errors import ConfigError, require_number
+from codesign.errors import ConfigError, require_number, round_down, round_up
 from codesign.optics.grid import PupilGrid
 from codesign.optics.spec import OpticsSpec
 from codesign.spec_base import SpecMixin
@@ -93,26 +93,14 @@ class ExportSpec(SpecMixin):
         if self.size_m is None:  # n = ceil(support / pitch) + 2, made even: <= MAX_FAB_N from support / (MAX - 2) on
             return ConfigError(f"{p}.pitch_m", self.pitch_m, f"gives a plate of {n} x {n} pixels (the aperture's "
                                f"support, {support:.4g} m); at most {MAX_FAB_N} per side: raise {p}.pitch_m to >= "
-                               f"{_round_up(support / (MAX_FAB_N - 2)):.3g} m")
+                               f"{round_up(support / (MAX_FAB_N - 2)):.3g} m")
         # n = round(size / pitch) <= MAX_FAB_N from pitch = size / MAX_FAB_N on; a smaller size must still hold the
         # support (need pixels)
-        most = _round_down(MAX_FAB_N * self.pitch_m)
+        most = round_down(MAX_FAB_N * self.pitch_m, 4)
         smaller = f" or lower {p}.size_m to <= {most:.4g} m" if most >= need * self.pitch_m else ""
         return ConfigError(f"{p}.size_m", self.size_m, f"gives a plate of {n} x {n} pixels at {p}.pitch_m = "
                            f"{self.pitch_m:g} m; at most {MAX_FAB_N} per side: raise {p}.pitch_m to >= "
-                           f"{_round_up(self.size_m / MAX_FAB_N):.3g} m{smaller}")
-
-
-def _round_up(x: float) -> float:
-    """``x`` rounded up to 3 significant digits: a bound printed with %.3g stays a true bound."""
-    unit = 10.0 ** (math.floor(math.log10(x)) - 2)
-    return math.ceil(x / unit * (1 - 1e-12)) * unit
-
-
-def _round_down(x: float) -> float:
-    """``x`` rounded down to 4 significant digits (printed with %.4g)."""
-    unit = 10.0 ** (math.floor(math.log10(x)) - 3)
-    return math.floor(x / unit * (1 + 1e-12)) * unit
+                           f"{round_up(self.size_m / MAX_FAB_N):.3g} m{smaller}")
 
 
 def fab_grid(optics: OpticsSpec, pitch_m: float, n: int) -> PupilGrid:

@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from codesign.errors import ConfigError
+from codesign.errors import ConfigError, round_down, round_up
 
 SIXTEEN_BIT = (".png", ".tif", ".tiff")
 SUFFIXES = SIXTEEN_BIT + (".npy",)
@@ -224,17 +224,6 @@ def diffraction_peak_m2(spec) -> float:
     return float(a.sum() ** 2 / (a**2).sum()) * (spec.pupil_pitch_m / spec.lambda_f) ** 2
 
 
-def _round_up(x: float) -> float:
-    """``x`` rounded up to 3 significant digits (advice printed with %.3g must be true)."""
-    unit = 10.0 ** (math.floor(math.log10(x)) - 2)
-    return math.ceil(x / unit * (1 - 1e-12)) * unit
-
-
-def _round_down(x: float) -> float:
-    unit = 10.0 ** (math.floor(math.log10(x)) - 2)
-    return math.floor(x / unit * (1 + 1e-12)) * unit
-
-
 def diffraction_check(m: MeasuredPSF, spec) -> None:
     """Refuse a frame whose brightest pixel holds more light than the diffraction-limited peak of the aperture puts
     into a pixel of its pitch (an LSR above 1 at the file's pitch: a delta, a hot pixel, a pitch given too small or
@@ -245,9 +234,9 @@ def diffraction_check(m: MeasuredPSF, spec) -> None:
     if share <= bound * (1 + PEAK_TOLERANCE):
         return
     lsr = share / bound
-    need_pitch = _round_up(math.sqrt(share / peak_m2))
-    most_energy = _round_down(bound / float(m.frame.max()))
-    limit = (f"{100 * _round_down(bound):.3g}%: the diffraction-limited peak of the "
+    need_pitch = round_up(math.sqrt(share / peak_m2))
+    most_energy = round_down(bound / float(m.frame.max()))
+    limit = (f"{100 * round_down(bound):.3g}%: the diffraction-limited peak of the "
              f"{spec.aperture_diameter_m * 1e3:g} mm aperture at {p}.wavelength_m = {spec.wavelength_m:g}, "
              f"f = {spec.focal_length_m:g} m")
     raise ConfigError(f"{p}.psf_file", m.path, f"its brightest pixel holds {100 * share:.3g}% of the light "

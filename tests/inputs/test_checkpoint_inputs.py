@@ -24,15 +24,6 @@ CPU = torch.device("cpu")
 FOREIGN = "; was it written by another configuration or version of codesign?"
 
 
-@pytest.fixture(scope="module")
-def trained():
-    """(config dict, state) of a tiny SGAN-B as the trainer writes it (weights, step, resolved config)."""
-    cfg = tiny_cfg()
-    torch.manual_seed(0)
-    model = build_model(cfg)
-    return {"model": model.state_dict(), "step": 4, "config": OmegaConf.to_container(cfg, resolve=True)}
-
-
 def _save(tmp_path, state, name="ck.pt"):
     return save_checkpoint(tmp_path / name, state)
 

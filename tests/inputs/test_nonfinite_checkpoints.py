@@ -29,15 +29,6 @@ USE_EARLIER = ("(the first non-finite tensor in the file; results computed from 
                "checkpoint of the run")
 
 
-@pytest.fixture(scope="module")
-def trained():
-    """A tiny SGAN-B's checkpoint as the trainer writes it (weights, step, resolved config)."""
-    cfg = tiny_cfg()
-    torch.manual_seed(0)
-    model = build_model(cfg)
-    return {"model": model.state_dict(), "step": 4, "config": OmegaConf.to_container(cfg, resolve=True)}
-
-
 def smoke_trained(experiment: str) -> dict:
     """The same as a +experiment=``experiment`` debug=smoke run writes it: a warm start of that run accepts its
     settings (the code before issue 38 went on to train from its NaN weights)."""
