@@ -76,15 +76,15 @@ class PeakSearch:
     Args:
         pupil: pupil coordinates [m] (n,), the field's sample positions along each axis.
         lambda_f: wavelength x focal length [m^2]; focal_pitch: dx [m]; focal_n: m, window samples per side.
-        aperture: the (n, n) aperture amplitude (its support sets the bandwidth).
-        scale: factor from |E|^2 to the PSF's per-pixel units for a unit-energy field (divided by sum |P|^2 here).
+        aperture: the (n, n) aperture amplitude (its support sets the bandwidth); pupil_pitch: its sample pitch [m].
     """
 
     def __init__(self, pupil: torch.Tensor, lambda_f: float, focal_pitch: float, focal_n: int,
                  aperture: torch.Tensor, pupil_pitch: float):
         self.pupil = pupil.to(torch.float64)
         self.lambda_f, self.dx, self.m = lambda_f, focal_pitch, focal_n
-        self.aperture, self.pupil_pitch = aperture, pupil_pitch
+        self.pupil_pitch = pupil_pitch
+        self.nu = bandwidth(aperture, pupil_pitch, lambda_f)  # the aperture is fixed: a plate cell adds c / (lambda f)
         # The first level's centres, in its pitch dx / FIRST_OVERSAMPLE: from half a pixel before the first focal
         # sample ((0 - m // 2) dx) to half a pixel after the last, so that the cells cover the m pixels' squares.
         q = FIRST_OVERSAMPLE
@@ -100,7 +100,7 @@ class PeakSearch:
             raise ValueError(f"rel_tol must lie in (0, 0.1), got {rel_tol!r}")
         field = field.detach().to(torch.complex128)
         scale = ((self.pupil_pitch * self.dx / self.lambda_f) ** 2 / float(field.abs().square().sum()))
-        nu = bandwidth(self.aperture, self.pupil_pitch, self.lambda_f, cell_m)
+        nu = self.nu + (cell_m or 0.0) / self.lambda_f
         pitch = self.dx / FIRST_OVERSAMPLE
         first = self.first.to(field.device)
         values = self._dense(field, pitch, cell_m) * scale

@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 
 import codesign.experiments as experiments
 from codesign.errors import ConfigError, OutputWriteError
-from codesign.experiments import rundir
+from codesign.experiments import rundir, runlock
 from codesign.io import files as io
 from tests.cli import run_codesign
 from tests.conftest import REPO_ROOT
@@ -45,11 +45,12 @@ def _dead_pid() -> int:
 @pytest.fixture(autouse=True)
 def _fresh_rundir_state(monkeypatch):
     """The module's records of this process (earlier folders, held locks) as a fresh run finds them."""
-    for name in ("EARLIER", "EARLIER_LOGS", "EARLIER_OWN", "HELD"):
+    for name in ("EARLIER", "EARLIER_LOGS", "EARLIER_OWN"):
         monkeypatch.setattr(rundir, name, {}, raising=False)
+    monkeypatch.setattr(runlock, "HELD", {})
     yield
-    for run_dir in list(getattr(rundir, "HELD", {})):
-        rundir.release_lock(run_dir)
+    for run_dir in list(runlock.HELD):
+        runlock.release_lock(run_dir)
 
 
 # ---- a folder of the user's own files -------------------------------------------------------------------------
