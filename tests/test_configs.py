@@ -47,7 +47,7 @@ def test_every_group_option_composes_with_every_experiment(experiment):
 
 @pytest.mark.parametrize("experiment", [n for n in EXPERIMENTS if "material" in root_keys(n)])
 def test_material_options_compose_with_the_fabrication_experiments(experiment):
-    from codesign.fab.materials import Material
+    from codesign.optics.materials import Material
 
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         for path in sorted((CONF / "material").glob("*.yaml")):

@@ -10,6 +10,8 @@ from codesign.camera.camera import Camera
 from codesign.data.scenes import data_config
 from codesign.errors import ConfigError
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask
+from codesign.optics.lines import LaserLines
+from codesign.optics.materials import Material
 from codesign.optics.measured import MEASURED_DEFAULTS, load_measured
 from codesign.sensor.simulator import SensorSimulator
 from codesign.sensor.spec import SensorSpec
@@ -47,7 +49,29 @@ def build_camera(cfg: DictConfig, device, dtype=torch.float32) -> Camera:
                  f", dark frame {measured.dark_path} subtracted" if measured.dark_path else "", mask.kind,
                  "; sensor.laser_halo is off for it: the light beyond a measured frame is not known"
                  if sensor.laser_halo else "")
-    return Camera(system, mask, SensorSimulator(sensor, optics), device, measured)
+    lam = sensor.wavelength_laser_m
+    if measured is not None and abs(lam - optics.wavelength_m) > 1e-12 * optics.wavelength_m:
+        raise ConfigError("sensor.wavelength_laser_m", lam, f"a measured PSF (optics.psf_file) holds one "
+                          f"wavelength, the design's ({optics.wavelength_m:g} m): a laser at another line needs the "
+                          f"mask's computed PSF there; set sensor.wavelength_laser_m={optics.wavelength_m:g} or "
+                          f"optics.psf_file=null")
+    return Camera(system, mask, SensorSimulator(sensor, optics), device, measured, laser_line(cfg, system, sensor))
+
+
+def laser_line(cfg: DictConfig, system: OpticalSystem, sensor: SensorSpec) -> LaserLines | None:
+    """The LaserLines of the laser's line (sensor.wavelength_laser_m) when it is not the design wavelength: the
+    mask's surface (optics.wrap_waves, material.*) seen there; None at the design wavelength."""
+    lam, spec = sensor.wavelength_laser_m, system.spec
+    if abs(lam - spec.wavelength_m) <= 1e-12 * spec.wavelength_m:
+        return None
+    material = Material.from_config(OmegaConf.to_container(cfg.material, resolve=True)) if cfg.get("material") \
+        else Material()
+    material.check_wavelength(lam)
+    line = LaserLines(system, material.index, (lam,))
+    log.info("the laser at %.1f nm, the scene at %.1f nm: the laser sees the %s's phase scaled by %.4f (%s)",
+             lam * 1e9, spec.wavelength_m * 1e9, "surface" if spec.wrap_waves is None else
+             f"{spec.wrap_waves}-wave wrapped plate", line.scales[0], material.name)
+    return line
 
 
 def with_measured_psf(target: DictConfig, cfg: DictConfig, typed: frozenset[str] = frozenset()) -> DictConfig:

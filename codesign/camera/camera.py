@@ -59,13 +59,16 @@ class Camera(torch.nn.Module):
     Args:
         system: the optical system (pupil grid, propagator); mask: any Mask built on ``system.grid``;
         simulator: the sensor model (its optics spec must be ``system.spec``); device: where OTFs live;
-        measured: a measured PSF that replaces the mask's computed one (the mask then stays frozen), or None.
+        measured: a measured PSF that replaces the mask's computed one (the mask then stays frozen), or None;
+        laser_line: a LaserLines holding the laser's one line when it is not the design wavelength
+        (sensor.wavelength_laser_m), or None: the laser then has its own PSF there (PSFState.laser).
     """
 
     def __init__(self, system: OpticalSystem, mask: Mask, simulator: SensorSimulator,
-                 device: torch.device | str = "cpu", measured: MeasuredPSF | None = None):
+                 device: torch.device | str = "cpu", measured: MeasuredPSF | None = None, laser_line=None):
         super().__init__()
         self.system, self.mask, self.simulator = system, mask, simulator
+        self.laser_line = laser_line
         self.device = torch.device(device)
         self.measured = measured
         self.placement: Placement | None = None  # the measured PSF on the window, at the last optics evaluation
@@ -74,7 +77,8 @@ class Camera(torch.nn.Module):
         self.mask_forward = mask  # called for the phase; a DistributedDataParallel wrapper may take its place
         self.trainable = False
         self._frozen: OpticsOutputs | None = None
-        self._halo_frozen: tuple | None = None  # (mask values' key, LaserHalo) of a frozen mask
+        # a frozen mask's halos: {"halo" (the design wavelength's) / "line_halo" (the laser line's): (key, LaserHalo)}
+        self._halo_frozen: dict | None = None
         self._halo_train: dict | None = None  # a training mask's: age (optics evaluations), values, LaserHalo
         self.set_trainable(False)
 
@@ -138,6 +142,10 @@ class Camera(torch.nn.Module):
         if self.measured is not None:
             state = self._measured_state(state)
         state.halo = self._halo_source(key) if self.halo_on else None
+        if self.laser_line is not None and self.measured is None:
+            system = self.laser_line.systems[0]
+            state.laser = psf_state(system, self.laser_line.phase(phase, 0), self.mask.plate_cell_m)
+            state.laser.halo = self._halo_source(key, line=True) if self.halo_on else None
         kernel = self.simulator.kernel(state, key=key)
         return OpticsOutputs(state, kernel, otf_from_kernel(kernel, self.padded_size).to(self.device), key,
                              phase if self.measured is None else None)
@@ -159,43 +167,51 @@ class Camera(torch.nn.Module):
         return PSFState(psf=torch.from_numpy(placed.psf).to(dtype=psf.dtype, device=psf.device),
                         uncoded_peak=design.uncoded_peak, uncoded_energy=design.uncoded_energy, halo=None)
 
-    def _halo_source(self, key: tuple | None):
+    def _halo_source(self, key: tuple | None, line: bool = False):
         """A callable giving the LaserHalo of the mask, computed on first call (only a laser needs it). A frozen
         mask's is kept under its values' key. While the mask trains, every optics evaluation (training steps and
         validations alike) uses the halo of the mask as it was at the last refresh, recomputed every
         sensor.halo_refresh evaluations: the far PSF takes seconds and carries no gradient, and the mask moves
         little in between. That schedule and the refresh's mask values are in ``halo_state`` (the checkpoint), so
         a resumed run uses the halo an uninterrupted one uses."""
+        slot = "line_halo" if line else "halo"
         if self.trainable:
             t = self._halo_train
+            if line and t is not None:  # the design halo's call below (made first) set this evaluation's snapshot
+                return lambda: self._training_halo(t, slot)
             if t is not None and t["age"] < self.simulator.sensor.halo_refresh:
                 t["age"] += 1
-                return lambda: self._training_halo(t)
+                return lambda: self._training_halo(t, slot)
             snapshot = {k: v.detach().clone() for k, v in self.mask.state_dict().items()}
-            self._halo_train = t = {"age": 1, "values": snapshot, "halo": None}
-            return lambda: self._training_halo(t)
-        if self._halo_frozen is not None and self._halo_frozen[0] == key and key is not None:
-            halo = self._halo_frozen[1]
+            self._halo_train = t = {"age": 1, "values": snapshot, "halo": None, "line_halo": None}
+            return lambda: self._training_halo(t, slot)
+        frozen = self._halo_frozen.get(slot) if self._halo_frozen is not None else None
+        if frozen is not None and frozen[0] == key and key is not None:
+            halo = frozen[1]
             return lambda: halo
         cell: list = []
 
         def compute():
             if not cell:
-                cell.append(self._far_halo(self.mask))
-                self._halo_frozen = (key, cell[0])
+                cell.append(self._far_halo(self.mask, line))
+                self._halo_frozen = {**(self._halo_frozen or {}), slot: (key, cell[0])}
             return cell[0]
         return compute
 
-    def _training_halo(self, t: dict) -> LaserHalo:
-        if t["halo"] is None:
+    def _training_halo(self, t: dict, slot: str = "halo") -> LaserHalo:
+        if t.get(slot) is None:
             source = copy.deepcopy(self.mask)
             source.load_state_dict(t["values"])
-            t["halo"] = self._far_halo(source)
-        return t["halo"]
+            t[slot] = self._far_halo(source, slot == "line_halo")
+        return t[slot]
 
-    def _far_halo(self, mask) -> LaserHalo:
+    def _far_halo(self, mask, line: bool = False) -> LaserHalo:
+        """The LaserHalo of ``mask`` at the design wavelength, or (``line``) at the laser's line."""
         spec, m = self.system.spec, self.system.spec.focal_n
-        far, pitch = far_psf(mask, spec, self.simulator.sensor.side_m, self.system.dtype)
+        phase_map = None
+        if line:
+            spec, phase_map = self.laser_line.systems[0].spec, lambda ph: self.laser_line.phase(ph, 0)
+        far, pitch = far_psf(mask, spec, self.simulator.sensor.side_m, self.system.dtype, phase_map=phase_map)
         window = ((-(m // 2) - 0.5) * spec.focal_pitch_m, (m - m // 2 - 0.5) * spec.focal_pitch_m)
         return LaserHalo(far, pitch, window)
 
@@ -206,7 +222,7 @@ class Camera(torch.nn.Module):
 
     def load_halo_state(self, state: dict | None) -> None:
         self._halo_train = None if state is None else {"age": int(state["age"]), "values": state["values"],
-                                                       "halo": None}
+                                                       "halo": None, "line_halo": None}
 
     def current_optics(self) -> OpticsOutputs:
         """The optics of the mask's current values: with the mask's graph while it is trainable (recomputed every

@@ -75,13 +75,14 @@ class DesignProblem:
         band: MTF band; objective: lsr | restorability; limits: Limits; restorability: a Restorability module
         and the camera whose kernels it scores (needed for the restorability objective or floor), as a pair;
         keep_x: log parameter vectors up to this size; on_eval: called with (problem, evaluation); lsr_grids: the
-        focal grids of the smooth LSR (metrics.lsr_grids).
+        focal grids of the smooth LSR (metrics.lsr_grids); lines: a LaserLines whose worst line the LSR is (the
+        smooth LSR over every line's samples; None: the design wavelength's).
     """
 
     def __init__(self, system, mask, radial, band, objective: str, limits: Limits, restorability=None,
-                 keep_x: int = 64, on_eval: Callable | None = None, lsr_grids: int = 1):
+                 keep_x: int = 64, on_eval: Callable | None = None, lsr_grids: int = 1, lines=None):
         self.system, self.mask, self.radial, self.band = system, mask, radial, tuple(band)
-        self.lsr_grids = lsr_grids
+        self.lsr_grids, self.lines = lsr_grids, lines
         self.objective, self.limits, self.restorability = objective, limits, restorability
         self.keep_x, self.on_eval = keep_x, on_eval
         self.records: list[Evaluation] = []
@@ -107,9 +108,13 @@ class DesignProblem:
         phase = self.mask.phase()
         psf = self.system.psf(phase, self.mask.plate_cell_m)
         h = psf.to(torch.float64)
-        samples = self.system.lsr_samples(phase, psf, self.lsr_grids, self.mask.plate_cell_m).to(torch.float64)
-        out = {"lsr_smooth": metrics.lsr_smooth(samples, self.system.uncoded_peak, p),
-               "lsr_sampled": samples.detach().max() / self.system.uncoded_peak,
+        if self.lines is None:
+            samples = self.system.lsr_samples(phase, psf, self.lsr_grids, self.mask.plate_cell_m).to(torch.float64)
+            smooth, sampled = metrics.lsr_smooth(samples, self.system.uncoded_peak, p), \
+                samples.detach().max() / self.system.uncoded_peak
+        else:
+            smooth, sampled = self.lines.smooth_lsr(phase, p, self.lsr_grids, self.mask.plate_cell_m, psf)
+        out = {"lsr_smooth": smooth, "lsr_sampled": sampled,
                "mtf_mean": self.radial.summary(self.radial(metrics.mtf(h)), self.band)[0], "energy": h.sum()}
         if self.restorability is not None:
             module, camera = self.restorability

@@ -37,6 +37,12 @@ def restorability_tools(cfg, system, mask, alpha_l: float | None) -> Restorabili
     """Restorability at the sensor and network size of ``cfg`` (data.image_size), with the scene spectrum fitted
     to the training split of ``cfg.data``'s scenes."""
     sensor = sensor_spec(cfg)
+    lam = system.spec.wavelength_m
+    if alpha_l is not None and abs(sensor.wavelength_laser_m - lam) > 1e-12 * lam:
+        raise ConfigError("search.restorability_alpha_l", alpha_l, f"counts the laser's saturated footprint at the "
+                          f"design wavelength ({lam:g} m), not at sensor.wavelength_laser_m = "
+                          f"{sensor.wavelength_laser_m:g}: set search.restorability_alpha_l=null, or the laser back "
+                          f"to the design wavelength")
     camera = Camera(system, mask, SensorSimulator(sensor, system.spec), system.grid.rho.device)
     source = build_scene_source(cfg.data)
     scenes = source.fixed_batch(source.split_names("train"), sensor.image_size)

@@ -10,6 +10,7 @@ from codesign.spec_base import SpecMixin
 
 INITS = ("auto", "published", "mask", "defocus", "random")
 OBJECTIVES = ("lsr", "restorability")
+LSR_OVER = ("design", "wavelengths")
 SMALL = 20  # parameter vectors up to this size: several short starts by default
 # up to this size LN_COBYLA by default: on the 36 Zernike terms it reached LSR 1.82e-3 in 2400 evaluations (61 s)
 # where AL_LBFGS stopped at 2.63e-3 (LD_LBFGS line-search failures at large p; docs/codesign.md Sec. 5)
@@ -53,6 +54,8 @@ class SearchSpec(SpecMixin):
     derivative-free ones) or a list. pareto_factors: floor factors of the Pareto sweep (null or [] = off);
     pareto_starts / pareto_max_evals (null: max_evals / 2): per factor. check: re-check the best design on a pupil
     grid finer by the family's factor and a window that holds its PSF, within metrics.recheck_tolerance.
+    lsr_over: design (the LSR at the design wavelength) | wavelengths (the worst LSR over optics.laser_wavelengths_m,
+    the surface made as optics.wrap_waves says in material.*: the objective or ceiling takes every line's samples).
     precision: float32 | float64.
     log_every: evaluations between progress lines.
     """
@@ -80,6 +83,7 @@ class SearchSpec(SpecMixin):
     pareto_starts: int = 2
     pareto_max_evals: int | None = 60
     check: bool = True
+    lsr_over: str = "design"
     precision: str = "float32"
     log_every: int = 20
     prefix: str = field(default="search", compare=False, repr=False)
@@ -140,6 +144,7 @@ class SearchSpec(SpecMixin):
         if not isinstance(self.check, bool):
             raise ConfigError(f"{p}.check", self.check, "must be true or false")
         require_choice(f"{p}.precision", self.precision, ("float32", "float64"))
+        require_choice(f"{p}.lsr_over", self.lsr_over, LSR_OVER)
 
     # ---- what "auto" means for a mask of ``n`` parameters ---------------------------------------------------------
     def resolved_algorithm(self, n: int) -> str:

@@ -14,6 +14,8 @@ from omegaconf import DictConfig
 from codesign.design.limits import MTFLimit
 from codesign.design.merit import evaluate_mask, metrics_spec
 from codesign.design.search_setup import restorability_tools
+from codesign.fab.laser_lines import (lines_summary, log_lines, lsr_curve, lsr_wavelength_figure, run_lines,
+                                      surface_name)
 from codesign.fab.plate_setup import make_plate, plate_sidecar, setup
 from codesign.fab.plate_figures import export_figure
 from codesign.fab.surface import PlatePhase
@@ -28,8 +30,8 @@ log = logging.getLogger("codesign.export")
 EXPERIMENT = Experiment(
     summary="a design as surface heights in a material, K levels, on a fabrication grid",
     first_work="OpticalSystem",
-    root_keys=("precision", "export", "material"),
-    reads=("optics", "mask", "sensor", "data", "metrics"),
+    root_keys=("precision", "export"),
+    reads=("optics", "material", "mask", "sensor", "data", "metrics"),
     outputs=("metrics.json", "export.json", "height_m.npy", "height.png", "height.tif", "report.png"),
     smoke={"export.pitch_m": 8.0e-6},  # a 490 x 490 plate
 )
@@ -40,9 +42,37 @@ FIGURES = ("lsr", "lsr_sampled", "mtf_mean", "psf_energy_in_window", "lsr_limit"
 
 
 def phase_difference(phase: torch.Tensor, reference: torch.Tensor, aperture: torch.Tensor) -> np.ndarray:
-    """phase - reference wrapped into [-pi, pi), NaN outside the aperture (for the report)."""
-    d = torch.remainder(phase.double() - reference.double() + torch.pi, 2 * torch.pi) - torch.pi
+    """phase - reference wrapped into [-pi, pi), NaN outside the aperture (for the report); a uniform offset (the
+    piston of a continuous surface that starts from its lowest point) taken out first."""
+    raw = phase.double() - reference.double()
+    inside = aperture > 0
+    piston = torch.angle(torch.exp(1j * raw[inside]).mean()) if bool(inside.any()) else 0.0
+    d = torch.remainder(raw - piston + torch.pi, 2 * torch.pi) - torch.pi
     return torch.where(aperture > 0, d, torch.full_like(d, float("nan"))).cpu().numpy()
+
+
+def _line_outputs(run_dir: Path, metrics: dict, system, lines, mask, plate, material, kind: str, dtype) -> None:
+    """The ideal design and the exported plate at every laser line (metrics.json: laser_lines) and the LSR against
+    wavelength of both (lsr_wavelength.png): the plate's heights seen at each line, quantization included."""
+    def plate_phases(ls):
+        return [plate.pupil_phase(sy.grid, sy.spec.wavelength_m, material.index(sy.spec.wavelength_m), dtype=dtype)
+                for sy in ls.systems]
+
+    ideal = mask.phase().detach()
+    summary = lines_summary(lines, {"ideal": ideal}, mask.plate_cell_m)
+    summary.update({k: v for k, v in lines_summary(lines, {"exported": plate_phases(lines)}).items()
+                    if k == "exported"})
+    metrics["laser_lines"] = summary
+    for name in ("ideal", "exported"):
+        log_lines(summary, name, f"{name} {kind} design")
+    made = f"{plate.n_levels} levels" if plate.n_levels else "continuous heights"
+    curves = {f"ideal design ({surface_name(lines.wrap)})": lsr_curve(
+        system, material, lambda ls: [ls.phase(ideal, i) for i in range(len(ls))], mask.plate_cell_m),
+        f"exported plate ({made})": lsr_curve(system, material, plate_phases)}
+    summary["curves"] = curves
+    io.save_figure(run_dir / "lsr_wavelength.png", lsr_wavelength_figure(
+        curves, system.spec.wavelength_m, lines.wavelengths, f"{kind} plate in {material.name}, made for "
+        f"{system.spec.wavelength_m * 1e9:.0f} nm: LSR against the laser's wavelength"))
 
 
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
@@ -80,6 +110,9 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         "mask_kind": mask_cfg["kind"], "precision": str(dtype).replace("torch.", ""),
     }
 
+    lines = run_lines(cfg, system)
+    if lines is not None:
+        _line_outputs(run_dir, metrics, system, lines, mask, plate, material, mask_cfg["kind"], dtype)
     height = plate.height.cpu().numpy()
     io.save_npy(run_dir / "height_m.npy", height)
     write_height_png(run_dir / "height.png", height, sidecar["metres_per_count"], sidecar)

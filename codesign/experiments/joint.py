@@ -20,6 +20,7 @@ from codesign.design.check import camera_sampling_report, report_sampling, sampl
 from codesign.design.limits import MTFLimit
 from codesign.train.lsr_constraint import CodesignSpec, LSRConstraint
 from codesign.design.merit import MaskMonitor, metrics_spec, published_reference
+from codesign.fab.laser_lines import lines_summary, log_lines, run_lines
 from codesign.optics.masks.records import write_record
 from codesign.io import files as io
 from codesign.io import plots
@@ -126,15 +127,16 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     system = camera.system
     reference = published_reference(to_container(cfg.mask), system)
     monitor = MaskMonitor(system, reference, ms.mtf_band, ms.lsr_p, ms.lsr_grids)
-    lsr_max, lsr_max_from = _lsr_max(cs, monitor, system, camera.mask)
+    lines = run_lines(cfg, system, "codesign.lsr_over" if cs.lsr_over == "wavelengths" else None)
+    constrained = lines if cs.lsr_over == "wavelengths" else None
+    lsr_max, lsr_max_from = _lsr_max(cs, monitor, system, camera.mask, reference, constrained)
     start = check_training_fits(model, data, spec, device, "joint")  # before any training
     if ctx.is_main:  # warned about before any training
         sampling = camera_sampling_report(camera, cfg, log, "the start mask")
         start.update(phase_resolved_start=sampling["phase_resolved"], phase_sampling_start=sampling["phase_sampling"],
-                     **_check_lsr_max(lsr_max, cs, monitor, system, camera.mask))
+                     **_check_lsr_max(lsr_max, cs, monitor, system, camera.mask, constrained))
     mask = MaskCodesign(camera=camera, spec=cs, lsr_max=lsr_max, lsr_p=ms.lsr_p, lsr_grids=ms.lsr_grids,
-                        steps=spec.steps, device=device,
-                        monitor=monitor, dist=ctx)
+                        steps=spec.steps, device=device, monitor=monitor, dist=ctx, lines=constrained)
     trainer = Trainer(model=model, data=data, spec=spec, run_dir=run_dir, device=device, config=to_container(cfg),
                       seed=seed, dist=ctx, codesign=mask)
     common = run_metrics(cfg, model, device)
@@ -177,6 +179,13 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
                "vgg_loss": model.loss_status, "mask_kind": to_container(cfg.mask)["kind"],
                **learned, **{f"{k}_baseline": v for k, v in base.items()}, **camera.mask.summary(), **rings,
                **recheck, "checkpoint": str(run_dir / CHECKPOINT_NAME)}
+    if lines is not None:
+        metrics["lsr_over"] = cs.lsr_over
+        metrics["laser_lines"] = summary = lines_summary(lines, {"learned": camera.mask.phase().detach(),
+                                                                 "published": reference.phase().detach()},
+                                                         camera.mask.plate_cell_m)
+        for name in ("learned", "published"):
+            log_lines(summary, name, f"{name} mask")
     keep = (COMPARED,) if published is not None and COMPARED in conditions(ev["lasers"], ev["stages"]) else ()
     joint_eval = run_evaluation(ev, model, trainer.restoring_modules(), data, run_dir, seed, keep)
     for key in ("evaluation", "evaluation_scenes", "evaluation_per_scene_psnr_affine"):
@@ -232,12 +241,17 @@ def _network(cfg, init: InitSpec, seed: int) -> tuple:
     return model, warm
 
 
-def _lsr_max(cs: CodesignSpec, monitor: MaskMonitor, system, mask) -> tuple[float, str]:
-    """The smooth-LSR ceiling (codesign.lsr_max) and where it comes from."""
+def _lsr_max(cs: CodesignSpec, monitor: MaskMonitor, system, mask, reference, lines=None) -> tuple[float, str]:
+    """The smooth-LSR ceiling (codesign.lsr_max) and where it comes from (``lines``: the worst of these lines)."""
+    worst = "" if lines is None else " (worst laser line)"
     if cs.lsr_max == "start":
-        return LSRConstraint(cs, system, 1.0, monitor.p, monitor.grids).measure(mask), "the start mask's smooth LSR"
+        return LSRConstraint(cs, system, 1.0, monitor.p, monitor.grids, lines).measure(mask), \
+            f"the start mask's smooth LSR{worst}"
     if cs.lsr_max is not None:
         return float(cs.lsr_max), "given"
+    if lines is not None:
+        return LSRConstraint(cs, system, 1.0, monitor.p, monitor.grids, lines).measure(reference), \
+            f"the published mask's smooth LSR{worst}"
     return monitor.reference[0]["lsr_smooth"], "the published mask's smooth LSR"
 
 
@@ -246,10 +260,10 @@ def _lsr_max(cs: CodesignSpec, monitor: MaskMonitor, system, mask) -> tuple[floa
 LSR_MAX_FAR = 10.0
 
 
-def _check_lsr_max(lsr_max: float, cs: CodesignSpec, monitor: MaskMonitor, system, mask) -> dict:
+def _check_lsr_max(lsr_max: float, cs: CodesignSpec, monitor: MaskMonitor, system, mask, lines=None) -> dict:
     """Warn at the start when codesign.lsr_max cannot be reached by any phase-only mask on this window (below the
     light spread evenly over it: MTFLimit.lsr_limit(0)), or lies far below the start mask's smooth LSR."""
-    start = LSRConstraint(cs, system, 1.0, monitor.p, monitor.grids).measure(mask)
+    start = LSRConstraint(cs, system, 1.0, monitor.p, monitor.grids, lines).measure(mask)
     floor = MTFLimit(system, monitor.band).lsr_limit(0.0)
     if lsr_max < floor:
         log.warning("codesign.lsr_max = %.3g is below what any phase-only mask can reach on this %d-sample window "

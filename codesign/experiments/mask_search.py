@@ -25,6 +25,7 @@ from codesign.design.search_spec import SearchSpec
 from codesign.design.search_setup import (quantized_figures, restorability_tools, search_limits, start_init,
                                    start_vector)
 from codesign.errors import ConfigError
+from codesign.fab.laser_lines import lines_summary, log_lines, run_lines, surface_name
 from codesign.io import files as io, plots
 from codesign.io.tensorboard import open_writer, tensorboard_enabled
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask, circular_mtf, metrics
@@ -38,7 +39,7 @@ EXPERIMENT = Experiment(
     summary="mask-only search of any family (nlopt), re-checked on a finer grid and a whole-PSF window",
     first_work="MaskSearch.run",
     root_keys=("search",),
-    reads=("optics", "mask", "sensor", "data", "metrics"),
+    reads=("optics", "material", "mask", "sensor", "data", "metrics"),
     outputs=("metrics.json", "best_mask.json", "evaluations.csv", "mtf.png", "pareto.png"),
     smoke={"search.max_evals": 8, "search.starts": 2, "search.polish_max_evals": 4, "search.pareto_factors": [1.0],
            "search.pareto_max_evals": 4},
@@ -57,8 +58,13 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     mask = build_mask(mask_cfg, system.grid, spec.aperture_diameter_m)
     n = mask.vector_size
     published = published_reference(mask_cfg, system)  # the same conventions: only the parameters differ
+    lines = run_lines(cfg, system, "search.lsr_over" if s.lsr_over == "wavelengths" else None)
     monitor = MaskMonitor(system, published, ms.mtf_band, ms.lsr_p, ms.lsr_grids)
     base, base_arr = monitor.measure(published, refine=True)
+    if s.lsr_over == "wavelengths":  # a ceiling "published" is the published mask's worst sampled line
+        _, worst_sampled = lines.smooth_lsr(published.phase().detach(), ms.lsr_p, ms.lsr_grids,
+                                            published.plate_cell_m)
+        base["lsr_sampled"] = float(worst_sampled)
     limit = MTFLimit(system, ms.mtf_band)
     needs_restorability = s.objective == "restorability" or s.restorability_floor is not None
     rest = restorability_tools(cfg, system, mask, s.restorability_alpha_l)  # reported for every design
@@ -74,18 +80,21 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
 
     def make_problem(lim: Limits) -> DesignProblem:
         return DesignProblem(system, mask, radial, ms.mtf_band, s.objective, lim,
-                             rest.pair if needs_restorability else None, lsr_grids=ms.lsr_grids)
+                             rest.pair if needs_restorability else None, lsr_grids=ms.lsr_grids,
+                             lines=lines if s.lsr_over == "wavelengths" else None)
 
     search = MaskSearch(s, n, limits, make_problem, starts, mask.random_vector, (lower, upper), schedule,
                         open_writer(run_dir, tensorboard_enabled(cfg)))
     log.info("%s search of a %s mask, %d parameters: %s, %d start(s) x %d evaluations, p %s; objective %s; "
-             "constraints %s; published LSR %.4g, mtf_mean %.4g; pupil %d, window %d, %s", s.objective, mask.kind, n,
-             search.algorithm, len(starts), search.max_evals, list(schedule), s.objective,
+             "constraints %s; published LSR %.4g, mtf_mean %.4g; pupil %d, window %d, %s%s", s.objective, mask.kind,
+             n, search.algorithm, len(starts), search.max_evals, list(schedule), s.objective,
              {k: getattr(limits, k) for k in limits.active}, base["lsr"], base["mtf_mean"], spec.grid_n, spec.focal_n,
-             system.dtype)
+             system.dtype, "" if s.lsr_over == "design" else f"; LSR: the worst of the lines "
+             f"{[round(w * 1e9, 1) for w in lines.wavelengths]} nm ({surface_name(lines.wrap)})")
     try:
         main = search.run()
-        out = _outputs(run_dir, s, ms, system, mask, published, base, base_arr, limit, rest, search, main, device)
+        out = _outputs(run_dir, s, ms, system, mask, published, base, base_arr, limit, rest, search, main, device,
+                       lines)
     except Interrupted as stop:
         raise _interrupted(stop, run_dir, search, mask, spec) from None
     finally:
@@ -144,7 +153,7 @@ def _measure(monitor, limit, rest, mask) -> tuple[dict, dict]:
 
 
 def _outputs(run_dir: Path, s: SearchSpec, ms, system, mask, published, base, base_arr, limit, rest, search, main,
-             device) -> dict:
+             device, lines=None) -> dict:
     """Measure and re-check the best design, sweep front, files and figures; returns metrics.json's content."""
     spec = system.spec
     monitor = MaskMonitor(system, None, ms.mtf_band, ms.lsr_p, ms.lsr_grids)
@@ -201,6 +210,13 @@ def _outputs(run_dir: Path, s: SearchSpec, ms, system, mask, published, base, ba
         "mtf_band_high": ms.mtf_band[1], "pupil_n": spec.grid_n, "pupil_pitch_m": spec.pupil_pitch_m,
         "focal_n": spec.focal_n, "focal_pitch_m": spec.focal_pitch_m, "propagator": system.method,
         "precision": s.precision, "device": str(device), "threads": torch.get_num_threads()}
+    if lines is not None:
+        metrics["lsr_over"] = s.lsr_over
+        metrics["laser_lines"] = summary = lines_summary(lines, {"best": mask.phase().detach(), "published":
+                                                                 published.phase().detach()}, mask.plate_cell_m)
+        for name, label in (("best", f"best {mask.kind}"), ("published", "published mask")):
+            log_lines(summary, name, label)
+            metrics[f"lsr_worst_line{'' if name == 'best' else '_baseline'}"] = summary[name]["lsr_worst"]
     io.write_json(run_dir / "metrics.json", metrics)
     _figures(run_dir, system, mask, (values, arrays), (base, base_arr), limit, ms, monitor.radial, search, front)
     log.info("best %s: LSR %.4g (published %.4g, %.2fx the limit %.4g), mtf_mean %.4g, window energy %.4f, "

@@ -12,8 +12,8 @@ from types import MappingProxyType
 from typing import Mapping
 
 # Root keys every experiment has (conf/config.yaml and its groups).
-COMMON_KEYS = ("task", "seed", "device", "threads", "deterministic", "optics", "mask", "sensor", "model", "data",
-               "trainer", "metrics", "logging", "evaluate", "debug")
+COMMON_KEYS = ("task", "seed", "device", "threads", "deterministic", "optics", "material", "mask", "sensor", "model",
+               "data", "trainer", "metrics", "logging", "evaluate", "debug")
 # The common keys every experiment reads; the others only where ``reads`` names them (all of them when None).
 ALWAYS_READ = ("task", "seed", "device", "threads", "deterministic", "logging", "debug")
 

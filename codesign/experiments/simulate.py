@@ -33,7 +33,7 @@ EXPERIMENT = Experiment(
     summary="dazzled 16-bit sensor captures of test scenes at the paper's laser strengths",
     first_work="build_camera().frozen_optics",
     root_keys=("precision", "simulate"),
-    reads=("optics", "mask", "sensor", "data", "metrics"),
+    reads=("optics", "material", "mask", "sensor", "data", "metrics"),
     outputs=("metrics.json", "sensor_grid_linear.png", "sensor_grid_log.png", "measured_psf.png"),  # the last: with
     # a measured PSF only
     measured_psf=True,
@@ -140,10 +140,13 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         io.save_figure(run_dir / "measured_psf.png", measured_psf_figure(
             curves, f"measured PSF {Path(measured['measured_psf']).name} against the design {camera.mask.kind} mask"))
     lsr = float(state.psf.max()) / state.uncoded_peak
+    laser = state.laser or state  # the laser's own PSF when it shines at another line than the scene
     bsr_window = float(state.psf.sum()) / state.uncoded_energy
     metrics.update({
         **sampling, **measured, "seconds_per_image": seconds, "images_per_second": 1.0 / seconds, "batch_size": batch,
         "sensor_path": sim.sensor.path, "lsr_sampled": lsr, "laser_off_sensor": off_sensor,
+        "laser_wavelength_m": sim.sensor.wavelength_laser_m,
+        "lsr_sampled_laser_line": float(laser.psf.max()) / laser.uncoded_peak,
         # uniform-background ratio of the simulated image: 1 with the out-of-window veil (energy conservation),
         # else the window's (sum h / sum h0); the window's value is always reported
         "bsr": 1.0 if sim.sensor.background_veil else bsr_window,

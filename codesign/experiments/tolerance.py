@@ -30,8 +30,8 @@ log = logging.getLogger("codesign.tolerance")
 EXPERIMENT = Experiment(
     summary="Monte Carlo fabrication and assembly tolerance (yield) of a design",
     first_work="OpticalSystem",
-    root_keys=("precision", "export", "material", "tolerance"),
-    reads=("optics", "mask", "metrics"),
+    root_keys=("precision", "export", "tolerance"),
+    reads=("optics", "material", "mask", "metrics"),
     outputs=("metrics.json", "samples.csv", "tolerance.png"),
     smoke={"export.pitch_m": 8.0e-6, "tolerance.samples": 16, "tolerance.samples_per_source": 4},
 )

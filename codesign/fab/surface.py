@@ -22,6 +22,7 @@ import torch
 from codesign.config.store import register, spec_node
 from codesign.errors import ConfigError, require_number, round_down, round_up
 from codesign.optics.grid import PupilGrid
+from codesign.optics.lines import surface_phase
 from codesign.optics.spec import OpticsSpec
 from codesign.spec_base import SpecMixin
 
@@ -41,8 +42,7 @@ def phase_of_height(height, wavelength_m: float, index: float):
 
 def wrap_phase(phase: torch.Tensor) -> torch.Tensor:
     """``phase`` modulo 2 pi, in [0, 2 pi)."""
-    w = torch.remainder(phase, TWO_PI)
-    return torch.where(w >= TWO_PI, w - TWO_PI, w)  # remainder can round up to exactly 2 pi
+    return surface_phase(phase, 1)
 
 
 def level_index(wrapped: torch.Tensor, levels: int) -> torch.Tensor:
@@ -107,7 +107,7 @@ def fab_grid(optics: OpticsSpec, pitch_m: float, n: int) -> PupilGrid:
     """The pupil grid of the design's optics at the fabrication pitch and size (float64): the design's phase is
     evaluated there exactly for every family (a pixel family's plate is resampled cell by cell)."""
     spec = optics.replace(pupil_pitch_m=pitch_m, pupil_n=n, focal_n=8, focal_pitch_m=optics.focal_pitch_m,
-                          propagator="mft", fft_n=None)
+                          propagator="mft", fft_n=None, laser_wavelengths_m=None)
     return PupilGrid.from_spec(spec, dtype=torch.float64)
 
 
@@ -115,7 +115,7 @@ def fab_grid(optics: OpticsSpec, pitch_m: float, n: int) -> PupilGrid:
 class Plate:
     """A fabricated phase plate. height: (n, n) float64 heights [m]; levels: (n, n) int64 level indices or None
     (continuous); inside: (n, n) bool, the aperture's support; pitch [m]; wavelength_m and index: the design
-    wavelength and the material's index there."""
+    wavelength and the material's index there; wrap_waves: the wrap's depth in waves (None: not wrapped)."""
 
     height: torch.Tensor
     levels: torch.Tensor | None
@@ -124,22 +124,31 @@ class Plate:
     pitch: float
     wavelength_m: float
     index: float
+    wrap_waves: int | None = 1
 
     @classmethod
     def from_phase(cls, phase: torch.Tensor, grid: PupilGrid, wavelength_m: float, index: float,
-                   n_levels: int | None) -> "Plate":
-        """The plate of a design phase [rad] on the fabrication grid ``grid``: wrapped, quantized to
-        ``n_levels`` when given, as heights."""
+                   n_levels: int | None, wrap_waves: int | None) -> "Plate":
+        """The plate of a design phase [rad] on the fabrication grid ``grid``: wrapped at 2 pi ``wrap_waves`` (1:
+        the usual plate, m > 1: a multi-order plate, None: the continuous surface, its lowest point at height 0),
+        quantized to ``n_levels`` over the wrap's depth when given, as heights."""
         inside = torch.zeros(grid.n * grid.n, dtype=torch.bool, device=phase.device)
         inside[grid.support] = True
         inside = inside.reshape(grid.n, grid.n)
-        wrapped = wrap_phase(phase.to(torch.float64))
+        phase = phase.to(torch.float64)
+        if wrap_waves is None:
+            if n_levels is not None:
+                raise ValueError("a continuous surface (wrap_waves None) has no etch levels")
+            surface = phase - phase[inside].min() if bool(inside.any()) else phase
+        else:
+            surface = surface_phase(phase, wrap_waves)
         levels = None
         if n_levels is not None:
-            levels = torch.where(inside, level_index(wrapped, n_levels), torch.zeros_like(wrapped, dtype=torch.int64))
-            wrapped = levels.to(torch.float64) * (TWO_PI / n_levels)
-        height = torch.where(inside, height_of_phase(wrapped, wavelength_m, index), torch.zeros_like(wrapped))
-        return cls(height, levels, n_levels, inside, grid.pitch, wavelength_m, index)
+            levels = torch.where(inside, level_index(surface / wrap_waves, n_levels),
+                                 torch.zeros_like(surface, dtype=torch.int64))
+            surface = levels.to(torch.float64) * (TWO_PI * wrap_waves / n_levels)
+        height = torch.where(inside, height_of_phase(surface, wavelength_m, index), torch.zeros_like(surface))
+        return cls(height, levels, n_levels, inside, grid.pitch, wavelength_m, index, wrap_waves)
 
     @property
     def n(self) -> int:
@@ -151,9 +160,16 @@ class Plate:
         return self.wavelength_m / (self.index - 1)
 
     @property
+    def depth_m(self) -> float:
+        """The depth range of the surface: wrap_waves full waves, or the continuous surface's highest point."""
+        if self.wrap_waves is None:
+            return max(float(self.height.max()), self.full_wave_depth_m)
+        return self.wrap_waves * self.full_wave_depth_m
+
+    @property
     def step_m(self) -> float | None:
         """Height of one etch level, or None for a continuous plate."""
-        return None if self.n_levels is None else self.full_wave_depth_m / self.n_levels
+        return None if self.n_levels is None else self.depth_m / self.n_levels
 
     def pixel_index(self, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
         """Flat index of the plate pixel under plate coordinates (u, v) [m] (nearest pixel; clamped to the plate,

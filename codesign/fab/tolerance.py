@@ -25,7 +25,7 @@ import torch
 from codesign.config.store import register, spec_node
 from codesign.optics.metrics import require_band_frequencies
 from codesign.errors import ConfigError, require_number
-from codesign.fab.materials import Material
+from codesign.optics.materials import Material
 from codesign.fab.surface import Plate, phase_of_height
 from codesign.optics import OpticalSystem, RadialMTF, metrics
 from codesign.spec_base import SpecMixin

@@ -30,15 +30,18 @@ def far_spec(spec: OpticsSpec, reach_m: float, refine: int | None = None) -> Opt
     period = spec.lambda_f / pitch
     n = next_fast_len(math.ceil(period / spec.focal_pitch_m - 1e-9))
     return spec.replace(pupil_pitch_m=pitch, pupil_n=None, focal_n=n, focal_pitch_m=period / n, propagator="fft",
-                        fft_n=n)
+                        fft_n=n, laser_wavelengths_m=None)
 
 
 @torch.no_grad()
-def far_psf(mask, spec: OpticsSpec, reach_m: float, dtype=torch.float32, refine: int | None = None) -> tuple:
+def far_psf(mask, spec: OpticsSpec, reach_m: float, dtype=torch.float32, refine: int | None = None,
+            phase_map=None) -> tuple:
     """(psf, pitch): the unit-energy PSF of ``mask`` (designed on ``spec``) on the far plane of ``far_spec``,
-    (L, L) energy fractions per sample of side ``pitch`` [m], the optical axis at index L // 2."""
+    (L, L) energy fractions per sample of side ``pitch`` [m], the optical axis at index L // 2. ``phase_map``: a
+    function of the mask's phase giving the phase the light sees (a laser line's, with ``spec`` at that line)."""
     fs = far_spec(spec, reach_m, refine)
     system = OpticalSystem(fs, dtype=dtype, device=mask.grid.rho.device)
     sampled = mask.on_grid(system.grid, spec.aperture_diameter_m)
-    psf = system.psf(sampled.phase().detach().to(dtype), sampled.plate_cell_m)
+    phase = sampled.phase().detach().to(dtype)
+    psf = system.psf(phase if phase_map is None else phase_map(phase), sampled.plate_cell_m)
     return psf, fs.focal_pitch_m

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from codesign.config.store import register, spec_node
-from codesign.errors import ConfigError, require_choice, require_number
+from codesign.errors import ConfigError, require_choice, require_list, require_number
 from codesign.spec_base import SpecMixin
 
 PROPAGATORS = ("auto", "mft", "czt", "fft")
@@ -49,6 +49,12 @@ class OpticsSpec(SpecMixin):
             is normalized to it; 1 = all of it; the computed window PSF holds psf_energy_in_window).
         psf_centre: where the measured frame's centroid goes: "design" (the design mask's computed PSF's centroid),
             "centroid" (the optical axis) or "frame" (no shift: the frame's centre pixel is the axis).
+        laser_wavelengths_m: the laser lines the mask must protect against [m] (a list; None = the design
+            wavelength alone). The mask is made for ``wavelength_m`` in the configured ``material.*``; a line
+            lambda sees its surface with the phase 2 pi (n(lambda) - 1) h / lambda (codesign/optics/lines.py).
+        wrap_waves: how the surface is made: the design phase wrapped at 2 pi wrap_waves (1 = the usual
+            diffractive plate, m > 1 = a multi-order plate m waves deep) or None = the continuous (unwrapped)
+            surface. The same phase at the design wavelength; off it the wrap's steps are no longer whole waves.
     """
 
     wavelength_m: float = 633e-9
@@ -66,6 +72,8 @@ class OpticsSpec(SpecMixin):
     psf_dark_file: str | None = None
     psf_energy: float = 1.0
     psf_centre: str = "design"
+    laser_wavelengths_m: tuple | None = None
+    wrap_waves: int | None = 1
     prefix: str = field(default="optics", compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -117,6 +125,53 @@ class OpticsSpec(SpecMixin):
                 f"spectrum, so it would alias: need pupil_pitch_m <= "
                 f"{self.wavelength_m * self.focal_length_m / self.focal_extent_m:.4g} m or a smaller focal_n")
         self._check_measured()
+        self._check_lines()
+
+    def _check_lines(self) -> None:
+        """The laser lines: each a wavelength the window neither aliases nor undersamples on this pupil grid."""
+        p = self.prefix
+        if self.wrap_waves is not None:
+            object.__setattr__(self, "wrap_waves", require_number(f"{p}.wrap_waves", self.wrap_waves, lo=1, hi=1000,
+                                                                  integer=True))
+        if self.laser_wavelengths_m is None:
+            return
+        allowed = ("must be null (the design wavelength alone) or a list of laser wavelengths in m, e.g. "
+                   "[4.5e-7, 5.32e-7, 6.33e-7]")
+        lines = require_list(f"{p}.laser_wavelengths_m", self.laser_wavelengths_m, allowed)
+        if not lines:
+            raise ConfigError(f"{p}.laser_wavelengths_m", self.laser_wavelengths_m, allowed)
+        out = []
+        for i, lam in enumerate(lines):
+            key = f"{p}.laser_wavelengths_m[{i}]"
+            lam = require_number(key, lam, lo=1e-8, hi=1e-4)
+            problem = self.line_problem(lam)
+            if problem is not None:
+                raise ConfigError(key, lam, problem)
+            out.append(float(lam))
+        if len(set(out)) != len(out):
+            raise ConfigError(f"{p}.laser_wavelengths_m", lines, "names a line twice")
+        object.__setattr__(self, "laser_wavelengths_m", tuple(out))
+
+    def line_problem(self, wavelength_m: float) -> str | None:
+        """Why this pupil grid and window cannot carry a laser line's PSF (aliasing), or None when they can."""
+        p = self.prefix
+        period = wavelength_m * self.focal_length_m / self.pupil_pitch_m
+        if self.focal_extent_m > period * (1 + 1e-9):
+            return (f"at this line the sampled pupil's spectrum repeats every lambda f / pupil_pitch = {period:.4g} m, "
+                    f"less than the {self.focal_extent_m:.4g} m window: its PSF would alias; need {p}.pupil_pitch_m "
+                    f"<= {wavelength_m * self.focal_length_m / self.focal_extent_m:.4g} m, a smaller {p}.focal_n, or "
+                    f"a longer line")
+        samples = wavelength_m * self.focal_length_m / self.aperture_diameter_m / self.focal_pitch_m
+        if samples < 2.0:
+            return (f"the sensor's pitch {p}.focal_pitch_m = {self.focal_pitch_m:g} m samples this line's PSF at "
+                    f"{samples:.3g} samples per lambda f / W_a, below the 2 it needs: the line is too short for this "
+                    f"sensor (a longer one, or a smaller {p}.aperture_diameter_m)")
+        return None
+
+    @property
+    def laser_lines(self) -> tuple[float, ...]:
+        """The laser wavelengths [m]: laser_wavelengths_m, or the design wavelength alone."""
+        return self.laser_wavelengths_m or (self.wavelength_m,)
 
     def _check_measured(self) -> None:
         """The measured-PSF keys' values (their files are read and checked by codesign/optics/measured.py)."""

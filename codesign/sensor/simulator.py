@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import hashlib
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable
 
 import torch
@@ -56,13 +56,17 @@ class PSFState:
 
     psf: (M, M) unit-energy coded PSF on the optics window (pitch dx); uncoded_peak: h0(0) per window sample;
     uncoded_energy: sum of h0 over the window; halo: a callable returning the LaserHalo of the same mask (the
-    light beyond the window, computed on first use: only a laser needs it), or None to leave that light out.
+    light beyond the window, computed on first use: only a laser needs it), or None to leave that light out;
+    laser: the laser's own PSFState when it shines at another line than the scene (sensor.wavelength_laser_m:
+    the mask's surface seen at that wavelength, codesign/optics/lines.py), else None (the laser's PSF is psf).
     """
 
     psf: torch.Tensor
     uncoded_peak: float
     uncoded_energy: float
     halo: Callable[[], LaserHalo] | None = None
+    laser: "PSFState | None" = None
+    kernels: dict = field(default_factory=dict, repr=False)  # a laser state's kernels per level (laser_map)
 
 
 @dataclass
@@ -100,11 +104,18 @@ class SensorSimulator(torch.nn.Module):
         if abs(optics.focal_pitch_m - dx) > 1e-12 * dx:
             raise ConfigError("sensor.pixel_pitch_m", dx, f"must equal optics.focal_pitch_m ({optics.focal_pitch_m}):"
                               " the optics window is sampled at the sensor pitch")
-        for key in ("wavelength_background_m", "wavelength_laser_m"):
-            if abs(getattr(sensor, key) - optics.wavelength_m) > 1e-12 * optics.wavelength_m:
-                raise ConfigError(f"sensor.{key}", getattr(sensor, key),
-                                  f"must equal optics.wavelength_m ({optics.wavelength_m}): one PSF is computed, "
-                                  "per-wavelength PSFs are not implemented")
+        if abs(sensor.wavelength_background_m - optics.wavelength_m) > 1e-12 * optics.wavelength_m:
+            raise ConfigError("sensor.wavelength_background_m", sensor.wavelength_background_m,
+                              f"must equal optics.wavelength_m ({optics.wavelength_m}): the scene is imaged at the "
+                              "design wavelength")
+        if not any(abs(sensor.wavelength_laser_m - w) <= 1e-12 * w for w in (optics.wavelength_m,
+                                                                            *optics.laser_lines)):
+            lines = ", ".join(f"{w:g}" for w in optics.laser_wavelengths_m) if optics.laser_wavelengths_m \
+                else "null"
+            raise ConfigError("sensor.wavelength_laser_m", sensor.wavelength_laser_m,
+                              f"must be the design wavelength ({optics.wavelength_m:g}) or one of "
+                              f"optics.laser_wavelengths_m ({lines}): the laser's PSF is computed at those lines (add "
+                              "the line to optics.laser_wavelengths_m)")
         extent = optics.focal_extent_m
         p = sensor.coarse_pitch_m
         kc = kernel_size(extent, p)
@@ -167,6 +178,9 @@ class SensorSimulator(torch.nn.Module):
         """
         n, ks, pitch = level.n_sensor, self.footprint_size(level), level.pitch
         f = self.optics.focal_length_m
+        line = state.laser is not None
+        if line:  # the laser at another line: its own PSF, normalizers, halo and kernels
+            state, kd = state.laser, state.laser.kernels.get(level.pitch)
         halo = state.halo  # its light reaches the sensor from anywhere (None: sensor.laser_halo is off)
         todo = []  # (sample, first row, first col, laser position in pixels, footprint outside the sensor)
         for i in range(alpha_l.shape[0]):
@@ -181,7 +195,10 @@ class SensorSimulator(torch.nn.Module):
             todo.append((i, r0, c0, pos, outside))
         if not todo:
             return None
-        kd = kd if kd is not None else self._kernels(state, level, None)
+        if kd is None:
+            kd = self._kernels(state, level, None)
+            if line:  # a laser line's kernels are kept on its state: one spectrum per optics evaluation
+                state.kernels[level.pitch] = kd
         dev = state.psf.device
         steps = torch.arange(ks, dtype=torch.float64)
         ys = torch.stack([(r0 + steps - pos[0]) * pitch for _, r0, _, pos, _ in todo]).to(dev, non_blocking=True)

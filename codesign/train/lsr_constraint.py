@@ -38,6 +38,9 @@ class CodesignSpec(SpecMixin):
     factors) | cosine (to zero at trainer.steps); warmup_fraction: share of the steps with the mask frozen (the
     network first learns to restore, so that the mask's gradient means something).
     compare_published: also train a network on the published mask, same steps and seed, and evaluate both.
+    lsr_over: design (the smooth LSR at the design wavelength) | wavelengths (the worst over
+    optics.laser_wavelengths_m, the surface made as optics.wrap_waves says in material.*; lsr_max null is then the
+    published mask's worst).
     """
 
     lsr_max: float | str | None = None
@@ -51,6 +54,7 @@ class CodesignSpec(SpecMixin):
     mask_schedule: str = "constant"
     warmup_fraction: float = 0.25
     compare_published: bool = True
+    lsr_over: str = "design"
     prefix: str = field(default="codesign", compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -70,6 +74,7 @@ class CodesignSpec(SpecMixin):
             raise ConfigError(f"{p}.mask_betas", self.mask_betas, "must be [beta1, beta2], each in [0, 1)")
         object.__setattr__(self, "mask_betas", tuple(float(b) for b in betas))
         require_choice(f"{p}.mask_schedule", self.mask_schedule, SCHEDULES)
+        require_choice(f"{p}.lsr_over", self.lsr_over, ("design", "wavelengths"))
         require_number(f"{p}.warmup_fraction", self.warmup_fraction, lo=0, hi=1, hi_open=True)
         for key in ("guard", "compare_published"):
             if not isinstance(getattr(self, key), bool):
@@ -107,17 +112,21 @@ def restore(mask, values: list[torch.Tensor]) -> None:
 
 class LSRConstraint:
     """The penalty term and the feasibility guard of a mask on an OpticalSystem (see module docstring); ``p``: the
-    exponent of the smooth LSR (metrics.lsr_p); ``grids``: the focal grids it is taken over (metrics.lsr_grids)."""
+    exponent of the smooth LSR (metrics.lsr_p); ``grids``: the focal grids it is taken over (metrics.lsr_grids);
+    ``lines``: a LaserLines whose worst line it constrains (None: the design wavelength)."""
 
-    def __init__(self, spec: CodesignSpec, system, lsr_max: float, p: float, grids: int = 1):
+    def __init__(self, spec: CodesignSpec, system, lsr_max: float, p: float, grids: int = 1, lines=None):
         self.spec, self.system, self.lsr_max, self.p, self.grids = spec, system, float(lsr_max), float(p), grids
+        self.lines = lines
         self.shortened = 0  # updates the guard shortened
         self.undone = 0  # updates the guard undid entirely
 
     def smooth_lsr(self, psf: torch.Tensor, phase: torch.Tensor | None = None, cell_m: float | None = None
                    ) -> torch.Tensor:
         """The smooth LSR of the window PSF ``psf`` and, given the ``phase`` it came from, of the grids offset
-        between its samples (``grids``)."""
+        between its samples (``grids``); with ``lines``, the smooth worst case over them."""
+        if self.lines is not None and phase is not None:
+            return self.lines.smooth_lsr(phase, self.p, self.grids, cell_m, psf)[0]
         samples = psf if phase is None else self.system.lsr_samples(phase, psf, self.grids, cell_m)
         return metrics.lsr_smooth(samples, self.system.uncoded_peak, self.p)
 

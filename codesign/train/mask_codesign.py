@@ -30,10 +30,10 @@ class MaskCodesign:
     """The trainable mask of ``camera`` under ``spec`` (codesign.*) with the smooth-LSR ceiling ``lsr_max``
     (``lsr_p``, ``lsr_grids``: its exponent and focal grids, metrics.lsr_p / lsr_grids); ``steps``: the training's
     length (the warm-up and the mask's schedule); ``monitor``: a MaskMonitor for TensorBoard (None = no mask
-    pictures)."""
+    pictures); ``lines``: the LaserLines of codesign.lsr_over=wavelengths (None: the design wavelength)."""
 
     def __init__(self, *, camera, spec: CodesignSpec, lsr_max: float, lsr_p: float, steps: int, device, lsr_grids=1,
-                 monitor=None, dist: distributed.DistContext = distributed.SINGLE):
+                 monitor=None, dist: distributed.DistContext = distributed.SINGLE, lines=None):
         self.camera, self.mask, self.spec, self.steps, self.dist = camera, camera.mask, spec, steps, dist
         self.params = list(self.mask.parameters())
         if self.params:
@@ -41,7 +41,7 @@ class MaskCodesign:
             camera.set_trainable(True)  # DDP registers the parameters that require a gradient when wrapping
             camera.mask_forward = distributed.wrap(self.mask, dist, device)
             camera.set_trainable(trainable)
-        self.constraint = LSRConstraint(spec, camera.system, lsr_max, lsr_p, lsr_grids)
+        self.constraint = LSRConstraint(spec, camera.system, lsr_max, lsr_p, lsr_grids, lines)
         self.monitor = monitor
         self.lsr = self.constraint.measure(self.mask)  # smooth LSR of the current parameters
         self.max_rank_difference = 0.0

@@ -9,6 +9,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from codesign.config.runtime import to_container
 from codesign.errors import ConfigError
+from codesign.optics.materials import Material
 from codesign.optics.measured import MEASURED_DEFAULTS
 from codesign.train.checkpoint import (
     CHECKPOINT_NAME,
@@ -25,7 +26,7 @@ log = logging.getLogger("codesign.train")
 
 
 # Config blocks that must match between a checkpoint and the run that resumes it (trainer.* may change).
-RESUME_MUST_MATCH = ("model", "optics", "mask", "sensor", "data.image_size", "data.padded_size",
+RESUME_MUST_MATCH = ("model", "optics", "material", "mask", "sensor", "data.image_size", "data.padded_size",
                      "data.batch_size", "data.scenes", "data.folder", "data.test_fraction", "data.split_seed")
 
 
@@ -69,7 +70,9 @@ def resume_if_possible(trainer, cfg: DictConfig, run_dir: Path, extra_keys: tupl
 # (model.loss: pretraining on the reconstruction terms alone, then adding the adversarial ones) may differ.
 # A network trained on the computed PSF may be fine-tuned on a measured one (optics.psf_*), and back.
 INIT_MUST_MATCH = ("model", "optics", "sensor", "data.image_size", "data.padded_size")
-INIT_MAY_DIFFER = ("model.loss",) + tuple(f"optics.{k}" for k in MEASURED_DEFAULTS)
+# a warm start keeps the network: the mask may change, and with it how its surface is made and the lines reported
+INIT_MAY_DIFFER = ("model.loss", "optics.laser_wavelengths_m", "optics.wrap_waves") + tuple(
+    f"optics.{k}" for k in MEASURED_DEFAULTS)
 
 
 def load_initial_weights(model, path, cfg: DictConfig, key: str = "init.checkpoint") -> dict:
@@ -117,14 +120,30 @@ SGAN_ADDED = {"g2_residual": False, "g1_base": "sensor", "g2_base": "i_b", "g2_b
               "laser_gate_f0": 1e-3, "g2_base_nsr_lasered": 3e-2, "g2_gate": False}
 
 
+# keys added with the laser lines, at the values every earlier checkpoint was trained with: the design wavelength
+# alone, the 2 pi-wrapped plate, the design line's LSR constraint, and the one material there was (fused silica)
+LINES_ADDED = {"laser_wavelengths_m": None, "wrap_waves": 1}
+CODESIGN_ADDED = {"lsr_over": "design"}
+
+
+def _material_added() -> dict:
+    m = Material()
+    return {"name": m.name, "formula": m.formula, "coefficients": [list(c) for c in m.coefficients],
+            "valid_um": list(m.valid_um), "source": m.source}
+
+
 def _with_added_keys(saved: dict) -> dict:
     """A checkpoint's configuration with the keys added since it may have been written at the values it was
-    trained with: the optics keys of the measured PSF (optics.psf_*) and the SGAN's later residual options."""
+    trained with: the optics keys of the measured PSF (optics.psf_*) and of the laser lines, the material, the
+    co-design LSR's lines, and the SGAN's later residual options."""
     if not isinstance(saved, dict):
         return saved
     out = dict(saved)
     if isinstance(saved.get("optics"), dict):
-        out["optics"] = {**MEASURED_DEFAULTS, **saved["optics"]}
+        out["optics"] = {**MEASURED_DEFAULTS, **LINES_ADDED, **saved["optics"]}
+        out.setdefault("material", _material_added())
+    if isinstance(saved.get("codesign"), dict):
+        out["codesign"] = {**CODESIGN_ADDED, **saved["codesign"]}
     model = saved.get("model")
     if isinstance(model, dict) and model.get("kind") == "sgan":
         out["model"] = {**SGAN_ADDED, **model}

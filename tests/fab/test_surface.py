@@ -11,7 +11,7 @@ import yaml
 
 from codesign.design.merit import evaluate_mask
 from codesign.errors import ConfigError
-from codesign.fab.materials import Material
+from codesign.optics.materials import Material
 from codesign.fab.surface import (
     ExportSpec,
     Plate,
@@ -69,7 +69,7 @@ def test_wrap_and_levels():
 
 
 def _plate_on(system, phase, index, levels):
-    return Plate.from_phase(phase, system.grid, system.spec.wavelength_m, index, levels)
+    return Plate.from_phase(phase, system.grid, system.spec.wavelength_m, index, levels, 1)
 
 
 def test_plate_seen_on_its_own_grid_is_the_design(small_system64):
@@ -140,3 +140,35 @@ def test_height_files_hold_their_scale(tmp_path):
         page = tif.pages[0]
         assert page.dtype == np.uint16
         assert page.tags["XResolution"].value[0] / page.tags["XResolution"].value[1] == pytest.approx(5000.0)
+
+
+@pytest.mark.parametrize("wrap", [None, 1, 3])
+def test_plate_wrap_depths_and_the_same_design(small_system64, wrap):
+    """Wrapped at 2 pi m the heights lie in [0, m lambda / (n - 1)); a continuous surface keeps the phase's whole
+    relief, its lowest point at 0. At the design wavelength all three give the design's field back (to a piston:
+    the continuous surface starts from its lowest point)."""
+    g = small_system64.grid
+    phase = 60 * (g.rho / 2e-3) ** 2 - 9.0
+    plate = Plate.from_phase(phase, g, 633e-9, 1.5, None, wrap)
+    h = plate.height[plate.inside]
+    relief = float(phase[plate.inside].max() - phase[plate.inside].min()) * 633e-9 / (2 * math.pi * 0.5)
+    if wrap is None:
+        assert float(h.min()) == pytest.approx(0.0, abs=1e-18)
+        assert float(h.max()) == pytest.approx(relief, rel=1e-12)
+        assert plate.depth_m == pytest.approx(relief, rel=1e-12)
+    else:
+        assert float(h.min()) >= 0 and float(h.max()) < wrap * plate.full_wave_depth_m
+        assert plate.depth_m == pytest.approx(wrap * 633e-9 / 0.5, rel=1e-14)
+    inside = g.aperture > 0
+    d = torch.exp(1j * (plate.pupil_phase(g, dtype=torch.float64) - phase)[inside])
+    assert torch.allclose(d, d[:1].expand_as(d), atol=1e-11)
+
+
+def test_multi_order_levels_span_the_wrap(small_system64):
+    g = small_system64.grid
+    q = Plate.from_phase(60 * (g.rho / 2e-3) ** 2, g, 633e-9, 1.5, 8, 2)
+    assert q.step_m == pytest.approx(2 * 633e-9 / 0.5 / 8, rel=1e-14)  # 8 levels over two waves
+    steps = q.height[q.inside] / q.step_m
+    assert torch.allclose(steps, torch.round(steps), atol=1e-9) and float(steps.max()) <= 7 + 1e-9
+    with pytest.raises(ValueError, match="a continuous surface"):
+        Plate.from_phase(60 * (g.rho / 2e-3) ** 2, g, 633e-9, 1.5, 8, None)

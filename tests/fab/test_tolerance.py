@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from codesign.design.merit import evaluate_mask
-from codesign.fab.materials import Material
+from codesign.optics.materials import Material
 from codesign.fab.surface import Plate, PlatePhase
 from codesign.fab.tolerance import Errors, PlateEvaluator, ToleranceSpec, draw
 from codesign.optics import OpticalSystem, OpticsSpec
@@ -25,7 +25,7 @@ def system():
 
 def _evaluator(system, phase, levels=None, seed=0):
     plate = Plate.from_phase(phase, system.grid, system.spec.wavelength_m, SILICA.index(system.spec.wavelength_m),
-                             levels)
+                             levels, 1)
     return plate, PlateEvaluator(plate, system, SILICA, BAND, torch.Generator().manual_seed(seed), batch=4)
 
 

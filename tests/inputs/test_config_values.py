@@ -49,11 +49,12 @@ ROWS = [
     ("psf", "logging.tensorboard=maybe", "logging.tensorboard = 'maybe': must be true or false"),
     ("psf", "+logging.foo=1", "logging.foo = 1: unknown key; allowed: log_every, tensorboard"),
     ("psf", "+foo=1", "foo = 1: unknown key for +experiment=psf; allowed: task, seed, device, threads, deterministic, "
-     "optics, mask, sensor, model, data, trainer, metrics, logging, evaluate, debug, precision, timing_repeats"),
+     "optics, material, mask, sensor, model, data, trainer, metrics, logging, evaluate, debug, precision, "
+     "timing_repeats"),
     ("psf", "deterministic=maybe", "deterministic = 'maybe': must be auto, true or false"),
     ("baseline", "+checkpoint=x", "checkpoint = 'x': unknown key for +experiment=baseline; allowed: task, seed, "
-     "device, threads, deterministic, optics, mask, sensor, model, data, trainer, metrics, logging, evaluate, debug, "
-     "init"),
+     "device, threads, deterministic, optics, material, mask, sensor, model, data, trainer, metrics, logging, "
+     "evaluate, debug, init"),
     # ---- simulate and data ---------------------------------------------------------------------------------
     ("simulate", "simulate.laser_strengths=5", "simulate.laser_strengths = 5: must be a non-empty list of laser "
      "strengths >= 0"),

@@ -266,6 +266,18 @@ def check_design_optics(record: Mapping[str, Any], optics: OpticsSpec, key: str,
             raise ConfigError(f"{key} {path}: optics.{name}", made[name], f"the design was made for these optics, "
                               f"not the configured optics.{name} = {getattr(optics, name)!r}: set "
                               f"optics.{name}={made[name]!r} to use it as designed, or design one for these optics")
+    for name, what in (("wrap_waves", "the surface it was designed as"),
+                       ("laser_wavelengths_m", "the laser lines it was designed for")):
+        if name in made and _same(made[name]) != _same(getattr(optics, name)):
+            logging.getLogger("codesign.mask").warning(
+                "%s %s: optics.%s = %r is %s; this run uses %r: off the design wavelength the mask then behaves "
+                "otherwise than it was designed to (set optics.%s=%s to keep it)", key, path, name, made[name], what,
+                getattr(optics, name), name, "null" if made[name] is None else made[name])
+
+
+def _same(value):
+    """A record's or a spec's value in one form (lists as tuples of floats) for comparison."""
+    return tuple(float(v) for v in value) if isinstance(value, (list, tuple)) else value
 
 
 def init_allowed(kind: Any) -> str:

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from codesign.errors import ConfigError, require_choice, require_list, require_number
 from codesign.spec_base import SpecMixin
 
-log = logging.getLogger("codesign.fab")
+log = logging.getLogger("codesign.optics")
 
 FORMULAS = ("sellmeier", "cauchy", "constant")
 _COEFF_ALLOWED = {
