@@ -37,7 +37,8 @@ def reference_laser(camera, angle=ANGLE, refine: int = 8) -> torch.Tensor:
     the mask on a pupil grid ``refine`` times finer than the design grid."""
     spec, sensor = camera.system.spec, camera.sensor
     fine = OpticalSystem(spec.replace(pupil_pitch_m=spec.pupil_pitch_m / refine, pupil_n=None,
-                                      laser_wavelengths_m=None), dtype=torch.float64)
+                                      laser_wavelengths_m=None, scene_spectrum=None),
+                         dtype=torch.float64)
     mask = camera.mask.on_grid(fine.grid, spec.aperture_diameter_m)
     field = fine.field(mask.phase().to(torch.float64))
     pupil = axis_coords(fine.grid.n, fine.spec.pupil_pitch_m)

@@ -112,7 +112,8 @@ def design_phase(name: str, pupil_pitch_m: float | None = None) -> tuple[torch.T
     raw = json.loads(path.read_text())
     spec = OpticsSpec(**raw["optics"])
     if pupil_pitch_m is not None:
-        spec = spec.replace(pupil_pitch_m=pupil_pitch_m, pupil_n=None, laser_wavelengths_m=None)
+        spec = spec.replace(pupil_pitch_m=pupil_pitch_m, pupil_n=None, laser_wavelengths_m=None,
+                            scene_spectrum=None)
     grid = PupilGrid.from_spec(spec, dtype=torch.float64)
     mask = build_mask(config_of_design({"kind": raw["kind"], "init": str(path)}), grid, spec.aperture_diameter_m)
     return mask.phase().detach().to(torch.float64), spec, mask.plate_cell_m

@@ -55,7 +55,31 @@ def build_camera(cfg: DictConfig, device, dtype=torch.float32) -> Camera:
                           f"wavelength, the design's ({optics.wavelength_m:g} m): a laser at another line needs the "
                           f"mask's computed PSF there; set sensor.wavelength_laser_m={optics.wavelength_m:g} or "
                           f"optics.psf_file=null")
-    return Camera(system, mask, SensorSimulator(sensor, optics), device, measured, laser_line(cfg, system, sensor))
+    if measured is not None and optics.scene_spectrum is not None:
+        raise ConfigError("optics.scene_spectrum", [list(p) for p in optics.scene_spectrum], "a measured PSF "
+                          "(optics.psf_file) is the scene's PSF as measured: set optics.scene_spectrum=null, or "
+                          "optics.psf_file=null to compute the band's PSF from the mask")
+    return Camera(system, mask, SensorSimulator(sensor, optics), device, measured, laser_line(cfg, system, sensor),
+                  scene_spectrum(cfg, system))
+
+
+def _material(cfg: DictConfig) -> Material:
+    return Material.from_config(OmegaConf.to_container(cfg.material, resolve=True)) if cfg.get("material") \
+        else Material()
+
+
+def scene_spectrum(cfg: DictConfig, system: OpticalSystem) -> tuple | None:
+    """(LaserLines of optics.scene_spectrum's wavelengths, their weights), or None for the design wavelength."""
+    spectrum = system.spec.scene_spectrum
+    if spectrum is None:
+        return None
+    material = _material(cfg)
+    for lam, _ in spectrum:
+        material.check_wavelength(lam)
+    lines = LaserLines(system, material.index, tuple(lam for lam, _ in spectrum))
+    log.info("the scene over %d wavelengths (%s nm, weights %s): its PSF is their weighted mean", len(spectrum),
+             ", ".join(f"{lam * 1e9:.1f}" for lam, _ in spectrum), ", ".join(f"{w:g}" for _, w in spectrum))
+    return lines, tuple(w for _, w in spectrum)
 
 
 def laser_line(cfg: DictConfig, system: OpticalSystem, sensor: SensorSpec) -> LaserLines | None:
@@ -64,8 +88,7 @@ def laser_line(cfg: DictConfig, system: OpticalSystem, sensor: SensorSpec) -> La
     lam, spec = sensor.wavelength_laser_m, system.spec
     if abs(lam - spec.wavelength_m) <= 1e-12 * spec.wavelength_m:
         return None
-    material = Material.from_config(OmegaConf.to_container(cfg.material, resolve=True)) if cfg.get("material") \
-        else Material()
+    material = _material(cfg)
     material.check_wavelength(lam)
     line = LaserLines(system, material.index, (lam,))
     log.info("the laser at %.1f nm, the scene at %.1f nm: the laser sees the %s's phase scaled by %.4f (%s)",

@@ -61,14 +61,17 @@ class Camera(torch.nn.Module):
         simulator: the sensor model (its optics spec must be ``system.spec``); device: where OTFs live;
         measured: a measured PSF that replaces the mask's computed one (the mask then stays frozen), or None;
         laser_line: a LaserLines holding the laser's one line when it is not the design wavelength
-        (sensor.wavelength_laser_m), or None: the laser then has its own PSF there (PSFState.laser).
+        (sensor.wavelength_laser_m), or None: the laser then has its own PSF there (PSFState.laser);
+        scene_spectrum: (LaserLines of the scene's wavelengths, their weights) of optics.scene_spectrum, or None:
+        the scene's PSF is then the weighted mean of the mask's PSFs there, the laser's its own line's.
     """
 
     def __init__(self, system: OpticalSystem, mask: Mask, simulator: SensorSimulator,
-                 device: torch.device | str = "cpu", measured: MeasuredPSF | None = None, laser_line=None):
+                 device: torch.device | str = "cpu", measured: MeasuredPSF | None = None, laser_line=None,
+                 scene_spectrum: tuple | None = None):
         super().__init__()
         self.system, self.mask, self.simulator = system, mask, simulator
-        self.laser_line = laser_line
+        self.laser_line, self.scene_spectrum = laser_line, scene_spectrum
         self.device = torch.device(device)
         self.measured = measured
         self.placement: Placement | None = None  # the measured PSF on the window, at the last optics evaluation
@@ -138,14 +141,19 @@ class Camera(torch.nn.Module):
     def optics_of(self, phase: torch.Tensor, key: tuple | None = None) -> OpticsOutputs:
         """PSF state, network-pitch kernel and padded-grid OTF of a pupil phase; all carry the phase's graph.
         ``key``: the cache key of a frozen mask's values (the simulator then keeps the kernels for its images)."""
-        state = psf_state(self.system, phase, self.mask.plate_cell_m)
+        cell = self.mask.plate_cell_m
+        state = psf_state(self.system, phase, cell)
         if self.measured is not None:
             state = self._measured_state(state)
         state.halo = self._halo_source(key) if self.halo_on else None
         if self.laser_line is not None and self.measured is None:
             system = self.laser_line.systems[0]
-            state.laser = psf_state(system, self.laser_line.phase(phase, 0), self.mask.plate_cell_m)
+            state.laser = psf_state(system, self.laser_line.phase(phase, 0), cell)
             state.laser.halo = self._halo_source(key, line=True) if self.halo_on else None
+        if self.scene_spectrum is not None:  # the scene's band; the laser keeps its line's state (made above)
+            laser = state.laser if state.laser is not None else state
+            state = spectral_state(*self.scene_spectrum, phase, cell)
+            state.laser = laser
         kernel = self.simulator.kernel(state, key=key)
         return OpticsOutputs(state, kernel, otf_from_kernel(kernel, self.padded_size).to(self.device), key,
                              phase if self.measured is None else None)
@@ -255,6 +263,16 @@ class Camera(torch.nn.Module):
             with torch.no_grad():
                 return self.simulator(scenes, params, frozen.state, seed=seed, mask_key=frozen.key)
         return self.simulator(scenes, params, optics.state, seed=seed, mask_key=None)
+
+
+def spectral_state(lines, weights: tuple, phase: torch.Tensor, cell_m: float | None) -> PSFState:
+    """The scene's PSFState over a band: the weighted mean of the mask's PSFs at ``lines``' wavelengths (the surface
+    seen at each) and of their uncoded normalizers (a uniform scene then keeps its level through the uncoded lens)."""
+    total = float(sum(weights))
+    states = [psf_state(system, lines.phase(phase, i), cell_m) for i, system in enumerate(lines.systems)]
+    return PSFState(psf=sum(w * st.psf for w, st in zip(weights, states)) / total,
+                    uncoded_peak=sum(w * st.uncoded_peak for w, st in zip(weights, states)) / total,
+                    uncoded_energy=sum(w * st.uncoded_energy for w, st in zip(weights, states)) / total)
 
 
 def field_of_view(x: torch.Tensor, n: int) -> torch.Tensor:

@@ -71,7 +71,8 @@ def evaluate_on(spec, mask, band, dtype=torch.float32, design_spec=None) -> dict
 
 def fine_grid(spec, mask):
     """``spec`` with the pupil pitch divided by the mask family's fine_factor (the grid sized to hold the aperture)."""
-    return spec.replace(pupil_pitch_m=spec.pupil_pitch_m / mask.fine_factor, pupil_n=None, laser_wavelengths_m=None)
+    return spec.replace(pupil_pitch_m=spec.pupil_pitch_m / mask.fine_factor, pupil_n=None, laser_wavelengths_m=None,
+                        scene_spectrum=None)
 
 
 
@@ -156,7 +157,8 @@ def verify_design(mask, spec, band, tolerance: float, dtype=torch.float32, wide_
     design = evaluate_on(spec, mask, band, dtype)
     fine_spec = fine_grid(spec, mask)
     fine = evaluate_on(fine_spec, mask, band, dtype)
-    whole_spec = fine_spec.replace(focal_n=wide_window(fine_spec, wide_factor), laser_wavelengths_m=None)
+    whole_spec = fine_spec.replace(focal_n=wide_window(fine_spec, wide_factor), laser_wavelengths_m=None,
+                                    scene_spectrum=None)
     whole = evaluate_on(whole_spec, mask, band, dtype, design_spec=spec)
     dev = {f"{k}_{name}_deviation": other[k] / design[k] - 1 for name, other in (("fine", fine), ("whole", whole))
            for k in ("lsr", "mtf_mean")}

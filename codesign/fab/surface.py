@@ -107,7 +107,7 @@ def fab_grid(optics: OpticsSpec, pitch_m: float, n: int) -> PupilGrid:
     """The pupil grid of the design's optics at the fabrication pitch and size (float64): the design's phase is
     evaluated there exactly for every family (a pixel family's plate is resampled cell by cell)."""
     spec = optics.replace(pupil_pitch_m=pitch_m, pupil_n=n, focal_n=8, focal_pitch_m=optics.focal_pitch_m,
-                          propagator="mft", fft_n=None, laser_wavelengths_m=None)
+                          propagator="mft", fft_n=None, laser_wavelengths_m=None, scene_spectrum=None)
     return PupilGrid.from_spec(spec, dtype=torch.float64)
 
 

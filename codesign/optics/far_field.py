@@ -30,7 +30,7 @@ def far_spec(spec: OpticsSpec, reach_m: float, refine: int | None = None) -> Opt
     period = spec.lambda_f / pitch
     n = next_fast_len(math.ceil(period / spec.focal_pitch_m - 1e-9))
     return spec.replace(pupil_pitch_m=pitch, pupil_n=None, focal_n=n, focal_pitch_m=period / n, propagator="fft",
-                        fft_n=n, laser_wavelengths_m=None)
+                        fft_n=n, laser_wavelengths_m=None, scene_spectrum=None)
 
 
 @torch.no_grad()

@@ -77,7 +77,8 @@ class LaserLines:
         self.wavelengths = tuple(float(w) for w in (lines if lines is not None else spec.laser_lines))
         self.scales = [phase_scale(index, spec.wavelength_m, w) for w in self.wavelengths]
         self.systems = [system if math.isclose(w, spec.wavelength_m, rel_tol=1e-12) else
-                        OpticalSystem(spec.replace(wavelength_m=w, laser_wavelengths_m=None), dtype=system.dtype,
+                        OpticalSystem(spec.replace(wavelength_m=w, laser_wavelengths_m=None, scene_spectrum=None),
+                                      dtype=system.dtype,
                                       device=system.grid.rho.device)
                         for w in self.wavelengths]
         # the line at the design wavelength, if any: its phase is the design phase, its PSF the design PSF

@@ -55,6 +55,10 @@ class OpticsSpec(SpecMixin):
         wrap_waves: how the surface is made: the design phase wrapped at 2 pi wrap_waves (1 = the usual
             diffractive plate, m > 1 = a multi-order plate m waves deep) or None = the continuous (unwrapped)
             surface. The same phase at the design wavelength; off it the wrap's steps are no longer whole waves.
+        scene_spectrum: the scene's light as a few samples of its band, a list of [wavelength_m, weight] pairs
+            (None = the design wavelength alone): the scene's PSF is the weighted mean of the mask's PSFs at those
+            wavelengths (the surface seen at each), in simulation, training and restoration; the laser stays at
+            its line.
     """
 
     wavelength_m: float = 633e-9
@@ -74,6 +78,7 @@ class OpticsSpec(SpecMixin):
     psf_centre: str = "design"
     laser_wavelengths_m: tuple | None = None
     wrap_waves: int | None = 1
+    scene_spectrum: tuple | None = None
     prefix: str = field(default="optics", compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -126,6 +131,7 @@ class OpticsSpec(SpecMixin):
                 f"{self.wavelength_m * self.focal_length_m / self.focal_extent_m:.4g} m or a smaller focal_n")
         self._check_measured()
         self._check_lines()
+        self._check_spectrum()
 
     def _check_lines(self) -> None:
         """The laser lines: each a wavelength the window neither aliases nor undersamples on this pupil grid."""
@@ -151,6 +157,31 @@ class OpticsSpec(SpecMixin):
         if len(set(out)) != len(out):
             raise ConfigError(f"{p}.laser_wavelengths_m", lines, "names a line twice")
         object.__setattr__(self, "laser_wavelengths_m", tuple(out))
+
+    def _check_spectrum(self) -> None:
+        """The scene's spectrum: [wavelength_m, weight] pairs, each wavelength one the window can carry."""
+        p, key = self.prefix, f"{self.prefix}.scene_spectrum"
+        if self.scene_spectrum is None:
+            return
+        allowed = ("must be null (the design wavelength alone) or a list of [wavelength_m, weight] pairs, weights "
+                   "> 0, e.g. [[4.5e-7, 1], [5.5e-7, 2], [6.33e-7, 1]]")
+        pairs = require_list(key, self.scene_spectrum, allowed)
+        if not pairs:
+            raise ConfigError(key, self.scene_spectrum, allowed)
+        out = []
+        for i, pair in enumerate(pairs):
+            pair = require_list(f"{key}[{i}]", pair, allowed)
+            if len(pair) != 2:
+                raise ConfigError(f"{key}[{i}]", pair, allowed)
+            lam = require_number(f"{key}[{i}][0]", pair[0], lo=1e-8, hi=1e-4)
+            weight = require_number(f"{key}[{i}][1]", pair[1], lo=0, lo_open=True, hi=1e12)
+            problem = self.line_problem(lam)
+            if problem is not None:
+                raise ConfigError(f"{key}[{i}][0]", lam, problem.replace("this line", "this wavelength"))
+            out.append((float(lam), float(weight)))
+        if len({w for w, _ in out}) != len(out):
+            raise ConfigError(key, pairs, f"names a wavelength twice ({p}.scene_spectrum sums the samples' weights)")
+        object.__setattr__(self, "scene_spectrum", tuple(out))
 
     def line_problem(self, wavelength_m: float) -> str | None:
         """Why this pupil grid and window cannot carry a laser line's PSF (aliasing), or None when they can."""

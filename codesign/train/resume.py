@@ -70,8 +70,9 @@ def resume_if_possible(trainer, cfg: DictConfig, run_dir: Path, extra_keys: tupl
 # (model.loss: pretraining on the reconstruction terms alone, then adding the adversarial ones) may differ.
 # A network trained on the computed PSF may be fine-tuned on a measured one (optics.psf_*), and back.
 INIT_MUST_MATCH = ("model", "optics", "sensor", "data.image_size", "data.padded_size")
-# a warm start keeps the network: the mask may change, and with it how its surface is made and the lines reported
-INIT_MAY_DIFFER = ("model.loss", "optics.laser_wavelengths_m", "optics.wrap_waves") + tuple(
+# a warm start keeps the network: the mask may change, and with it how its surface is made, the lines reported and
+# the scene's band (each only changes the blur the network is fine-tuned on, as another mask does)
+INIT_MAY_DIFFER = ("model.loss", "optics.laser_wavelengths_m", "optics.wrap_waves", "optics.scene_spectrum") + tuple(
     f"optics.{k}" for k in MEASURED_DEFAULTS)
 
 
@@ -121,8 +122,9 @@ SGAN_ADDED = {"g2_residual": False, "g1_base": "sensor", "g2_base": "i_b", "g2_b
 
 
 # keys added with the laser lines, at the values every earlier checkpoint was trained with: the design wavelength
-# alone, the 2 pi-wrapped plate, the design line's LSR constraint, and the one material there was (fused silica)
-LINES_ADDED = {"laser_wavelengths_m": None, "wrap_waves": 1}
+# alone, the 2 pi-wrapped plate, the scene at the design wavelength, the design line's LSR constraint, and the one
+# material there was (fused silica)
+LINES_ADDED = {"laser_wavelengths_m": None, "wrap_waves": 1, "scene_spectrum": None}
 CODESIGN_ADDED = {"lsr_over": "design"}
 
 

@@ -132,7 +132,8 @@ def test_from_config_unknown_key():
     with pytest.raises(ConfigError, match=r"^optics\.focal_lenght_m = 0\.1: unknown key; allowed: aperture_diameter_m, "
                                           r"fft_n, focal_length_m, focal_n, focal_pitch_m, laser_wavelengths_m, "
                                           r"propagator, psf_centre, psf_dark_file, psf_energy, psf_file, psf_pitch_m, "
-                                          r"pupil_n, pupil_pitch_m, supergaussian_order, wavelength_m, wrap_waves$"):
+                                          r"pupil_n, pupil_pitch_m, scene_spectrum, supergaussian_order, "
+                                          r"wavelength_m, wrap_waves$"):
         OpticsSpec.from_config({"focal_lenght_m": 0.1, "wavelength_m": 633e-9})
 
 

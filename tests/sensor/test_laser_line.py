@@ -85,7 +85,7 @@ def test_checkpoints_written_before_the_lines_resume_and_warm_start(tmp_path):
 
     cfg = compose_cfg("+experiment=joint", "debug=smoke")
     old = to_container(cfg)
-    for key in ("laser_wavelengths_m", "wrap_waves"):
+    for key in ("laser_wavelengths_m", "wrap_waves", "scene_spectrum"):
         old["optics"].pop(key)
     old.pop("material")
     old["codesign"].pop("lsr_over")
