@@ -15,3 +15,31 @@ _SPEC_MODULES = ("config.runtime", "optics.spec", "optics.masks", "sensor.spec",
 for _name in _SPEC_MODULES:
     importlib.import_module(f"codesign.{_name}")
 importlib.import_module("codesign.models").restorer_kinds()
+
+# The Python API (codesign/api.py, docs/api.md): ``from codesign import compose, psf_and_lsr, ...``, loaded on first
+# use so that ``import codesign`` stays as cheap as the config registration above.
+API = ("compose", "optical_system", "build_mask", "configured_mask", "published_mask", "psf_and_lsr", "scene_names",
+       "sensor_image", "run", "checkpoint_config", "restore", "mask_search", "train_restorer", "OpticsSpec",
+       "OpticalSystem", "Camera", "Mask", "ConfigError")
+
+
+def __getattr__(name: str):
+    if name in API:
+        return getattr(importlib.import_module("codesign.api"), name)
+    raise AttributeError(f"module 'codesign' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(API))
+
+
+class _CallableModule(type(_resolvers)):
+    """codesign.camera stays the package and is also the API's ``camera(cfg=None, device="cpu", dtype=float32)``:
+    ``from codesign import camera; camera()`` is the Camera of the default config (codesign.api.camera)."""
+
+    def __call__(self, *args, **kwargs):
+        return importlib.import_module("codesign.api").camera(*args, **kwargs)
+
+
+importlib.import_module("codesign.camera").__class__ = _CallableModule
+__all__ = ["camera", *API]

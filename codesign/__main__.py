@@ -1,5 +1,9 @@
 """``python -m codesign +experiment=NAME``: the thin Hydra entry point. Work happens in codesign.experiments.
 
+``--help`` / ``-h`` prints codesign's own help (the experiments from their modules' EXPERIMENT summaries) and
+``--version`` codesign's version, both before Hydra runs; ``--hydra-help``, ``--cfg job``, ``-m`` and the other flags
+are Hydra's.
+
 Under ``torchrun`` the process group is joined before Hydra composes the config, so that every rank agrees on
 rank 0's run directory (codesign/train/distributed.py).
 """
@@ -23,10 +27,52 @@ def _hydra_main(cfg: DictConfig) -> float | None:
     return run_experiment(cfg)
 
 
+def help_text() -> str:
+    """codesign's ``--help``: the usage, every registered experiment with its summary, the set-up commands and where
+    to read on."""
+    from codesign.experiments import EXPERIMENTS, protocol
+
+    width = max(len(name) for name in EXPERIMENTS)
+    listing = "\n".join(f"  {name:<{width}}  {protocol(name).summary}" for name in EXPERIMENTS)
+    return f"""usage: python -m codesign +experiment=NAME [group=option ...] [group.key=value ...] [hydra flags]
+       codesign +experiment=NAME ...   (the same, as the installed console command)
+
+Experiments (+experiment=NAME; the + is needed: `experiment` is not in the default config):
+{listing}
+
+Set up and run (fresh machine):
+  bash install.sh && python -m codesign +experiment=joint     # the main job: mask + network co-design
+  bash install.sh && python -m pytest -q                      # the tests
+
+Examples:
+  python -m codesign +experiment=psf mask=pixel               # choose a group's option
+  python -m codesign +experiment=joint debug=smoke            # any experiment shrunk to seconds on a CPU
+  python -m codesign +experiment=joint --cfg job              # print the composed config, run nothing
+
+Read on:
+  python -m codesign +experiment=NAME --cfg job   every key of a run with its value
+  docs/config.md                                  every config key: default, meaning, units
+  README.md                                       the docs index: every feature, its command and its docs/ page
+
+Other flags:
+  --version         print codesign's version
+  --hydra-help      Hydra's own help (-m multirun sweeps, --cfg, --info, overrides grammar)
+"""
+
+
 def main() -> None:
     from codesign.config.runtime import renamed_key_error
     from codesign.train import distributed
 
+    args = sys.argv[1:]
+    if "--version" in args:
+        from codesign import __version__
+
+        print(__version__)
+        raise SystemExit(0)
+    if "--help" in args or "-h" in args:
+        print(help_text(), end="")
+        raise SystemExit(0)
     problem = renamed_key_error(sys.argv[1:])
     if problem:
         print(f"codesign: configuration error: {problem}", file=sys.stderr)

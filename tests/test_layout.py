@@ -14,6 +14,8 @@ ROOT = Path(__file__).resolve().parent.parent / "codesign"
 ORDER = ("core", "config", "io", "data", "optics", "sensor", "camera", "models", "design", "fab", "train",
          "experiments")
 ENTRY = "codesign.__main__"
+# The Python API sits above every package like the entry point: it may run the experiments, nothing imports it.
+ENTRIES = (ENTRY, "codesign.api")
 
 
 def _module_name(path: Path) -> str:
@@ -23,8 +25,8 @@ def _module_name(path: Path) -> str:
 
 def _package(module: str) -> str:
     parts = module.split(".")
-    if len(parts) == 1 or module == ENTRY:
-        return "root"  # codesign/__init__.py (registers the config nodes) and the entry point
+    if len(parts) == 1 or module in ENTRIES:
+        return "root"  # codesign/__init__.py (registers the config nodes), the entry point and the Python API
     return "core" if parts[1] in ("errors", "spec_base", "signals") else parts[1]
 
 
@@ -67,7 +69,7 @@ def test_a_package_imports_only_the_packages_before_it(module):
 
 
 def test_only_the_entry_point_imports_the_experiments():
-    importers = sorted(m for m, targets in EDGES.items() if _package(m) != "experiments" and m != ENTRY
+    importers = sorted(m for m, targets in EDGES.items() if _package(m) != "experiments" and m not in ENTRIES
                        and any(_package(t) == "experiments" for t in targets))
     assert importers == []
     # and one experiment module never imports another (their shared runner is codesign.experiments itself)
@@ -129,3 +131,11 @@ def _private_uses(path: Path) -> list[str]:
 def test_no_module_uses_another_modules_private_names():
     found = {m: uses for m, p in MODULES.items() if (uses := _private_uses(p))}
     assert not found, found
+
+
+def test_nothing_in_the_library_imports_the_python_api():
+    """codesign/api.py sits above every package (it runs the experiments): no module imports it; codesign/__init__.py
+    loads it on first use of one of its names (importlib, not an import statement)."""
+    assert "codesign.api" in MODULES
+    importers = sorted(m for m, targets in EDGES.items() if "codesign.api" in targets and m != "codesign.api")
+    assert importers == []

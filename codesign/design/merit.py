@@ -148,11 +148,13 @@ class MaskMonitor:
     def measure(self, mask, refine: bool = False) -> tuple[dict, dict]:
         return mask_figures_of_merit(self.system, mask, self.radial, self.band, self.p, refine, self.grids)
 
-    def log(self, writer, step: int, mask, images: bool = True, prefix: str = "mask") -> dict:
-        """Scalars (and, when ``images``, pictures and histograms) of ``mask`` at ``step``; returns the scalars."""
+    def log(self, writer, step: int, mask, images: bool = True, prefix: str = "mask", params: bool = True) -> dict:
+        """Scalars (and, when ``images``, pictures and histograms) of ``mask`` at ``step``; returns the scalars.
+        ``params``: its parameters as scalars too (false where they are the configuration's, not learned)."""
         values, arrays = self.measure(mask)
         if writer is not None:
             log_mask(writer, step, mask, values, arrays, reference=self.reference,
                      aperture=self.system.grid.aperture.cpu().numpy(), uncoded_peak=self.system.uncoded_peak,
-                     freqs=self.radial.freqs.cpu().numpy(), band=self.band, images=images, prefix=prefix)
+                     freqs=self.radial.freqs.cpu().numpy(), band=self.band, images=images, prefix=prefix,
+                     params=params)
         return values

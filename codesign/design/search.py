@@ -66,10 +66,7 @@ class MaskSearch:
             self.done += 1
             k = problem.evaluations
             if self.writer is not None:
-                self.writer.add_scalar(f"{sweep_tag}/lsr_sampled", ev.lsr_sampled, k)
-                self.writer.add_scalar(f"{sweep_tag}/mtf_mean", ev.mtf_mean, k)
-                if problem.best is not None:
-                    self.writer.add_scalar(f"{sweep_tag}/best_lsr", problem.best.lsr_sampled, k)
+                self._log_eval(sweep_tag, problem, ev, k)
             if self.done % self.s.log_every == 0:
                 elapsed = time.perf_counter() - self.t0
                 rate = self.done / max(elapsed, 1e-9)
@@ -80,6 +77,25 @@ class MaskSearch:
                          "ETA %.0f s", sweep_tag, problem.label, ev.p, k, ev.lsr_sampled, ev.mtf_mean, ev.energy, text,
                          rate, max(self.budget - self.done, 0) / rate)
         return on_eval
+
+    def _log_eval(self, tag: str, problem: DesignProblem, ev, k: int) -> None:
+        """One evaluation's progress in TensorBoard at step ``k`` (the floor's evaluation count): the objective, each
+        constraint's value (<= 0: met), the violation, LSR (sampled and smooth), mtf_mean, window energy, the
+        restorability when measured, the p of the continuation and the best feasible point's figures so far."""
+        w = self.writer
+        figures = {"objective": ev.objective, "lsr_sampled": ev.lsr_sampled, "lsr_smooth": ev.lsr_smooth,
+                   "mtf_mean": ev.mtf_mean, "window_energy": ev.energy, "violation": ev.violation, "lsr_p": ev.p,
+                   "restorability": ev.restorability,
+                   **{f"constraint/{name}": v for name, v in ev.constraints.items()}}
+        best = problem.best
+        if best is not None:
+            figures.update({"best/lsr_sampled": best.lsr_sampled, "best/mtf_mean": best.mtf_mean,
+                            "best/objective": best.objective})
+        for name, v in figures.items():
+            if v is not None and math.isfinite(float(v)):
+                w.add_scalar(f"{tag}/{name}", float(v), k)
+        if self.done % self.s.log_every == 0:
+            w.flush()
 
     # ---- the run ----------------------------------------------------------------------------------------------
     def _run_sweep(self, factor: float, limits: Limits, starts, max_evals: int, tag: str) -> Sweep:

@@ -48,6 +48,24 @@ _SUPPORT = ("protocol", "rundir", "runlock")
 EXPERIMENTS: tuple[str, ...] = tuple(sorted(m.name for m in pkgutil.iter_modules(__path__) if m.name not in _SUPPORT))
 
 
+# Under debug=smoke a few evaluations on a coarse grid cannot meet a search's constraints or pass its re-check: a
+# record an experiment logs with extra={"smoke_expected": True} then says so (unchanged without debug=smoke).
+SMOKE_NOTE = "expected at smoke size: debug=smoke runs a few evaluations on a coarse grid; not a finding"
+
+
+class _SmokeNote(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        if getattr(record, "smoke_expected", False) and SMOKE_NOTE not in str(record.msg):
+            record.msg = f"{record.msg} ({SMOKE_NOTE})"
+        return True
+
+
+def smoke_active(cfg: DictConfig) -> bool:
+    """Whether the run is shrunk by debug=smoke (conf/debug/smoke.yaml, applied by run_experiment)."""
+    debug = cfg.get("debug")
+    return bool(debug) and debug.get("name") == "smoke"
+
+
 def experiment_module(name: str):
     """The module of experiment ``name`` (imported on first use)."""
     return importlib.import_module(f"codesign.experiments.{name}")
@@ -189,8 +207,16 @@ def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None
             if removed:
                 log.info("removed %d temp file(s) a killed run left: %s", len(removed),
                          ", ".join(str(p.relative_to(run_dir)) for p in removed))
-        with interruptible():  # SIGINT / SIGTERM: Interrupted, reported below (python -m codesign: from the start)
-            result = experiment_function(task)(cfg, run_dir, device)
+        note = _SmokeNote() if smoke_active(cfg) else None
+        logger = getattr(experiment_module(task), "log", None)
+        if note is not None and isinstance(logger, logging.Logger):
+            logger.addFilter(note)
+        try:
+            with interruptible():  # SIGINT / SIGTERM: Interrupted, reported below (python -m codesign: from the start)
+                result = experiment_function(task)(cfg, run_dir, device)
+        finally:
+            if note is not None and isinstance(logger, logging.Logger):
+                logger.removeFilter(note)
         if ctx.is_main:
             rundir.finish_work(run_dir, task)  # last, after every output: the run counts as finished
         return result

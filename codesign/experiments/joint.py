@@ -9,6 +9,7 @@ A killed run started again on the same run directory (hydra.run.dir=...) resumes
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 
 import numpy as np
@@ -197,9 +198,11 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         metrics.update(extra)
         if keep:
             io.save_figure(run_dir / f"compare_{COMPARED}.png", comparison_figure(
-                joint_eval["images"][COMPARED], pub_images[COMPARED], model.method, COMPARED))
+                joint_eval["images"][COMPARED], pub_images[COMPARED], model.method, COMPARED,
+                names=joint_eval["evaluation_scenes"], tables={"learned": joint_eval["evaluation"][COMPARED],
+                                                               "published": extra["evaluation_baseline"][COMPARED]}))
     io.write_json(run_dir / "metrics.json", metrics)
-    _hparams(trainer.writer, cfg, metrics)
+    _hparams(trainer.writer, cfg, metrics, model.method)
     if published is not None:
         print(joint_summary({**metrics, "seed": seed}, model.method), flush=True)
     else:
@@ -307,7 +310,7 @@ def _published_evaluation(model, trainer, data, timing: dict, run_dir, ev, seed,
             **_scores(result["evaluation"], model.method, "_baseline")}, images
 
 
-def _hparams(writer, cfg, metrics: dict) -> None:
+def _hparams(writer, cfg, metrics: dict, method: str | None = None) -> None:
     if writer is None:
         return
     hp = {"variant": metrics["variant"], "size": metrics["size"], "mask": metrics["mask_kind"],
@@ -315,4 +318,18 @@ def _hparams(writer, cfg, metrics: dict) -> None:
     keys = ("lsr", "lsr_baseline", "lsr_smooth", "mtf_mean", "mtf_mean_baseline", "psnr", "psnr_baseline", "ssim",
             "ssim_baseline", "psnr_affine", "psnr_affine_baseline")
     writer.add_hparams(hp, {f"hparam/{k}": float(metrics[k]) for k in keys if k in metrics}, run_name="hparams")
+    # the test scores per condition (laser strength alpha_l, robustness stage) as scalars too, at the last step:
+    # test/<metric>/<condition> (learned system), test_published/<metric>/<condition> (the published one)
+    for prefix, key in (("test", "evaluation"), ("test_published", "evaluation_baseline")):
+        for cond, table in (metrics.get(key) or {}).items():
+            row = table.get(method) if method in table else list(table.values())[-1]  # the restorer: the last
+            for metric in ("psnr", "psnr_affine", "ssim", "ssim_affine"):
+                v = (row or {}).get(metric)
+                if isinstance(v, (int, float)) and math.isfinite(v):
+                    writer.add_scalar(f"{prefix}/{metric}/{_condition_tag(cond)}", float(v), metrics["steps"])
     writer.close()
+
+
+def _condition_tag(cond: str) -> str:
+    """laser_1e6 -> alpha_l_1e6 (laser_0 -> alpha_l_0); robustness stages keep their names (H1 -> stage_H1)."""
+    return f"alpha_l_{cond[len('laser_'):]}" if cond.startswith("laser_") else f"stage_{cond}"

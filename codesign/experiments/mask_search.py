@@ -176,13 +176,14 @@ def _outputs(run_dir: Path, s: SearchSpec, ms, system, mask, published, base, ba
     _add_limit(base, base_arr, limit)
     if not feasible:
         log.error("NO FEASIBLE POINT in %d evaluations: the outputs describe the point closest to the constraints "
-                  "(violation %.3g)", main.problem.evaluations, main.problem.least.violation)
+                  "(violation %.3g)", main.problem.evaluations, main.problem.least.violation,
+                  extra={"smoke_expected": True})
     check = verify_design(mask.freeze(), spec, ms.mtf_band, ms.recheck_tolerance) if s.check else None
     if check is not None and not check["agree"]:
         log.warning("the best design does NOT survive the re-check: its LSR / mtf_mean on a pupil grid twice as "
                     "fine and a window twice as wide differ by up to %.1f%% (tolerance %.0f%%): part of its gain is "
                     "the simulation's, not the optics' (metrics.json: check)", 100 * check["max_deviation"],
-                    100 * ms.recheck_tolerance)
+                    100 * ms.recheck_tolerance, extra={"smoke_expected": True})
     sampling = report_sampling(sampling_of(check["design"], check["fine"]), log, "the best design") if check \
         else sampling_report(mask.freeze(), spec, ms.mtf_band, log, "the best design")
     quantized = quantized_figures(mask, monitor, rest, (2, 4, 8, 16))
@@ -225,7 +226,8 @@ def _outputs(run_dir: Path, s: SearchSpec, ms, system, mask, published, base, ba
              values["lsr_limit"], values["mtf_mean"], values["window_energy"], values["restorability"],
              base["restorability"], "" if check is None else f"; re-check {'agrees' if check['agree'] else 'FAILS'} "
              f"(max deviation {100 * check['max_deviation']:.2f}%)", main.problem.evaluations, main.seconds,
-             metrics["evals_per_second"], run_dir)
+             metrics["evals_per_second"], run_dir,
+             extra={"smoke_expected": not feasible or (check is not None and not check["agree"])})
     return metrics
 
 
@@ -244,6 +246,10 @@ def _write_evaluations(path: Path, sweeps, mask) -> None:
 
 
 def _figures(run_dir: Path, system, mask, best, baseline, limit, ms, radial, search, front) -> None:
+    import math
+
+    from codesign.io.tensorboard import log_mask
+
     (values, arrays), (base, base_arr) = best, baseline
     spec = system.spec
     ap = system.grid.aperture.cpu().numpy()
@@ -262,7 +268,17 @@ def _figures(run_dir: Path, system, mask, best, baseline, limit, ms, radial, sea
         freqs, {"best mask": np_(arrays["mtf_radial"]), "published mask": np_(base_arr["mtf_radial"]),
                 "uncoded": np_(rad0), "analytic circular pupil": circular_mtf(torch.from_numpy(freqs)).numpy()},
         ms.mtf_band, f"MTF: best mean {values['mtf_mean']:.3g}, published {base['mtf_mean']:.3g}"))
-    io.save_figure(run_dir / "pareto.png", evaluations_figure(search.sweeps, front, base, limit, "sampled"))
+    if search.writer is not None:  # the best design's figures, phase, PSF and MTF; the published mask's figures
+        step = search.evaluations
+        finite = lambda d: {k: float(v) for k, v in d.items()  # noqa: E731
+                            if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)}
+        log_mask(search.writer, step, mask, finite(values), arrays, reference=(base, base_arr), aperture=ap,
+                 uncoded_peak=system.uncoded_peak, freqs=np_(radial.freqs), band=ms.mtf_band, prefix="best")
+        for k, v in finite(base).items():
+            search.writer.add_scalar(f"published/{k}", v, step)
+        search.writer.flush()
+    io.save_figure(run_dir / "pareto.png", evaluations_figure(search.sweeps, front, base, limit, "sampled",
+                                                              best=values, best_label=f"searched {mask.kind}"))
 
 
 

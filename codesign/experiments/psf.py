@@ -105,8 +105,9 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     writer = open_writer(run_dir, tensorboard_enabled(cfg))
     if writer is not None:
         MaskMonitor(system, published_reference(mask_cfg, system), band, p, ms.lsr_grids).log(writer, 0, mask,
-                                                                                             images=True)
-    log_summary(writer, {"mask": mask_cfg["kind"], "propagator": system.method, "pupil_n": spec.grid_n}, metrics_out)
+                                                                                             images=True, params=False)
+    log_summary(writer, {"mask": mask_cfg["kind"], "propagator": system.method, "pupil_n": spec.grid_n}, metrics_out,
+                settings=mask.summary())  # the configured mask's parameters: settings, not measurements
     log.info("lsr=%.4g (sampled %.4g, smooth %.4g) bsr=%.4f mtf_mean=%.4g mtf_min=%.4g energy_in_window=%.4f "
              "forward %.3f s backward %.3f s", values["lsr"], values["lsr_sampled"], values["lsr_smooth"],
              values["bsr"], values["mtf_mean"], values["mtf_min"], values["psf_energy_in_window"], t_fwd, t_bwd)

@@ -43,27 +43,33 @@ EXPERIMENT = Experiment(
 CAPTURES = "captures"  # the 16-bit sensor captures alone: a folder +experiment=restore takes as input=DIR
 
 def _grid_figure(images: np.ndarray, rows: list[str], cols: list[float], log_view: bool, full_scale: float):
+    """The simulated captures (rows: scenes, columns: laser strengths alpha_l) on one grey scale in DN, linear
+    (0 .. full scale G e_sat) or log10, with its colour bar."""
     nr, nc = images.shape[:2]
     # log view: from the darkest 1% of the laser-free captures (read offset + dim scene) to full scale, so that
     # faint laser structure (alpha_l = 10, 100) stands out
     log_lo = float(np.log10(max(np.percentile(images[:, 0], 1), 1.0)))
-    fig, axes = plt.subplots(nr, nc, figsize=(1.9 * nc, 2.0 * nr), squeeze=False)
+    fig, axes = plt.subplots(nr, nc, figsize=(1.9 * nc + 1.3, 2.0 * nr + 0.5), squeeze=False, layout="constrained")
+    im = None
     for i in range(nr):
         for j in range(nc):
             ax = axes[i][j]
             img = images[i, j]
             if log_view:
-                ax.imshow(np.log10(np.maximum(img, 1.0)), cmap="gray", vmin=log_lo, vmax=np.log10(full_scale))
+                im = ax.imshow(np.log10(np.maximum(img, 1.0)), cmap="gray", vmin=log_lo, vmax=np.log10(full_scale))
             else:
-                ax.imshow(img, cmap="gray", vmin=0, vmax=full_scale)
+                im = ax.imshow(img, cmap="gray", vmin=0, vmax=full_scale)
             ax.set_xticks([])
             ax.set_yticks([])
             if i == 0:
                 ax.set_title(f"alpha_l = {cols[j]:g}", fontsize=8)
             if j == 0:
                 ax.set_ylabel(rows[i], fontsize=8)
-    fig.suptitle(("log10 counts" if log_view else "counts (linear, 0 .. G e_sat)") + " of the simulated sensor")
-    fig.tight_layout()
+    bar = fig.colorbar(im, ax=axes, shrink=0.9)
+    bar.set_label("log10 counts [DN]" if log_view else "counts [DN]", fontsize=8)
+    bar.ax.tick_params(labelsize=7)
+    fig.suptitle(("log10 counts" if log_view else "counts (linear)") + f" of the simulated sensor, full scale G e_sat "
+                 f"= {full_scale:.4g} DN;\nrows: scenes, columns: laser strength alpha_l", fontsize=8)
     return fig
 
 

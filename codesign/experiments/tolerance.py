@@ -17,7 +17,7 @@ from omegaconf import DictConfig
 from codesign.config.runtime import to_container
 from codesign.design.merit import metrics_spec
 from codesign.fab.plate_setup import make_plate, setup
-from codesign.fab.plate_figures import tolerance_figure
+from codesign.fab.plate_figures import sigma_text, tolerance_figure
 from codesign.fab.tolerance import SOURCES, Errors, PlateEvaluator, ToleranceSpec, deterministic, draw
 from codesign.io import files as io
 from codesign.optics import OpticalSystem
@@ -139,7 +139,9 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     (run_dir / PARTIAL_SAMPLES).unlink(missing_ok=True)  # an earlier interrupted run's: this one finished
     io.save_figure(run_dir / "tolerance.png", tolerance_figure(
         dist, nominal_lsr, ceiling, f"{mask_cfg['kind']} plate, {material.name}: LSR under fabrication and assembly "
-        f"errors (nominal {nominal_lsr:.4g})"))
+        f"errors (nominal {nominal_lsr:.4g})", sigmas={**{src: sigma_text(src, ts.sigma(src)) for src in active},
+                                                      "all sources": "every source at its sigma"},
+        ceiling_rule="1.2 x nominal" if ts.lsr_ceiling == "auto" else "tolerance.lsr_ceiling"))
     metrics = {"nominal_lsr": nominal_lsr, "nominal_mtf_mean": nominal_mtf, "lsr_ceiling": ceiling,
                "yield": overall["yield"], "samples": ts.samples, "samples_per_source": ts.samples_per_source,
                "all_sources": overall, "sources": per_source, "levels": plate.n_levels, "pitch_m": plate.pitch,

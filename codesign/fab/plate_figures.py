@@ -46,23 +46,40 @@ def export_figure(height: np.ndarray, inside: np.ndarray, pitch_m: float, psfs: 
     return fig
 
 
-def tolerance_figure(lsr: dict[str, np.ndarray], nominal: float, ceiling: float, title: str):
+# how each error source's 1-sigma reads on the tolerance figure: (scale, unit) of ToleranceSpec's value
+SIGMA_UNITS = {"depth_scale": (100.0, "% of the depth"), "level_noise": (1e9, "nm"), "shift": (1e6, "um per axis"),
+               "rotation": (1.0, "deg"), "wavelength": (1e9, "nm"), "defocus": (1e6, "um of sensor travel")}
+
+
+def sigma_text(source: str, sigma: float) -> str:
+    """"sigma 10 nm": an error source's 1-sigma in its unit (SIGMA_UNITS)."""
+    scale, unit = SIGMA_UNITS.get(source, (1.0, ""))
+    return f"sigma {sigma * scale:.3g} {unit}".rstrip()
+
+
+def tolerance_figure(lsr: dict[str, np.ndarray], nominal: float, ceiling: float, title: str,
+                     sigmas: dict[str, str] | None = None, ceiling_rule: str | None = None):
     """Histogram of the LSR of the Monte Carlo samples of each error source (name -> (N,)), with the nominal
-    design's LSR and the yield ceiling."""
+    design's LSR and the yield ceiling. ``sigmas``: name -> the source's 1-sigma as text (sigma_text), in each
+    panel's title; ``ceiling_rule``: how the ceiling was set ("1.2 x the nominal LSR"), in the legend."""
     names = list(lsr)
+    sigmas = sigmas or {}
     cols = 3
     rows = -(-len(names) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4.6 * cols, 3.4 * rows), squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.6 * cols, 3.5 * rows + 0.3), squeeze=False)
     hi = max(float(np.max(v)) for v in lsr.values())
     lo = min(float(np.min(v)) for v in lsr.values())
     bins = np.linspace(min(lo, nominal) * 0.98, max(hi, ceiling) * 1.02, 40)
     for ax, name in zip(axes.flat, names):
         v = lsr[name]
-        ax.hist(v, bins=bins, color="C0", alpha=0.8)
-        ax.axvline(nominal, color="k", lw=1, label="nominal")
-        ax.axvline(ceiling, color="C3", lw=1, ls="--", label="ceiling")
-        ax.set(title=f"{name}: yield {np.mean(v <= ceiling):.1%}", xlabel="LSR (sampled peak)", ylabel="samples")
-    axes.flat[0].legend(fontsize=8)
+        ax.hist(v, bins=bins, color="C0", alpha=0.8, label="Monte Carlo samples")
+        ax.axvline(nominal, color="k", lw=1, label=f"nominal design: {nominal:.4g}")
+        rule = f" = {ceiling_rule}" if ceiling_rule else ""
+        ax.axvline(ceiling, color="C3", lw=1, ls="--", label=f"yield ceiling{rule}: {ceiling:.4g}")
+        head = f"{name} ({sigmas[name]})" if name in sigmas else name
+        ax.set_title(f"{head}\nyield (LSR <= ceiling) {np.mean(v <= ceiling):.1%}", fontsize=9)
+        ax.set(xlabel="LSR (sampled peak / uncoded peak)", ylabel="samples")
+    axes.flat[0].legend(fontsize=7)
     for ax in list(axes.flat)[len(names):]:
         ax.axis("off")
     fig.suptitle(title)

@@ -45,9 +45,11 @@ def mtf_panel(ax, freqs: np.ndarray, curves: dict[str, np.ndarray], band: tuple[
 
 
 def psf_figure(psf: np.ndarray, psf0: np.ndarray, pitch_m: float, title: str):
+    """The uncoded and the coded PSF side by side, on the same log scale (seven decades below h0's peak)."""
     ext = window_extent_mm(psf.shape[0], pitch_m)
     vmax = np.log10(float(psf0.max()))
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
+    # constrained layout: each colour bar and its label keep clear of the next panel's axis labels
+    fig, axes = plt.subplots(1, 2, figsize=(10.5, 4.4), layout="constrained")
     for ax, img, name in ((axes[0], psf0, "uncoded h0"), (axes[1], psf, "coded h")):
         log_psf_panel(fig, ax, img, ext, vmax, name)
     fig.suptitle(title)

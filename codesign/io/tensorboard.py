@@ -24,16 +24,35 @@ def open_writer(run_dir: Path, enabled: bool = True, purge_step: int | None = No
     return SummaryWriter(log_dir=str(run_dir), purge_step=purge_step or None)
 
 
-def log_summary(writer, hparams: dict, metrics: dict, prefix: str = "final") -> None:
-    """Every scalar of a run's metrics.json as ``prefix/<key>`` at step 0, plus the hparams table; closes the
-    writer. Non-scalar entries (tables, lists) stay in metrics.json."""
+# metrics.json entries that restate a setting (the grid, the optics, the run's size and threads), not a measurement:
+# TensorBoard shows them in the hparams table and the "settings" text, never as scalars
+SETTING_KEYS = frozenset({
+    "pupil_n", "pupil_pitch_m", "pupil_samples_across_aperture", "focal_n", "focal_pitch_m",
+    "samples_per_lambda_f_over_d", "wavelength_m", "focal_length_m", "aperture_diameter_m", "laser_wavelength_m",
+    "threads", "timing_repeats", "lsr_smooth_p", "lsr_p", "mtf_band_low", "mtf_band_high", "m_o_min", "m_o_max",
+    "batch_size", "image_size", "padded_size", "network_pixel_pitch_m", "sensor_resolution", "scene_size",
+    "psf_kernel_size", "scenes", "seed", "steps", "max_evals", "parameters"})
+
+
+def _number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(float(v))
+
+
+def log_summary(writer, hparams: dict, metrics: dict, prefix: str = "final", settings=()) -> None:
+    """The measured scalars of a run's metrics.json as ``prefix/<key>`` at step 0, and the hparams table: ``hparams``
+    and the entries that are settings (SETTING_KEYS and ``settings``: numbers the configuration fixed, such as the
+    grid or the mask's configured parameters) as its columns, the measured scalars as its metrics; the settings also
+    as a "settings" text. Closes the writer. Non-scalar entries (tables, lists) stay in metrics.json."""
     if writer is None:
         return
-    scalars = {k: float(v) for k, v in metrics.items()
-               if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(float(v))}
+    is_setting = SETTING_KEYS | set(settings)
+    scalars = {k: float(v) for k, v in metrics.items() if _number(v) and k not in is_setting}
+    fixed = {k: v for k, v in metrics.items() if k in is_setting and (_number(v) or isinstance(v, (str, bool)))}
     for k, v in scalars.items():
         writer.add_scalar(f"{prefix}/{k}", v, 0)
-    hp = {k: (v if isinstance(v, (int, float, str, bool)) else str(v)) for k, v in hparams.items()}
+    hp = {k: (v if isinstance(v, (int, float, str, bool)) else str(v)) for k, v in {**fixed, **hparams}.items()}
+    if hp:
+        writer.add_text("settings", "\n".join(f"    {k} = {v}" for k, v in sorted(hp.items())), 0)
     writer.add_hparams(hp, {f"hparam/{k}": v for k, v in scalars.items()}, run_name="hparams")
     writer.close()
 
@@ -44,7 +63,7 @@ def _unit(img: np.ndarray, lo: float, hi: float) -> np.ndarray:
 
 def log_mask(writer, step: int, mask, values: dict, arrays: dict, *, reference: tuple | None, aperture: np.ndarray,
              uncoded_peak: float, freqs: np.ndarray, band: tuple[float, float], images: bool = True,
-             prefix: str = "mask") -> None:
+             prefix: str = "mask", params: bool = True) -> None:
     """A mask's figures of merit at ``step``: the scalars ``values`` (and their ratios to ``reference``'s, the
     published mask's (values, arrays)), its parameters, and, when ``images``, histograms of its parameters, its
     phase, log PSF and log MTF as images and its radial MTF against the reference's. ``arrays``: phase (n, n),
@@ -54,7 +73,7 @@ def log_mask(writer, step: int, mask, values: dict, arrays: dict, *, reference: 
 
     for k, v in values.items():
         writer.add_scalar(f"{prefix}/{k}", v, step)
-    for k, v in mask.summary().items():
+    for k, v in (mask.summary() if params else {}).items():  # params false: they are settings (a fixed mask)
         writer.add_scalar(f"{prefix}_params/{k}", v, step)
     if reference is not None:
         ref = reference[0]

@@ -11,6 +11,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 
+from codesign.config.store import document
 from codesign.errors import ConfigError, require_choice, require_list, require_number
 from codesign.spec_base import SpecMixin
 
@@ -94,3 +95,7 @@ class Material(SpecMixin):
     def summary(self, wavelength_m: float) -> dict:
         return {"material": self.name, "material_formula": self.formula, "material_source": self.source,
                 "refractive_index": self.index(wavelength_m)}
+
+
+# the options material=NAME are conf/material/*.yaml; their keys are these fields (docs/config.md)
+document("material", Material)

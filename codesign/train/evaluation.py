@@ -255,12 +255,40 @@ def write_csv(path: Path, rows: list[dict]) -> None:
     io.atomic_write_bytes(path, lambda f: f.write(buf.getvalue().encode()))
 
 
+# readable column titles of the evaluation figures (code name -> what the column shows)
+METHOD_TITLES = {"input": "sensor image\n(autoscaled)", "sensor": "sensor image\n(gain/offset matched)",
+                 "wiener": "classical Wiener", "g1_wiener": "Wiener after G1\n(laser removed)",
+                 "sgan": "SGAN network", "wiener_unet": "Wiener + U-Net\nnetwork", "truth": "ground truth"}
+
+
+def method_title(name: str) -> str:
+    return METHOD_TITLES.get(name, name)
+
+
+def preset_description(preset: str) -> str:
+    """What an evaluation preset is: "robustness stage H1: alpha_l = 1e+06 (laser strength), ..." or "laser
+    strength alpha_l = 1e+06 (the paper's figure settings)"."""
+    from codesign.data.params import PRESETS, ROBUSTNESS_STAGES
+
+    values = PRESETS.get(preset)
+    if values is None:
+        return preset
+    if preset in ROBUSTNESS_STAGES:
+        return (f"robustness stage {preset}: laser strength alpha_l = {values['alpha_l']:g}, background alpha_b = "
+                f"{values['alpha_b']:g}, photon noise c1 = {values['c1']:g}")
+    if preset.startswith("laser_"):
+        return f"{preset}: laser strength alpha_l = {values['alpha_l']:g} (the paper's figure settings)"
+    return preset
+
+
 def panel_figure(images: dict, target: torch.Tensor, names: list[str], preset: str, table: dict):
+    """The first three scenes (rows) under ``preset``: the sensor image, each method and the truth (columns), each
+    method's title with its PSNR, the mean over every evaluated scene."""
     cols = list(images) + ["truth"]
     rows = min(len(names), 3)
     from codesign.io.plots import plt  # matplotlib only when a figure is drawn (import codesign stays light)
 
-    fig, axes = plt.subplots(rows, len(cols), figsize=(2.1 * len(cols), 2.2 * rows), squeeze=False)
+    fig, axes = plt.subplots(rows, len(cols), figsize=(2.1 * len(cols), 2.2 * rows + 0.6), squeeze=False)
     for i in range(rows):
         for j, col in enumerate(cols):
             ax = axes[i][j]
@@ -270,11 +298,16 @@ def panel_figure(images: dict, target: torch.Tensor, names: list[str], preset: s
             ax.set_xticks([])
             ax.set_yticks([])
             if i == 0:
-                title = col if col not in table else f"{col}\n{table[col]['psnr']:.2f} dB"
+                title = method_title(col)
+                if col in table:
+                    title += f"\n{table[col]['psnr']:.2f} dB"
                 ax.set_title(title, fontsize=8)
             if j == 0:
                 ax.set_ylabel(names[i], fontsize=8)
-    fig.suptitle(f"{preset}: input (autoscaled) / methods / truth", fontsize=9)
+    n = target.shape[0]
+    shown = f" (rows: the first {rows})" if rows < n else ""
+    fig.suptitle(f"{preset_description(preset)}\nPSNR [dB]: the mean over the {n} evaluated scene{'s' * (n != 1)}"
+                 f"{shown}", fontsize=9)
     fig.tight_layout()
     return fig
 

@@ -67,29 +67,51 @@ def joint_summary(m: dict, method: str) -> str:
     return "\n".join(lines)
 
 
-def comparison_figure(learned: dict, published: dict, method: str, condition: str, rows: int = 3):
+def comparison_figure(learned: dict, published: dict, method: str, condition: str, rows: int = 3,
+                      names: list[str] | None = None, tables: dict | None = None):
     """Both systems side by side at one condition: truth, then per mask its sensor image, Wiener and the network
-    (``learned`` / ``published``: evaluation images, run_evaluation(keep=...))."""
+    (``learned`` / ``published``: evaluation images, run_evaluation(keep=...)); a row per scene (``names``: their
+    names), each panel with its PSNR against the truth [dB], each column's title with the mean over every
+    evaluated scene when ``tables`` ({"learned": table, "published": table}, the condition's evaluation tables)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    cols = [("truth", learned, "truth"), ("published: sensor", published, "input"),
-            ("published: Wiener", published, "wiener"), (f"published: {method}", published, method),
-            ("learned: sensor", learned, "input"), ("learned: Wiener", learned, "wiener"),
-            (f"learned: {method}", learned, method)]
+    from codesign.train.evaluation import method_title
+
+    cols = [("ground truth", learned, "truth", None), ("published mask:\nsensor image", published, "input", None),
+            ("published mask:\nclassical Wiener", published, "wiener", "published"),
+            (f"published mask:\n{method_title(method)}", published, method, "published"),
+            ("learned mask:\nsensor image", learned, "input", None),
+            ("learned mask:\nclassical Wiener", learned, "wiener", "learned"),
+            (f"learned mask:\n{method_title(method)}", learned, method, "learned")]
     n = min(rows, learned["truth"].shape[0])
-    fig, axes = plt.subplots(n, len(cols), figsize=(2.0 * len(cols), 2.1 * n), squeeze=False)
+    fig, axes = plt.subplots(n, len(cols), figsize=(2.0 * len(cols), 2.1 * n + 0.9), squeeze=False)
     for i in range(n):
-        for j, (title, images, key) in enumerate(cols):
+        truth = learned["truth"][i, 0].numpy()
+        for j, (title, images, key, system) in enumerate(cols):
             img = images[key][i, 0].numpy()
             vmax = max(float(np.percentile(img, 99.5)), 1e-6) if key == "input" else 1.0
             ax = axes[i][j]
             ax.imshow(img, cmap="gray", vmin=0, vmax=vmax)
             ax.set_xticks([])
             ax.set_yticks([])
+            if key not in ("truth", "input"):  # this scene's PSNR of the shown restoration
+                mse = float(np.mean((np.clip(img, 0, 1) - truth) ** 2))
+                ax.text(0.03, 0.04, f"{-10 * math.log10(max(mse, 1e-12)):.2f} dB", transform=ax.transAxes,
+                        fontsize=7, color="yellow", bbox={"facecolor": "black", "alpha": 0.6, "pad": 1.5,
+                                                          "lw": 0})
             if i == 0:
-                ax.set_title(title, fontsize=8)
-    fig.suptitle(f"published vs learned mask at alpha_l = {ALPHA_NAMES.get(condition, condition)}", fontsize=10)
+                table = (tables or {}).get(system) if system else None
+                if table and key in table:
+                    title += f"\nmean {table[key]['psnr']:.2f} dB"
+                ax.set_title(title, fontsize=7)
+            if j == 0:
+                ax.set_ylabel(names[i] if names and i < len(names) else f"scene {i + 1}", fontsize=8)
+    scenes = learned["truth"].shape[0]
+    fig.suptitle(f"published vs learned mask at laser strength alpha_l = {ALPHA_NAMES.get(condition, condition)}; "
+                 f"in each panel: that scene's PSNR [dB];\ncolumn titles: the mean PSNR over the {scenes} evaluated "
+                 f"scene{'s' * (scenes != 1)}", fontsize=9)
+    fig.tight_layout()
     return fig

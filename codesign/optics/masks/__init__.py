@@ -175,8 +175,8 @@ def published_halfring(grid, aperture_diameter_m: float, **kw: Any) -> HalfRingM
 
 # the config options mask=<family> (every family's Spec defaults) and mask=freeform
 for _kind in families():
-    register("mask", _kind, FAMILIES[_kind].Spec.defaults())
-register("mask", "freeform", dict(FREEFORM_DEFAULTS))
+    register("mask", _kind, FAMILIES[_kind].Spec.defaults(), spec=FAMILIES[_kind].Spec)
+register("mask", "freeform", dict(FREEFORM_DEFAULTS), spec=ZernikeSpec)
 
 __all__ = ["Mask", "MaskSpec", "HalfRingMask", "PixelPhaseMask", "ZernikeMask", "SpiralMask", "SplineMask", "FAMILIES",
            "build_mask", "check_mask_init", "config_of_design", "design_levels", "families", "levels_of_design",

@@ -1,0 +1,212 @@
+"""The stable Python API: ``from codesign import compose, camera, psf_and_lsr, sensor_image, ...``.
+
+Thin wrappers over the library and the experiments, so that a script needs one import and no knowledge of the
+package layout. Like the entry point (codesign/__main__.py) this module sits above every package (it may run
+the experiments); nothing in the library imports it. Units are SI throughout (metres, radians); images are
+sensor counts (DN) or radiance in [0, 1] as stated. docs/api.md is the reference page.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+import codesign.experiments as _experiments
+from codesign.camera import Camera, build_camera
+from codesign.config.runtime import apply_debug_overrides, command_line_keys, renamed_key_error
+from codesign.data.scenes import build_scene_source
+from codesign.data.params import fixed_scene_params
+from codesign.data.simulate_spec import SimulateSpec
+from codesign.design.merit import evaluate_mask, metrics_spec, published_reference
+from codesign.errors import ConfigError
+from codesign.optics import OpticalSystem, OpticsSpec, build_mask
+from codesign.optics.masks import Mask
+from codesign.train.checkpoint import load_checkpoint
+
+CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+
+__all__ = ["compose", "camera", "optical_system", "build_mask", "configured_mask", "published_mask", "psf_and_lsr",
+           "scene_names", "sensor_image", "run", "checkpoint_config", "restore", "mask_search", "train_restorer",
+           "OpticsSpec", "OpticalSystem", "Camera", "Mask", "ConfigError", "CONF_DIR"]
+
+
+def _plain(node) -> dict:
+    return OmegaConf.to_container(node, resolve=True) if node is not None else {}
+
+
+def compose(*overrides: str, experiment: str | None = None) -> DictConfig:
+    """The composed configuration of ``python -m codesign [+experiment=NAME] OVERRIDES...``, processed as the entry
+    point processes it: renamed keys refused, an experiment's unknown root keys refused, and ``debug=smoke`` (any
+    ``debug=...``) applied, with the keys typed here left as typed (Hydra's compose API alone skips the shrink).
+
+    overrides: Hydra overrides as on the command line, e.g. ``"mask=spline"``, ``"optics.focal_n=160"``,
+    ``"debug=smoke"`` (values in the config's SI units: metres, radians). experiment: an experiment name (psf,
+    simulate, baseline, joint, mask_search, restore, evaluate, export, tolerance), same as ``+experiment=NAME``.
+    Without one, debug=smoke shrinks every key it names (no experiment's own shrink). Returns an OmegaConf
+    DictConfig. Raises ConfigError on a renamed or unknown key, hydra's errors on a bad override.
+    """
+    from hydra import compose as hydra_compose, initialize_config_dir
+
+    args = [str(o) for o in overrides]
+    if experiment is not None:
+        args = [a for a in args if not a.lstrip("+").startswith("experiment=")] + [f"+experiment={experiment}"]
+    problem = renamed_key_error(args)
+    if problem:
+        raise ConfigError(problem.split(" ", 1)[0], None, problem)
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = hydra_compose("config", overrides=args)
+    typed = command_line_keys([a for a in args if "=" in a])
+    if cfg.get("task") is not None:
+        _experiments.check_root_keys(cfg, cfg.task)
+        _experiments.apply_debug(cfg, typed)  # the entry point's shrink (codesign/experiments/__init__.py)
+    else:
+        apply_debug_overrides(cfg, typed)
+    return cfg
+
+
+def _config(cfg: DictConfig | None) -> DictConfig:
+    return compose() if cfg is None else cfg
+
+
+def camera(cfg: DictConfig | None = None, device: str | torch.device = "cpu",
+           dtype: torch.dtype = torch.float32) -> Camera:
+    """The Camera (optical system, frozen mask, sensor simulator) of ``cfg`` (default: ``compose()``, the default
+    optics and the published five half-ring mask); codesign.camera.build_camera. ``camera.frozen_optics()`` holds
+    the PSF state; ``camera(scenes, params, seed)`` simulates a batch (scenes: (N, 1, S, S) radiance in [0, 1]
+    with S = camera.scene_size; params: a SceneParams, e.g. from fixed_scene_params)."""
+    return build_camera(_config(cfg), torch.device(device), dtype)
+
+
+def optical_system(cfg: DictConfig | None = None, device: str | torch.device = "cpu",
+                   dtype: torch.dtype = torch.float32) -> OpticalSystem:
+    """The OpticalSystem (pupil grid, propagator) of ``cfg.optics`` (default: the default optics: 532 nm, f and
+    aperture in metres as in conf / OpticsSpec). ``system.psf(mask.phase())`` is the PSF on the focal window."""
+    spec = OpticsSpec.from_config(_plain(_config(cfg).optics))
+    return OpticalSystem(spec, dtype=dtype, device=torch.device(device))
+
+
+def configured_mask(cfg: DictConfig | None = None, system: OpticalSystem | None = None) -> Mask:
+    """The configured mask (``cfg.mask``: mask=<family>, mask.init=PATH) on ``system``'s pupil grid (default:
+    optical_system(cfg)). Its ``phase()`` is the pupil phase in radians."""
+    cfg = _config(cfg)
+    system = system or optical_system(cfg)
+    return build_mask(_plain(cfg.mask), system.grid, system.spec.aperture_diameter_m)
+
+
+def published_mask(system: OpticalSystem | None = None, cfg: DictConfig | None = None) -> Mask:
+    """The published five half-ring mask (Peng et al., Sec. 3.1: radii r_n in metres, angles theta_n in radians),
+    frozen, on ``system``'s grid under the configured mask conventions: every experiment's baseline."""
+    cfg = _config(cfg)
+    system = system or optical_system(cfg)
+    return published_reference(_plain(cfg.mask), system)
+
+
+def psf_and_lsr(mask: Mask | None = None, system: OpticalSystem | None = None,
+                cfg: DictConfig | None = None) -> dict[str, Any]:
+    """PSF and figures of merit of a mask, as ``+experiment=psf`` reports them (design.merit.evaluate_mask).
+
+    mask: any Mask (default: the published mask); system: its OpticalSystem (default: optical_system(cfg)).
+    Returns a dict: ``psf`` (focal-window tensor, focal_n x focal_n samples of focal_pitch_m metres, in units of
+    the pupil's total power per sample), ``psf_uncoded`` (the same without the mask), ``phase`` (rad), ``lsr``
+    (laser suppression ratio: the certified continuous PSF peak over the uncoded peak, dimensionless),
+    ``lsr_sampled``, ``lsr_smooth`` (the differentiable p-norm LSR), ``bsr``, ``mtf_mean``, ``mtf_min`` (over
+    metrics.mtf_band, frequency normalized to the incoherent cutoff), ``psf_energy_in_window`` and the rest of
+    evaluate_mask's keys."""
+    cfg = _config(cfg)
+    system = system or optical_system(cfg)
+    mask = mask if mask is not None else published_mask(system, cfg)
+    ms = metrics_spec(cfg)
+    values, arrays = evaluate_mask(system, mask, ms.mtf_band, ms.lsr_p, ms.lsr_grids)
+    return {**values, "psf": arrays["psf"], "psf_uncoded": arrays["psf_uncoded"], "phase": arrays["phase"]}
+
+
+def scene_names(cfg: DictConfig | None = None, split: str | None = None) -> list[str]:
+    """The names of the scenes of ``cfg.data`` (default: the built-in scikit-image scenes) in ``split`` ('train',
+    'test' or 'all'; None: the test split)."""
+    return build_scene_source(_config(cfg).data).split_names(split or "test")
+
+
+def sensor_image(scene: str | int = 0, alpha_l: float = 1e6, cfg: DictConfig | None = None,
+                 cam: Camera | None = None, seed: int | None = None, **params: Any) -> dict[str, torch.Tensor]:
+    """One simulated sensor image of a built-in (or cfg.data's) scene at laser strength ``alpha_l``, as
+    ``+experiment=simulate`` makes it (same scene source, fixed scene parameters, laser angle).
+
+    scene: a name from scene_names(cfg) or an index into the test split. alpha_l: the laser's strength relative to
+    the scene (the paper's alpha_l, dimensionless; 0 = no laser). params: other SceneParams fields (paper's figure
+    values by default; laser_angle_rad in radians, default simulate.laser_angle_rad). cam: a Camera of cfg to reuse
+    (default: camera(cfg)). seed: the noise seed (None: the config's seed). Returns the simulator's outputs for a
+    batch of one: ``sensor_dn`` (1, 1, n, n) sensor counts (DN, n = data.image_size), ``saturated`` (1, 1, n, n)
+    bool, ``laser`` (1, 1, n, n) the laser's part of the image before noise and digitization (irradiance units); on
+    the padded grid (1, 1, p, p), p = data.padded_size, the image centred (codesign.camera.field_of_view crops it):
+    ``sensor`` (counts / full scale, 0..1, the network input), ``scene`` (the target radiance, 0..1) and
+    ``irradiance`` (the scene through the optics)."""
+    cfg = _config(cfg)
+    cam = cam or camera(cfg)
+    sim = cam.simulator
+    source = build_scene_source(cfg.data)
+    fixed = SimulateSpec.from_config(_plain(cfg.get("simulate")) or {})
+    values = {**fixed.params, "laser_angle_rad": list(fixed.laser_angle_rad), **params, "alpha_l": alpha_l}
+    split = "test" if isinstance(scene, int) and not isinstance(scene, bool) else "all"
+    scenes = source.fixed_batch([scene], sim.scene_size, split=split).to(cam.device)
+    sp = fixed_scene_params(1, device=cam.device, **values)
+    with torch.no_grad():
+        return cam(scenes, sp, seed=int(cfg.seed) if seed is None else seed)
+
+
+def _new_run_dir(task: str) -> Path:
+    return Path("outputs") / "api" / task / time.strftime("%Y-%m-%d_%H-%M-%S") / f"{time.time_ns() % 10**6:06d}"
+
+
+def run(experiment: str, *overrides: str, run_dir: str | Path | None = None) -> dict[str, Any]:
+    """Run an experiment as ``python -m codesign +experiment=NAME OVERRIDES... hydra.run.dir=RUN_DIR`` does, in
+    this process (codesign.experiments.run_experiment: validation, debug shrink, threads, device), and return its
+    ``metrics.json`` as a dict, with ``run_dir`` (a Path) added. run_dir: default outputs/api/<NAME>/<time>.
+    A configuration error prints ``codesign: configuration error: ...`` and raises SystemExit(2), as the CLI."""
+    cfg = compose(*overrides, experiment=experiment)
+    run_dir = Path(run_dir) if run_dir is not None else _new_run_dir(experiment)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    with open_dict(cfg):
+        cfg.debug = None  # applied by compose (typed keys kept); run_experiment would apply it again over them
+    _experiments.run_experiment(cfg, run_dir)
+    metrics_file = run_dir / "metrics.json"
+    metrics = json.loads(metrics_file.read_text()) if metrics_file.is_file() else {}
+    return {**metrics, "run_dir": run_dir}
+
+
+def checkpoint_config(checkpoint: str | Path) -> DictConfig:
+    """The configuration a checkpoint.pt was trained with (its optics, mask, sensor, data, model blocks): e.g.
+    ``sensor_image(cfg=checkpoint_config(path))`` simulates captures at its network resolution for restore()."""
+    return OmegaConf.create(load_checkpoint(checkpoint)["config"])
+
+
+def restore(input: str | Path, checkpoint: str | Path, *overrides: str,
+            run_dir: str | Path | None = None) -> dict[str, Any]:
+    """Restore 16-bit sensor captures with a trained checkpoint (``+experiment=restore``). input: one 16-bit
+    PNG/TIFF of sensor counts (DN) at the checkpoint's data.image_size, or a folder of them; checkpoint: a
+    checkpoint.pt of baseline / joint (e.g. benchmarks/results/gpu/checkpoint.pt, 256 px). Writes
+    restored_<name>.png (radiance 0..1 as 0..65535) into run_dir; returns metrics.json (``outputs``,
+    ``seconds_per_image``, ...) with ``run_dir``."""
+    return run("restore", f"input={Path(input).resolve()}", f"checkpoint={Path(checkpoint).resolve()}",
+               *overrides, run_dir=run_dir)
+
+
+def mask_search(*overrides: str, run_dir: str | Path | None = None) -> dict[str, Any]:
+    """A mask-only search (``+experiment=mask_search``, e.g. ``"mask=spline"``, ``"search.max_evals=50"``,
+    ``"debug=smoke"``). Writes best_mask.json (a record ``mask.init=PATH`` takes), evaluations.csv and figures;
+    returns metrics.json (``lsr``, ``mtf_mean`` of the best design, ``lsr_published``, ...) with ``run_dir``."""
+    return run("mask_search", *overrides, run_dir=run_dir)
+
+
+def train_restorer(*overrides: str, run_dir: str | Path | None = None, experiment: str = "baseline"
+                   ) -> dict[str, Any]:
+    """Train and evaluate a restoration network on a fixed mask (``+experiment=baseline``; ``experiment="joint"``
+    co-designs the mask too). overrides e.g. ``"model=sgan_b"``, ``"trainer.steps=200"``, ``"debug=smoke"``.
+    Writes checkpoint.pt (restore() takes it), evaluation.csv; returns metrics.json with ``run_dir``: baseline's
+    ``psnr_<method>_<preset>`` (dB) and ``ssim_<method>_<preset>`` for method sgan / sensor / wiener /
+    g1_wiener and preset laser_<alpha_l> / H1 (e.g. ``psnr_sgan_laser_1e6``), ``steps``, ``seconds`` (wall, s);
+    joint's ``psnr``, ``psnr_baseline``, ``lsr``, ``lsr_baseline``, ... (README)."""
+    return run(experiment, *overrides, run_dir=run_dir)
