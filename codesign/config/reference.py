@@ -147,8 +147,8 @@ def _registered() -> dict[str, dict[str, tuple[dict, tuple[type, ...], str | Non
                 walk(item, f"{path}{key}/")
             elif path and key.endswith(".yaml"):
                 group, option = path.rstrip("/"), key[:-len(".yaml")]
-                if group == "hydra":
-                    continue
+                if group == "hydra" or group.startswith("hydra/"):  # Hydra's own (launchers, sweepers: their
+                    continue  # plugins register on import, so what is there depends on what ran before)
                 node = OmegaConf.to_container(item.node, resolve=False)
                 out.setdefault(group, {})[option] = (node, SPECS.get((group, option), ()), item.package)
 
