@@ -98,8 +98,9 @@ def test_smoke_mask_search_says_its_failures_are_expected(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = proc.stdout + proc.stderr
     failing = [line for line in out.splitlines() if "NO FEASIBLE POINT" in line or "re-check FAILS" in line
-               or "does NOT survive the re-check" in line]
+               or "does NOT survive the re-check" in line or "does NOT resolve its phase" in line]
     assert any("NO FEASIBLE POINT" in line for line in failing), out[-3000:]
+    assert any("does NOT resolve its phase" in line for line in failing), out[-3000:]  # the coarse smoke grid
     assert any("re-check FAILS" in line for line in failing), out[-3000:]
     for line in failing:
         assert "expected at smoke size" in line, line
