@@ -11,7 +11,7 @@ from codesign.data.scenes import data_config
 from codesign.errors import ConfigError
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask
 from codesign.optics.lines import LaserLines
-from codesign.optics.materials import Material
+from codesign.optics.materials import material_of
 from codesign.optics.measured import MEASURED_DEFAULTS, load_measured
 from codesign.sensor.simulator import SensorSimulator
 from codesign.sensor.spec import SensorSpec
@@ -50,7 +50,7 @@ def build_camera(cfg: DictConfig, device, dtype=torch.float32) -> Camera:
                  "; sensor.laser_halo is off for it: the light beyond a measured frame is not known"
                  if sensor.laser_halo else "")
     lam = sensor.wavelength_laser_m
-    if measured is not None and abs(lam - optics.wavelength_m) > 1e-12 * optics.wavelength_m:
+    if measured is not None and not optics.is_design_wavelength(lam):
         raise ConfigError("sensor.wavelength_laser_m", lam, f"a measured PSF (optics.psf_file) holds one "
                           f"wavelength, the design's ({optics.wavelength_m:g} m): a laser at another line needs the "
                           f"mask's computed PSF there; set sensor.wavelength_laser_m={optics.wavelength_m:g} or "
@@ -63,17 +63,12 @@ def build_camera(cfg: DictConfig, device, dtype=torch.float32) -> Camera:
                   scene_spectrum(cfg, system))
 
 
-def _material(cfg: DictConfig) -> Material:
-    return Material.from_config(OmegaConf.to_container(cfg.material, resolve=True)) if cfg.get("material") \
-        else Material()
-
-
 def scene_spectrum(cfg: DictConfig, system: OpticalSystem) -> tuple | None:
     """(LaserLines of optics.scene_spectrum's wavelengths, their weights), or None for the design wavelength."""
     spectrum = system.spec.scene_spectrum
     if spectrum is None:
         return None
-    material = _material(cfg)
+    material = material_of(cfg)
     for lam, _ in spectrum:
         material.check_wavelength(lam)
     lines = LaserLines(system, material.index, tuple(lam for lam, _ in spectrum))
@@ -86,9 +81,9 @@ def laser_line(cfg: DictConfig, system: OpticalSystem, sensor: SensorSpec) -> La
     """The LaserLines of the laser's line (sensor.wavelength_laser_m) when it is not the design wavelength: the
     mask's surface (optics.wrap_waves, material.*) seen there; None at the design wavelength."""
     lam, spec = sensor.wavelength_laser_m, system.spec
-    if abs(lam - spec.wavelength_m) <= 1e-12 * spec.wavelength_m:
+    if spec.is_design_wavelength(lam):
         return None
-    material = _material(cfg)
+    material = material_of(cfg)
     material.check_wavelength(lam)
     line = LaserLines(system, material.index, (lam,))
     log.info("the laser at %.1f nm, the scene at %.1f nm: the laser sees the %s's phase scaled by %.4f (%s)",

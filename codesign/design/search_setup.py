@@ -38,7 +38,7 @@ def restorability_tools(cfg, system, mask, alpha_l: float | None) -> Restorabili
     to the training split of ``cfg.data``'s scenes."""
     sensor = sensor_spec(cfg)
     lam = system.spec.wavelength_m
-    if alpha_l is not None and abs(sensor.wavelength_laser_m - lam) > 1e-12 * lam:
+    if alpha_l is not None and not system.spec.is_design_wavelength(sensor.wavelength_laser_m):
         raise ConfigError("search.restorability_alpha_l", alpha_l, f"counts the laser's saturated footprint at the "
                           f"design wavelength ({lam:g} m), not at sensor.wavelength_laser_m = "
                           f"{sensor.wavelength_laser_m:g}: set search.restorability_alpha_l=null, or the laser back "

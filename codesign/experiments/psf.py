@@ -14,8 +14,8 @@ from codesign.design.limits import MTFLimit
 from codesign.design.merit import MaskMonitor, evaluate_mask, metrics_spec, published_reference, time_forward_backward
 from codesign.optics.masks.records import write_record
 from codesign.errors import require_number
-from codesign.fab.laser_lines import (lines_summary, log_lines, lsr_curve, lsr_wavelength_figure, material_of,
-                                      run_lines, surface_name)
+from codesign.fab.laser_lines import lines_summary, log_lines, lsr_curve, lsr_wavelength_figure, run_lines, surface_name
+from codesign.optics.materials import material_of
 from codesign.io import files as io
 from codesign.io import plots
 from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
@@ -88,16 +88,16 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     io.save_figure(run_dir / "mtf2d.png", plots.mtf2d_figure(np_["mtf2d"], step, f"2-D MTF, {label}"))
     lines = run_lines(cfg, system)
     if lines is not None:
-        phase = mask.phase().detach()
+        phase, material = mask.phase().detach(), material_of(cfg)
         metrics_out["laser_lines"] = summary = lines_summary(lines, {"mask": phase}, mask.plate_cell_m)
         log_lines(summary, "mask", f"{mask_cfg['kind']} mask")
-        curve = lsr_curve(system, material_of(cfg), lambda ls: [ls.phase(phase, i) for i in range(len(ls))],
+        curve = lsr_curve(system, material, lambda ls: [ls.phase(phase, i) for i in range(len(ls))],
                           mask.plate_cell_m)
         metrics_out["laser_lines"]["curve"] = curve
         io.save_figure(run_dir / "lsr_wavelength.png", lsr_wavelength_figure(
             {f"{label}, {surface_name(lines.wrap)}": curve}, spec.wavelength_m, lines.wavelengths,
             f"LSR against the laser's wavelength: {label} made for {spec.wavelength_m * 1e9:.0f} nm in "
-            f"{material_of(cfg).name}"))
+            f"{material.name}"))
     write_record(run_dir / "mask.json", mask, spec, {**{k: values[k] for k in (
         "lsr", "lsr_smooth", "lsr_sampled", "mtf_mean", "lsr_limit", "lsr_over_limit")},
         "phase_resolved": sampling["phase_resolved"]})

@@ -7,18 +7,12 @@ import logging
 import numpy as np
 import torch
 
-from codesign.config.runtime import to_container
 from codesign.errors import ConfigError
-from codesign.optics.materials import Material
+from codesign.optics.materials import Material, material_of
 from codesign.io.plots import plt
 from codesign.optics.lines import COMMON_LINES_M, LaserLines, curve_wavelengths, worst
 
 log = logging.getLogger("codesign.fab")
-
-
-def material_of(cfg) -> Material:
-    """The run's Material (``material.*``)."""
-    return Material.from_config(to_container(cfg.get("material")))
 
 
 def run_lines(cfg, system, need: str | None = None) -> LaserLines | None:

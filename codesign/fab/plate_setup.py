@@ -10,7 +10,7 @@ from codesign.config.runtime import resolve_dtype, to_container
 from codesign.errors import ConfigError
 from codesign.optics.metrics import require_band_frequencies
 from codesign.design.merit import metrics_spec
-from codesign.optics.materials import Material
+from codesign.optics.materials import Material, material_of
 from codesign.fab.surface import ExportSpec, Plate, fab_grid
 from codesign.fab.writers import FULL_SCALE
 from codesign.optics import OpticsSpec, build_mask
@@ -21,7 +21,7 @@ def setup(cfg: DictConfig) -> tuple:
     """Every setting validated before any work: (optics, export, material, mask config, dtype)."""
     spec = OpticsSpec.from_config(to_container(cfg.optics))
     ex = ExportSpec.from_config(to_container(cfg.get("export")))
-    material = Material.from_config(to_container(cfg.get("material")))
+    material = material_of(cfg)
     material.index(spec.wavelength_m)
     ex.plate_n(spec)
     if ex.levels is not None and spec.wrap_waves is None:

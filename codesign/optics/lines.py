@@ -76,7 +76,7 @@ class LaserLines:
         self.spec, self.index, self.wrap = spec, index, spec.wrap_waves
         self.wavelengths = tuple(float(w) for w in (lines if lines is not None else spec.laser_lines))
         self.scales = [phase_scale(index, spec.wavelength_m, w) for w in self.wavelengths]
-        self.systems = [system if math.isclose(w, spec.wavelength_m, rel_tol=1e-12) else
+        self.systems = [system if spec.is_design_wavelength(w) else
                         OpticalSystem(spec.replace(wavelength_m=w, laser_wavelengths_m=None, scene_spectrum=None),
                                       dtype=system.dtype,
                                       device=system.grid.rho.device)
@@ -86,11 +86,6 @@ class LaserLines:
 
     def __len__(self) -> int:
         return len(self.wavelengths)
-
-    @property
-    def design_only(self) -> bool:
-        """True when the only line is the design wavelength (no other system or phase needed)."""
-        return len(self) == 1 and self.design_index == 0
 
     def phase(self, phase: torch.Tensor, i: int) -> torch.Tensor:
         """The phase line ``i`` sees of the surface made from the design ``phase``."""

@@ -11,6 +11,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 
+from codesign.config.runtime import to_container
 from codesign.config.store import document
 from codesign.errors import ConfigError, require_choice, require_list, require_number
 from codesign.spec_base import SpecMixin
@@ -95,6 +96,12 @@ class Material(SpecMixin):
     def summary(self, wavelength_m: float) -> dict:
         return {"material": self.name, "material_formula": self.formula, "material_source": self.source,
                 "refractive_index": self.index(wavelength_m)}
+
+
+def material_of(cfg) -> Material:
+    """The run's Material (``cfg.material``; a configuration without that block, e.g. a checkpoint's from before
+    it existed, has the default: fused silica)."""
+    return Material.from_config(to_container(cfg.get("material")))
 
 
 # the options material=NAME are conf/material/*.yaml; their keys are these fields (docs/config.md)

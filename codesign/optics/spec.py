@@ -199,6 +199,10 @@ class OpticsSpec(SpecMixin):
                     f"sensor (a longer one, or a smaller {p}.aperture_diameter_m)")
         return None
 
+    def is_design_wavelength(self, wavelength_m: float) -> bool:
+        """Whether ``wavelength_m`` is the design wavelength (to 1e-12 relative: a value typed in another form)."""
+        return abs(wavelength_m - self.wavelength_m) <= 1e-12 * self.wavelength_m
+
     @property
     def laser_lines(self) -> tuple[float, ...]:
         """The laser wavelengths [m]: laser_wavelengths_m, or the design wavelength alone."""

@@ -104,7 +104,7 @@ class SensorSimulator(torch.nn.Module):
         if abs(optics.focal_pitch_m - dx) > 1e-12 * dx:
             raise ConfigError("sensor.pixel_pitch_m", dx, f"must equal optics.focal_pitch_m ({optics.focal_pitch_m}):"
                               " the optics window is sampled at the sensor pitch")
-        if abs(sensor.wavelength_background_m - optics.wavelength_m) > 1e-12 * optics.wavelength_m:
+        if not optics.is_design_wavelength(sensor.wavelength_background_m):
             raise ConfigError("sensor.wavelength_background_m", sensor.wavelength_background_m,
                               f"must equal optics.wavelength_m ({optics.wavelength_m}): the scene is imaged at the "
                               "design wavelength")
