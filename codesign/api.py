@@ -17,7 +17,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 import codesign.experiments as _experiments
 from codesign.camera import Camera, build_camera
-from codesign.config.runtime import apply_debug_overrides, command_line_keys, renamed_key_error
+from codesign.config.runtime import apply_debug_overrides, command_line_keys, renamed_key_error, to_container
 from codesign.data.scenes import build_scene_source
 from codesign.data.params import fixed_scene_params
 from codesign.data.simulate_spec import SimulateSpec
@@ -32,10 +32,6 @@ CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 __all__ = ["compose", "camera", "optical_system", "build_mask", "configured_mask", "published_mask", "psf_and_lsr",
            "scene_names", "sensor_image", "run", "checkpoint_config", "restore", "mask_search", "train_restorer",
            "OpticsSpec", "OpticalSystem", "Camera", "Mask", "ConfigError", "CONF_DIR"]
-
-
-def _plain(node) -> dict:
-    return OmegaConf.to_container(node, resolve=True) if node is not None else {}
 
 
 def compose(*overrides: str, experiment: str | None = None) -> DictConfig:
@@ -83,9 +79,9 @@ def camera(cfg: DictConfig | None = None, device: str | torch.device = "cpu",
 
 def optical_system(cfg: DictConfig | None = None, device: str | torch.device = "cpu",
                    dtype: torch.dtype = torch.float32) -> OpticalSystem:
-    """The OpticalSystem (pupil grid, propagator) of ``cfg.optics`` (default: the default optics: 532 nm, f and
+    """The OpticalSystem (pupil grid, propagator) of ``cfg.optics`` (default: the default optics: 633 nm, f and
     aperture in metres as in conf / OpticsSpec). ``system.psf(mask.phase())`` is the PSF on the focal window."""
-    spec = OpticsSpec.from_config(_plain(_config(cfg).optics))
+    spec = OpticsSpec.from_config(to_container(_config(cfg).optics))
     return OpticalSystem(spec, dtype=dtype, device=torch.device(device))
 
 
@@ -94,7 +90,7 @@ def configured_mask(cfg: DictConfig | None = None, system: OpticalSystem | None 
     optical_system(cfg)). Its ``phase()`` is the pupil phase in radians."""
     cfg = _config(cfg)
     system = system or optical_system(cfg)
-    return build_mask(_plain(cfg.mask), system.grid, system.spec.aperture_diameter_m)
+    return build_mask(to_container(cfg.mask), system.grid, system.spec.aperture_diameter_m)
 
 
 def published_mask(system: OpticalSystem | None = None, cfg: DictConfig | None = None) -> Mask:
@@ -102,7 +98,7 @@ def published_mask(system: OpticalSystem | None = None, cfg: DictConfig | None =
     frozen, on ``system``'s grid under the configured mask conventions: every experiment's baseline."""
     cfg = _config(cfg)
     system = system or optical_system(cfg)
-    return published_reference(_plain(cfg.mask), system)
+    return published_reference(to_container(cfg.mask), system)
 
 
 def psf_and_lsr(mask: Mask | None = None, system: OpticalSystem | None = None,
@@ -148,7 +144,7 @@ def sensor_image(scene: str | int = 0, alpha_l: float = 1e6, cfg: DictConfig | N
     cam = cam or camera(cfg)
     sim = cam.simulator
     source = build_scene_source(cfg.data)
-    fixed = SimulateSpec.from_config(_plain(cfg.get("simulate")) or {})
+    fixed = SimulateSpec.from_config(to_container(cfg.get("simulate")) or {})
     values = {**fixed.params, "laser_angle_rad": list(fixed.laser_angle_rad), **params, "alpha_l": alpha_l}
     split = "test" if isinstance(scene, int) and not isinstance(scene, bool) else "all"
     scenes = source.fixed_batch([scene], sim.scene_size, split=split).to(cam.device)
@@ -197,7 +193,8 @@ def restore(input: str | Path, checkpoint: str | Path, *overrides: str,
 def mask_search(*overrides: str, run_dir: str | Path | None = None) -> dict[str, Any]:
     """A mask-only search (``+experiment=mask_search``, e.g. ``"mask=spline"``, ``"search.max_evals=50"``,
     ``"debug=smoke"``). Writes best_mask.json (a record ``mask.init=PATH`` takes), evaluations.csv and figures;
-    returns metrics.json (``lsr``, ``mtf_mean`` of the best design, ``lsr_published``, ...) with ``run_dir``."""
+    returns metrics.json (``lsr``, ``mtf_mean`` of the best design, ``lsr_baseline`` of the published mask, ...)
+    with ``run_dir``."""
     return run("mask_search", *overrides, run_dir=run_dir)
 
 
