@@ -176,11 +176,11 @@ def report(res: dict, out: Path) -> Report:
 
     p, alphas = res["plan"], res["alphas"]
     header = ["method", "size", "params", "ms/image"] + \
-        [f"alpha_l={_name(a)}: PSNR / SSIM / PSNR aff." for a in alphas] + ["train steps", "train s"]
+        [f"alpha_l={_name(a)}: PSNR / SSIM / PSNR matched" for a in alphas] + ["train steps", "train s"]
     table = []
     for r in res["rows"]:
         cells = [f"{r['scores'][str(a)]['psnr']:.2f} / {r['scores'][str(a)]['ssim']:.3f} / "
-                 f"{r['scores'][str(a)]['psnr_affine']:.2f}" if r["scores"] else "-" for a in alphas]
+                 f"{r['scores'][str(a)]['psnr_matched']:.2f}" if r["scores"] else "-" for a in alphas]
         trained = [r["steps"], r["train_seconds"]] if r["steps"] else ["-", "-"]
         table.append([LABEL[r["method"]], r["size"], r["params"], r["ms_per_image"], *cells, *trained])
     md = markdown_table(header, table, {"ms/image": ".3g", "train s": ".1f"})
@@ -210,7 +210,7 @@ def report(res: dict, out: Path) -> Report:
         f"{', '.join(_name(a) for a in alphas)} (laser on axis), scored by codesign.train.evaluation.Evaluator: "
         "PSNR / SSIM against the scene on the field of view, and PSNR after a per-image gain/offset match (PSNR "
         "aff.). Wiener: classical Wiener with the true PSF, its nsr picked on 8 training-split images (best "
-        f"PSNR aff. on a log grid; chosen: {res['calibration']['nsr']['wiener']:.3g}), then a global gain/offset; "
+        f"PSNR matched on a log grid; chosen: {res['calibration']['nsr']['wiener']:.3g}), then a global gain/offset; "
         "sensor: the raw image with its black level removed and a global gain/offset, the floor."
         + (" The tuned nsr is the top of the grid: at this noise and MTF the Wiener filter degenerates to a matched "
            "filter (docs/models.md Sec. 8, item 3)." if res["calibration"]["nsr"]["wiener"] >= max(NSR_GRID) else ""),

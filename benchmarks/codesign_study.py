@@ -38,7 +38,7 @@ SCENES = REPO.parent / "shared" / "data" / "scenes"
 DESIGNS = REPO / "benchmarks" / "results" / "full" / "design"
 DEFAULT_DESIGNS = (f"spiral={DESIGNS / 'spiral' / 'best_mask.json'}", f"spline={DESIGNS / 'spline' / 'best_mask.json'}")
 ALPHAS = ("0", "1e3", "1e6")
-METRICS = ("psnr", "ssim", "psnr_affine")
+METRICS = ("psnr", "ssim", "psnr_matched")
 OBJECTIVES = {"recon": ["model.loss.adv=0", "model.loss.mdf=0"], "full": []}
 EVALUATE = ["evaluate.laser_strengths=[0,1.0e3,1.0e6]", "evaluate.stages=[]"]
 SMOKE = ["debug=smoke", "evaluate.tuning_size=2"]
@@ -211,14 +211,14 @@ def summarize(per_run: dict[str, dict[int, dict]]) -> dict:
 
 
 def goal_met(summary: dict) -> dict[str, bool]:
-    """Per arm: LSR at most half the frozen published arm's and the PSNR aff. gain at alpha_l = 1e6 positive and
+    """Per arm: LSR at most half the frozen published arm's and the PSNR matched gain at alpha_l = 1e6 positive and
     beyond twice the seed spread."""
     ref_lsr = summary[REFERENCE]["lsr"]["mean"]
     out = {}
     for arm, row in summary.items():
         if arm == REFERENCE:
             continue
-        g = row["net_psnr_affine_1e6"]
+        g = row["net_psnr_matched_1e6"]
         out[arm] = row["lsr"]["mean"] <= 0.5 * ref_lsr and g["gain"] > 0 and g["significant"]
     return out
 
@@ -235,7 +235,7 @@ def figure(per_run: dict, path: Path) -> Path:
     markers = "os^vDP*X"
     for i, (arm, seeds) in enumerate(per_run.items()):
         xs = [v["lsr"] for v in seeds.values()]
-        ys = [v["net_psnr_affine_1e6"] for v in seeds.values()]
+        ys = [v["net_psnr_matched_1e6"] for v in seeds.values()]
         ax.scatter(xs, ys, marker=markers[i % len(markers)], s=40, label=arm)
     ax.set_xscale("log")
     ax.set_xlabel("LSR (continuous peak / uncoded peak), lower protects more")
@@ -262,7 +262,7 @@ def render(res: dict, fig_name: str) -> str:
              "when <= 0.02).", ""]
     cols = [("lsr", ".3g"), ("mtf_mean", ".4f"), ("lsr_over_limit", ".2f"), ("recheck_deviation", ".3f")] + \
         [(f"net_{k}_{a}", ".2f" if "psnr" in k else ".3f") for a in ALPHAS for k in METRICS]
-    names = {"psnr": "PSNR", "ssim": "SSIM", "psnr_affine": "PSNR aff."}
+    names = {"psnr": "PSNR", "ssim": "SSIM", "psnr_matched": "PSNR matched"}
     header = ["arm", "LSR", "mtf_mean", "LSR / limit", "re-check"] + [f"{names[k]} {a}" for a in ALPHAS
                                                                       for k in METRICS]
     rows = []
@@ -277,17 +277,17 @@ def render(res: dict, fig_name: str) -> str:
             cells.append(cell)
         rows.append(cells)
     met = goal_met(res["summary"])
-    lines += [markdown_table(header, rows), "", "Goal (LSR <= half the published mask's, PSNR aff. at 1e6 ahead of the "
-              "frozen published arm by more than twice the seed spread): " + (
+    lines += [markdown_table(header, rows), "", "Goal (LSR <= half the published mask's, PSNR matched at 1e6 ahead of "
+              "the frozen published arm by more than twice the seed spread): " + (
                   "met by " + ", ".join(a for a, ok in met.items() if ok) if any(met.values()) else "met by no arm")
               + ".", "", "Floors: the sensor image and classical Wiener on the same scenes "
               "(they depend on the mask; mean over seeds):", ""]
     floor_rows = []
     for arm, row in res["summary"].items():
-        floor_rows.append([arm] + [f"{row[f'{w}_psnr_affine_{a}']['mean']:.2f}" for w in ("sensor", "wiener")
+        floor_rows.append([arm] + [f"{row[f'{w}_psnr_matched_{a}']['mean']:.2f}" for w in ("sensor", "wiener")
                                    for a in ALPHAS])
-    lines += [markdown_table(["arm"] + [f"{w} PSNR aff. {a}" for w in ("sensor", "Wiener") for a in ALPHAS],
-                             floor_rows), "", f"![PSNR aff. at 1e6 against LSR]({fig_name})", ""]
+    lines += [markdown_table(["arm"] + [f"{w} PSNR matched {a}" for w in ("sensor", "Wiener") for a in ALPHAS],
+                             floor_rows), "", f"![PSNR matched at 1e6 against LSR]({fig_name})", ""]
     return "\n".join(lines)
 
 

@@ -31,7 +31,7 @@ PRESETS = ("laser_0", "laser_1e6")
 
 
 def scores(model, trainer, data, held_out, scenes, seed: int, presets=PRESETS) -> dict:
-    """PSNR aff. of every method under each preset (default alpha_l = 0 and 1e6; baselines tuned for each
+    """PSNR matched of every method under each preset (default alpha_l = 0 and 1e6; baselines tuned for each
     condition on the training distribution)."""
     from codesign.train.evaluation import EvaluateSpec, Evaluator, centre
 
@@ -42,7 +42,7 @@ def scores(model, trainer, data, held_out, scenes, seed: int, presets=PRESETS) -
         batch, _, target, table = ev.score_preset(scenes, preset, seed + 1000 + noise_offset(preset))
         inner = inner_images(model, trainer, batch, data.otf)
         table.update(ev.score({name: centre(x, ev.n) for name, x in inner.items()}, target))
-        out[preset] = {m: round(float(table[m]["psnr_affine"]), 2) for m in table}
+        out[preset] = {m: round(float(table[m]["psnr_matched"]), 2) for m in table}
         out[preset]["tuned_nsr"] = {k: float(f"{v:.3g}") for k, v in ev.calib["nsr"].items()}
     out["learned"] = learned_scalars(trainer)
     return out

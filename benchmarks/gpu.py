@@ -341,7 +341,7 @@ def step_evaluate(p: dict, dev: torch.device, checkpoint: str, scenes: Path | No
            "evaluate.laser_strengths=[0,1e3,1e6]", *source, *p["eval"], f"hydra.run.dir={run}"]
     rc, sec = run_logged(cmd, out / "evaluate.log", budget + 120)
     m = json.loads((run / "metrics.json").read_text()) if (run / "metrics.json").is_file() else {}
-    scores = {meth: {a: {q: m.get(f"{q}_{meth}_laser_{a}") for q in ("psnr", "ssim", "psnr_affine")}
+    scores = {meth: {a: {q: m.get(f"{q}_{meth}_laser_{a}") for q in ("psnr", "ssim", "psnr_matched")}
                      for a in ALPHAS} for meth in ("sgan", "sensor", "wiener")}
     panel = run / "panel_laser_1e6.png"
     if panel.is_file():
@@ -541,9 +541,9 @@ def _evaluation_lines(e: dict, out: Path, prefix: str) -> list[str]:
         return [e["error"], ""]
     names = e.get("evaluation_scenes") or []
     lines = [f"{len(names)} scenes ({e['scenes']}: {', '.join(map(str, names))}), `{e['command']}`, exit "
-             f"{e['exit']}: PSNR / SSIM / PSNR aff. (after a per-image gain/offset match)", ""]
+             f"{e['exit']}: PSNR / SSIM / PSNR matched (after a per-image gain/offset match)", ""]
     rows = [[meth] + [" / ".join([_fmt(e["scores"][meth][a]["psnr"]), _fmt(e["scores"][meth][a]["ssim"], ".3f"),
-                                  _fmt(e["scores"][meth][a]["psnr_affine"])]) for a in ALPHAS]
+                                  _fmt(e["scores"][meth][a]["psnr_matched"])]) for a in ALPHAS]
             for meth in ("sgan", "sensor", "wiener")]
     lines += [markdown_table(["method"] + [f"alpha_l = {a}" for a in ALPHAS], rows), ""]
     if (out / "restorations_1e6.png").is_file():

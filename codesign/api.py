@@ -19,7 +19,7 @@ import codesign.experiments as _experiments
 from codesign.camera import Camera, build_camera
 from codesign.config.runtime import apply_debug_overrides, command_line_keys, renamed_key_error, to_container
 from codesign.data.scenes import build_scene_source
-from codesign.data.params import fixed_scene_params
+from codesign.data.params import alpha_tag, fixed_scene_params
 from codesign.data.simulate_spec import SimulateSpec
 from codesign.design.merit import evaluate_mask, metrics_spec, published_reference
 from codesign.errors import ConfigError
@@ -31,7 +31,7 @@ CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 
 __all__ = ["compose", "camera", "optical_system", "build_mask", "configured_mask", "published_mask", "psf_and_lsr",
            "scene_names", "sensor_image", "run", "checkpoint_config", "restore", "mask_search", "train_restorer",
-           "OpticsSpec", "OpticalSystem", "Camera", "Mask", "ConfigError", "CONF_DIR"]
+           "OpticsSpec", "OpticalSystem", "Camera", "Mask", "ConfigError", "alpha_tag", "CONF_DIR"]
 
 
 def compose(*overrides: str, experiment: str | None = None) -> DictConfig:
@@ -193,7 +193,7 @@ def restore(input: str | Path, checkpoint: str | Path, *overrides: str,
 def mask_search(*overrides: str, run_dir: str | Path | None = None) -> dict[str, Any]:
     """A mask-only search (``+experiment=mask_search``, e.g. ``"mask=spline"``, ``"search.max_evals=50"``,
     ``"debug=smoke"``). Writes best_mask.json (a record ``mask.init=PATH`` takes), evaluations.csv and figures;
-    returns metrics.json (``lsr``, ``mtf_mean`` of the best design, ``lsr_baseline`` of the published mask, ...)
+    returns metrics.json (``lsr``, ``mtf_mean`` of the best design, ``lsr_published`` of the published mask, ...)
     with ``run_dir``."""
     return run("mask_search", *overrides, run_dir=run_dir)
 
@@ -205,5 +205,5 @@ def train_restorer(*overrides: str, run_dir: str | Path | None = None, experimen
     Writes checkpoint.pt (restore() takes it), evaluation.csv; returns metrics.json with ``run_dir``: baseline's
     ``psnr_<method>_<preset>`` (dB) and ``ssim_<method>_<preset>`` for method sgan / sensor / wiener /
     g1_wiener and preset laser_<alpha_l> / H1 (e.g. ``psnr_sgan_laser_1e6``), ``steps``, ``seconds`` (wall, s);
-    joint's ``psnr``, ``psnr_baseline``, ``lsr``, ``lsr_baseline``, ... (README)."""
+    joint's ``psnr``, ``psnr_published``, ``lsr``, ``lsr_published``, ... (README)."""
     return run(experiment, *overrides, run_dir=run_dir)

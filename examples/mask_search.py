@@ -22,5 +22,5 @@ found = codesign.mask_search(*args.overrides, *(["debug=smoke"] if args.smoke el
 print(f"searched the {found['mask_kind']} family: {found['evaluations']} evaluations, feasible={found['feasible']}")
 print(f"best design: lsr={found['lsr']:.4e} mtf_mean={found['mtf_mean']:.4f} "
       f"(lsr_limit at its MTF {found['lsr_limit']:.4e})")
-print(f"published mask: lsr={found['lsr_baseline']:.4e} mtf_mean={found['mtf_mean_baseline']:.4f}")
+print(f"published mask: lsr={found['lsr_published']:.4e} mtf_mean={found['mtf_mean_published']:.4f}")
 print(f"design record: {found['run_dir'] / 'best_mask.json'} (mask.init=PATH takes it)")

@@ -41,7 +41,7 @@ else:
 
 cfg = codesign.checkpoint_config(checkpoint)  # capture at the checkpoint's optics, mask, sensor and image size
 sim = codesign.sensor_image(0, args.alpha_l, cfg)
-capture = args.out / "captures" / f"sensor_alpha_l_{args.alpha_l:g}.png"
+capture = args.out / "captures" / f"sensor_alpha_l_{codesign.alpha_tag(args.alpha_l)}.png"
 save_png16(capture, sim["sensor_dn"][0, 0].cpu().numpy())
 print(f"capture: {capture} ({cfg.data.image_size} px, {float(sim['saturated'].float().mean()):.4f} saturated)")
 

@@ -31,10 +31,10 @@ full_scale = cam.sensor.gain_dn_per_e * cam.sensor.full_well_e
 for alpha_l in (0.0, args.alpha_l):
     out = codesign.sensor_image(scene, alpha_l, cfg, cam=cam)
     dn = out["sensor_dn"]
-    print(f"alpha_l={alpha_l:g}: mean={float(dn.mean()):.1f} DN max={float(dn.max()):.1f} DN "
+    print(f"alpha_l={codesign.alpha_tag(alpha_l)}: mean={float(dn.mean()):.1f} DN max={float(dn.max()):.1f} DN "
           f"(full scale {full_scale:.0f} DN) saturated_fraction={float(out['saturated'].float().mean()):.4f} "
           f"laser_peak={float(out['laser'].max()):.4g}")
     if args.out is not None:
-        path = args.out / f"sensor_alpha_l_{alpha_l:g}.png"
+        path = args.out / f"sensor_alpha_l_{codesign.alpha_tag(alpha_l)}.png"
         save_png16(path, dn[0, 0].cpu().numpy())
         print(f"wrote {path}")

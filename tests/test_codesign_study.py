@@ -10,7 +10,7 @@ from benchmarks import codesign_study as study
 
 
 def _run(lsr: float, psnr: float) -> dict:
-    return {"lsr": lsr, "net_psnr_affine_1e6": psnr}
+    return {"lsr": lsr, "net_psnr_matched_1e6": psnr}
 
 
 def test_arms_for_a_design_and_their_folders(tmp_path):
@@ -24,7 +24,7 @@ def test_arms_for_a_design_and_their_folders(tmp_path):
 
 def test_held_out_is_the_scene_weighted_mean_of_both_evaluations():
     def table(net: float, sensor: float, wiener: float) -> dict:
-        row = lambda v: {"psnr": v, "ssim": v / 100, "psnr_affine": v + 1}  # noqa: E731
+        row = lambda v: {"psnr": v, "ssim": v / 100, "psnr_matched": v + 1}  # noqa: E731
         return {f"laser_{a}": {"sgan": row(net), "sensor": row(sensor), "wiener": row(wiener)} for a in study.ALPHAS}
 
     builtin = {"evaluation": table(10.0, 20.0, 30.0), "evaluation_scenes": ["cell", "chelsea"]}
@@ -32,7 +32,7 @@ def test_held_out_is_the_scene_weighted_mean_of_both_evaluations():
     out = study.held_out(builtin, photos, study.network_column(builtin))
     assert out["scenes"] == 6
     assert out["net_psnr_0"] == pytest.approx((2 * 10 + 4 * 16) / 6)
-    assert out["sensor_psnr_affine_1e3"] == pytest.approx((2 * 21 + 4 * 27) / 6)
+    assert out["sensor_psnr_matched_1e3"] == pytest.approx((2 * 21 + 4 * 27) / 6)
     assert out["wiener_ssim_1e6"] == pytest.approx((2 * 0.30 + 4 * 0.36) / 6)
 
 
@@ -45,14 +45,14 @@ def test_network_column_is_the_one_that_is_not_a_floor():
 
 def test_gain_is_paired_by_seed_and_significant_only_beyond_twice_the_spread():
     ref = {0: _run(8e-3, 20.0), 1: _run(8e-3, 20.4), 2: _run(8e-3, 19.6)}  # std 0.4
-    clear = {s: _run(2e-3, v["net_psnr_affine_1e6"] + 1.0) for s, v in ref.items()}  # +1.0 dB, std 0.4
+    clear = {s: _run(2e-3, v["net_psnr_matched_1e6"] + 1.0) for s, v in ref.items()}  # +1.0 dB, std 0.4
     noisy = {0: _run(2e-3, 20.5), 1: _run(2e-3, 20.1), 2: _run(2e-3, 20.6)}  # +0.4 dB, within 2 x 0.4
     out = study.summarize({study.REFERENCE: ref, "clear": clear, "noisy": noisy})
-    psnr = out["clear"]["net_psnr_affine_1e6"]
+    psnr = out["clear"]["net_psnr_matched_1e6"]
     assert psnr["mean"] == pytest.approx(21.0) and psnr["std"] == pytest.approx(0.4)
     assert psnr["gain"] == pytest.approx(1.0) and psnr["spread"] == pytest.approx(0.4) and psnr["significant"]
     assert psnr["gain_std"] == pytest.approx(0.0, abs=1e-12)  # the same +1.0 dB at every seed
-    n = out["noisy"]["net_psnr_affine_1e6"]
+    n = out["noisy"]["net_psnr_matched_1e6"]
     assert n["gain"] == pytest.approx(0.4) and n["spread"] == pytest.approx(0.4)  # the reference arm's, the larger
     assert n["significant"] is False
     assert "gain" not in out[study.REFERENCE]["lsr"] and out["clear"]["lsr"]["gain"] == pytest.approx(-6e-3)

@@ -56,7 +56,7 @@ def test_sensor_image_example(tmp_path):
     assert _number(dark, "max") < full
     assert _number(lit, "max") == full and 0 < _number(lit, "saturated_fraction") < 0.05  # the spot, spread
     assert _number(lit, "mean") > _number(dark, "mean")
-    assert sorted(p.name for p in (tmp_path / "caps").iterdir()) == ["sensor_alpha_l_0.png", "sensor_alpha_l_1e+06.png"]
+    assert sorted(p.name for p in (tmp_path / "caps").iterdir()) == ["sensor_alpha_l_0.png", "sensor_alpha_l_1e6.png"]
 
 
 @pytest.mark.slow  # ~20 s: opt-in (--runslow), the default run stays under 10 minutes on 2 cores
@@ -86,7 +86,7 @@ def test_restore_capture_example(tmp_path):
     assert "the shipped checkpoint" in out and "(256 px," in out
     restored = re.search(r"PSNR against the scene ([0-9.]+) dB \(sensor image ([0-9.]+) dB\)", out)
     assert restored and 5 < float(restored.group(1)) < 60
-    assert (tmp_path / "run" / "restore" / "restored_sensor_alpha_l_1e+06.png").is_file()
+    assert (tmp_path / "run" / "restore" / "restored_sensor_alpha_l_1e6.png").is_file()
 
 
 def test_the_first_script_of_docs_api_runs_as_written(tmp_path):

@@ -239,9 +239,18 @@ ROBUSTNESS_STAGES: dict[str, dict[str, float]] = {
 }
 
 
+def alpha_tag(v: float) -> str:
+    """Laser strength alpha_l as every key and file name writes it: 0, 1e3, 1e6, 2.5e5, 1.5 (never 1e+06)."""
+    if v == 0:
+        return "0"
+    mantissa, exponent = f"{float(v):.6e}".split("e")
+    mantissa = mantissa.rstrip("0").rstrip(".")
+    return mantissa if int(exponent) == 0 else f"{mantissa}e{int(exponent)}"
+
+
 def laser_preset_name(v: float) -> str:
     """The evaluation preset name of laser strength alpha_l = v: laser_0, laser_1e1 .. laser_1e6."""
-    return "laser_0" if v == 0 else f"laser_1e{round(math.log10(v))}"
+    return f"laser_{alpha_tag(v)}"
 
 
 # Every named preset as a complete value dict: figure, E1..H2, and laser_0, laser_1e1 .. laser_1e6 (figure

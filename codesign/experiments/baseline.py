@@ -59,8 +59,8 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     # purge_step drops the events a killed run logged after its last checkpoint; rank 0 alone writes
     trainer.writer = open_writer(run_dir, tensorboard_enabled(cfg) and ctx.is_main, purge_step=trainer.step)
     common = run_metrics(cfg, model, device)
-    log.info("%s (%s): generators %.2fM parameters, critics %.2fM; %d steps, batch %d, %d px padded to %d; "
-             "VGG loss %s", common["variant"], common["size"], common["parameters_generators"] / 1e6,
+    log.info("network %s (%s, %s): generators %.2fM parameters, critics %.2fM; %d steps, batch %d, %d px padded to %d; "
+             "VGG loss %s", common["network"], common["variant"], common["size"], common["parameters_generators"] / 1e6,
              common["parameters_critics"] / 1e6, spec.steps, int(cfg.data.batch_size), data.image_size,
              data.padded_size, model.loss_status)
     history = trainer.fit(log_every)
@@ -79,7 +79,8 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     writer = trainer.writer
     if writer is not None:
         method = model.method
-        writer.add_hparams({"variant": common["variant"], "size": common["size"], "steps": trainer.step},
+        writer.add_hparams({"network": common["network"], "variant": common["variant"], "size": common["size"],
+                            "steps": trainer.step},
                            {f"hparam/{k}": v for k, v in metrics.items()
                             if k.startswith((f"psnr_{method}", f"ssim_{method}")) and isinstance(v, float)},
                            run_name="hparams")

@@ -100,10 +100,11 @@ def _save_learned_mask(mask, spec, run_dir: Path, values: dict) -> dict:
 
 
 def _scores(evaluation: dict, method: str, suffix: str = "") -> dict:
-    """psnr / ssim (and affine-matched) of the restorer's restorations (column ``method``), the mean over the
-    conditions and per condition, keys ending in ``suffix`` ("_baseline": the published system's)."""
+    """psnr / ssim (plain, and _matched: after the gain/offset match) of the restorer's restorations (column
+    ``method``), the mean over the conditions and per condition, keys ending in ``suffix`` ("_published": the
+    published system's)."""
     out = {}
-    for metric in ("psnr", "ssim", "psnr_affine", "ssim_affine"):
+    for metric in ("psnr", "ssim", "psnr_matched", "ssim_matched"):
         vals = {cond: t[method][metric] for cond, t in evaluation.items()}
         out[f"{metric}{suffix}"] = float(np.mean(list(vals.values())))
         for cond, v in vals.items():
@@ -141,12 +142,11 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     trainer = Trainer(model=model, data=data, spec=spec, run_dir=run_dir, device=device, config=to_container(cfg),
                       seed=seed, dist=ctx, codesign=mask)
     common = run_metrics(cfg, model, device)
-    log.info("joint: %s (%s) generators %.2fM parameters; mask %s (%d parameters, lr %.3g, frozen for %d steps); "
-             "lsr_max %.4g (%s); %d steps, batch %d, %d px padded to %d", common["variant"], common["size"],
-             common["parameters_generators"] / 1e6, to_container(cfg.mask)["kind"],
+    log.info("joint: network %s (%s, %s) generators %.2fM parameters; mask %s (%d parameters, lr %.3g, frozen for "
+             "%d steps); lsr_max %.4g (%s); %d steps, batch %d, %d px padded to %d", common["network"],
+             common["variant"], common["size"], common["parameters_generators"] / 1e6, to_container(cfg.mask)["kind"],
              sum(p.numel() for p in camera.mask.parameters()), cs.mask_lr, cs.warmup_steps(spec.steps), lsr_max,
-             lsr_max_from, spec.steps,
-             int(cfg.data.batch_size), data.image_size, data.padded_size)
+             lsr_max_from, spec.steps, int(cfg.data.batch_size), data.image_size, data.padded_size)
     trainer.steps_after = spec.steps if cs.compare_published else 0  # the ETA covers the published training too
     timing = _train(trainer, cfg, run_dir, log_every, "joint")
     camera.set_trainable(False)
@@ -178,7 +178,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
                "lsr_constraint_met": learned["lsr_smooth"] <= lsr_max * (1 + cs.guard_tolerance),
                "skipped_updates": trainer.skipped, "undone_updates": trainer.rollbacks,
                "vgg_loss": model.loss_status, "mask_kind": to_container(cfg.mask)["kind"],
-               **learned, **{f"{k}_baseline": v for k, v in base.items()}, **camera.mask.summary(), **rings,
+               **learned, **{f"{k}_published": v for k, v in base.items()}, **camera.mask.summary(), **rings,
                **recheck, "checkpoint": str(run_dir / CHECKPOINT_NAME)}
     if lines is not None:
         metrics["lsr_over"] = cs.lsr_over
@@ -189,7 +189,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
             log_lines(summary, name, f"{name} mask")
     keep = (COMPARED,) if published is not None and COMPARED in conditions(ev["lasers"], ev["stages"]) else ()
     joint_eval = run_evaluation(ev, model, trainer.restoring_modules(), data, run_dir, seed, keep)
-    for key in ("evaluation", "evaluation_scenes", "evaluation_per_scene_psnr_affine"):
+    for key in ("evaluation", "evaluation_scenes", "evaluation_per_scene_psnr_matched"):
         metrics[key] = joint_eval[key]
     metrics.update(_scores(joint_eval["evaluation"], model.method))  # with or without the published comparison
 
@@ -198,17 +198,17 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         metrics.update(extra)
         if keep:
             io.save_figure(run_dir / f"compare_{COMPARED}.png", comparison_figure(
-                joint_eval["images"][COMPARED], pub_images[COMPARED], model.method, COMPARED,
+                joint_eval["images"][COMPARED], pub_images[COMPARED], model.method, COMPARED, network=model.spec.name,
                 names=joint_eval["evaluation_scenes"], tables={"learned": joint_eval["evaluation"][COMPARED],
-                                                               "published": extra["evaluation_baseline"][COMPARED]}))
+                                                               "published": extra["evaluation_published"][COMPARED]}))
     io.write_json(run_dir / "metrics.json", metrics)
     _hparams(trainer.writer, cfg, metrics, model.method)
     if published is not None:
         print(joint_summary({**metrics, "seed": seed}, model.method), flush=True)
     else:
         log.info("joint: lsr %.4g (published %.4g), mtf_mean %.4g (published %.4g); no published comparison "
-                 "(codesign.compare_published=false)", metrics["lsr"], metrics["lsr_baseline"],
-                 metrics["mtf_mean"], metrics["mtf_mean_baseline"])
+                 "(codesign.compare_published=false)", metrics["lsr"], metrics["lsr_published"],
+                 metrics["mtf_mean"], metrics["mtf_mean_published"])
     log.info("wrote %s", run_dir)
     return metrics.get("psnr", float("nan"))
 
@@ -297,7 +297,7 @@ def _published_train(cfg, published_cfg, init, spec, steps, seed, device, run_di
 
 
 def _published_evaluation(model, trainer, data, timing: dict, run_dir, ev, seed, keep) -> tuple:
-    """Evaluate the published-mask restorer (rank 0): (its metrics entries with the _baseline suffix, the images of
+    """Evaluate the published-mask restorer (rank 0): (its metrics entries with the _published suffix, the images of
     the ``keep`` conditions)."""
     sub = run_dir / PUBLISHED_DIR
     result = run_evaluation(ev, model, trainer.restoring_modules(), data, sub, seed, keep)
@@ -305,25 +305,25 @@ def _published_evaluation(model, trainer, data, timing: dict, run_dir, ev, seed,
     io.write_json(sub / "metrics.json", {"steps": trainer.step, **timing, **result})
     if trainer.writer is not None:
         trainer.writer.close()
-    return {**{f"{k}_baseline": v for k, v in timing.items()}, "evaluation_baseline": result["evaluation"],
-            "evaluation_per_scene_psnr_affine_baseline": result["evaluation_per_scene_psnr_affine"],
-            **_scores(result["evaluation"], model.method, "_baseline")}, images
+    return {**{f"{k}_published": v for k, v in timing.items()}, "evaluation_published": result["evaluation"],
+            "evaluation_per_scene_psnr_matched_published": result["evaluation_per_scene_psnr_matched"],
+            **_scores(result["evaluation"], model.method, "_published")}, images
 
 
 def _hparams(writer, cfg, metrics: dict, method: str | None = None) -> None:
     if writer is None:
         return
-    hp = {"variant": metrics["variant"], "size": metrics["size"], "mask": metrics["mask_kind"],
-          "steps": metrics["steps"], "lsr_max": metrics["lsr_max"]}
-    keys = ("lsr", "lsr_baseline", "lsr_smooth", "mtf_mean", "mtf_mean_baseline", "psnr", "psnr_baseline", "ssim",
-            "ssim_baseline", "psnr_affine", "psnr_affine_baseline")
+    hp = {"network": metrics["network"], "variant": metrics["variant"], "size": metrics["size"],
+          "mask": metrics["mask_kind"], "steps": metrics["steps"], "lsr_max": metrics["lsr_max"]}
+    keys = ("lsr", "lsr_published", "lsr_smooth", "mtf_mean", "mtf_mean_published", "psnr", "psnr_published", "ssim",
+            "ssim_published", "psnr_matched", "psnr_matched_published")
     writer.add_hparams(hp, {f"hparam/{k}": float(metrics[k]) for k in keys if k in metrics}, run_name="hparams")
     # the test scores per condition (laser strength alpha_l, robustness stage) as scalars too, at the last step:
     # test/<metric>/<condition> (learned system), test_published/<metric>/<condition> (the published one)
-    for prefix, key in (("test", "evaluation"), ("test_published", "evaluation_baseline")):
+    for prefix, key in (("test", "evaluation"), ("test_published", "evaluation_published")):
         for cond, table in (metrics.get(key) or {}).items():
             row = table.get(method) if method in table else list(table.values())[-1]  # the restorer: the last
-            for metric in ("psnr", "psnr_affine", "ssim", "ssim_affine"):
+            for metric in ("psnr", "psnr_matched", "ssim", "ssim_matched"):
                 v = (row or {}).get(metric)
                 if isinstance(v, (int, float)) and math.isfinite(v):
                     writer.add_scalar(f"{prefix}/{metric}/{_condition_tag(cond)}", float(v), metrics["steps"])

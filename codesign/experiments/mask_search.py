@@ -199,9 +199,9 @@ def _outputs(run_dir: Path, s: SearchSpec, ms, system, mask, published, base, ba
         **figures, "mtf_min": values["mtf_min"], "bsr": values["bsr"], "feasible": feasible,
         "min_violation": 0.0 if feasible else main.problem.least.violation, "mask_kind": mask.kind,
         "parameters": mask.vector_size, **mask.summary(),
-        **{f"{k}_baseline": base[k] for k in ("lsr", "lsr_smooth", "mtf_mean", "mtf_min", "bsr", "window_energy",
+        **{f"{k}_published": base[k] for k in ("lsr", "lsr_smooth", "mtf_mean", "mtf_min", "bsr", "window_energy",
                                               "lsr_limit", "lsr_over_limit", "restorability")},
-        "lsr_vs_baseline": values["lsr"] / base["lsr"], "mtf_mean_uncoded": limit.uncoded_mtf_mean,
+        "lsr_vs_published": values["lsr"] / base["lsr"], "mtf_mean_uncoded": limit.uncoded_mtf_mean,
         "limits": {k: getattr(main.limits, k) for k in main.limits.active}, "objective": s.objective,
         "check": check, **sampling, "quantized": quantized, "starts": main.starts, "pareto": front,
         "evaluations": main.problem.evaluations, "evaluations_total": search.evaluations,
@@ -217,7 +217,7 @@ def _outputs(run_dir: Path, s: SearchSpec, ms, system, mask, published, base, ba
                                                                  published.phase().detach()}, mask.plate_cell_m)
         for name, label in (("best", f"best {mask.kind}"), ("published", "published mask")):
             log_lines(summary, name, label)
-            metrics[f"lsr_worst_line{'' if name == 'best' else '_baseline'}"] = summary[name]["lsr_worst"]
+            metrics[f"lsr_worst_line{'' if name == 'best' else '_published'}"] = summary[name]["lsr_worst"]
     io.write_json(run_dir / "metrics.json", metrics)
     _figures(run_dir, system, mask, (values, arrays), (base, base_arr), limit, ms, monitor.radial, search, front)
     log.info("best %s: LSR %.4g (published %.4g, %.2fx the limit %.4g), mtf_mean %.4g, window energy %.4f, "

@@ -108,7 +108,8 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
                                                                                              images=True, params=False)
     log_summary(writer, {"mask": mask_cfg["kind"], "propagator": system.method, "pupil_n": spec.grid_n}, metrics_out,
                 settings=mask.summary())  # the configured mask's parameters: settings, not measurements
-    log.info("lsr=%.4g (sampled %.4g, smooth %.4g) bsr=%.4f mtf_mean=%.4g mtf_min=%.4g energy_in_window=%.4f "
+    log.info("lsr=%.4g (the true peak between focal samples; at the samples alone %.4g; the smooth p-norm the "
+             "optimizers use %.4g) bsr=%.4f mtf_mean=%.4g mtf_min=%.4g energy_in_window=%.4f "
              "forward %.3f s backward %.3f s", values["lsr"], values["lsr_sampled"], values["lsr_smooth"],
              values["bsr"], values["mtf_mean"], values["mtf_min"], values["psf_energy_in_window"], t_fwd, t_bwd)
     log.info("wrote %s", run_dir)

@@ -15,7 +15,7 @@ from omegaconf import DictConfig
 
 from codesign.camera import build_camera
 from codesign.config.runtime import check_seed, resolve_dtype, to_container
-from codesign.data.params import fixed_scene_params, sample_scene_params
+from codesign.data.params import alpha_tag, fixed_scene_params, sample_scene_params
 from codesign.data.scenes import build_scene_source
 from codesign.data.simulate_spec import SimulateSpec
 from codesign.design.check import camera_sampling_report
@@ -117,10 +117,10 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
             out = sim(scenes, params, state, seed=seed + j, mask_key=key)
             dn = out["sensor_dn"][:, 0].cpu().numpy()
             grid[:, j] = dn
-            metrics[f"saturated_fraction_alpha_l_{a:g}"] = float(out["saturated"].float().mean())
-            metrics[f"laser_peak_alpha_l_{a:g}"] = float(out["laser"].max())
+            metrics[f"saturated_fraction_alpha_l_{alpha_tag(a)}"] = float(out["saturated"].float().mean())
+            metrics[f"laser_peak_alpha_l_{alpha_tag(a)}"] = float(out["laser"].max())
             for i, name in enumerate(names):
-                save_png16(run_dir / CAPTURES / f"sensor_{name}_alpha_l_{a:g}.png", dn[i])
+                save_png16(run_dir / CAPTURES / f"sensor_{name}_alpha_l_{alpha_tag(a)}.png", dn[i])
             if j == len(alphas) - 1:
                 io.save_npy(run_dir / "example_sensor.npy", out["sensor"][0, 0])
                 io.save_npy(run_dir / "example_irradiance_target.npy", out["irradiance"][0, 0])
@@ -169,9 +169,9 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     if writer is not None:
         for j, a in enumerate(alphas):  # log10 counts, full scale = 1: the laser structure stays visible
             img = np.log10(np.maximum(grid[:, j], 1.0))[:, None] / np.log10(full)
-            writer.add_images(f"sensor_log10/alpha_l_{a:g}", img.astype(np.float32), 0)
+            writer.add_images(f"sensor_log10/alpha_l_{alpha_tag(a)}", img.astype(np.float32), 0)
     log_summary(writer, {"sensor_path": sim.sensor.path, "image_size": sim.sensor.image_size}, metrics)
     log.info("scenes %s; saturated fraction per alpha_l: %s; %.4f s/image (%.1f images/s, batch %d, %s path)",
-             ", ".join(names), ", ".join(f"{a:g}: {metrics[f'saturated_fraction_alpha_l_{a:g}']:.4f}"
+             ", ".join(names), ", ".join(f"{alpha_tag(a)}: {metrics[f'saturated_fraction_alpha_l_{alpha_tag(a)}']:.4f}"
                                          for a in alphas), seconds, 1 / seconds, batch, sim.sensor.path)
     return seconds

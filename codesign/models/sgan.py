@@ -278,7 +278,7 @@ class SGAN(Restorer):
 
     # ---- reporting ----------------------------------------------------------------------------------------------
     def summary(self) -> dict:
-        return {"variant": self.spec.variant, "size": self.spec.size}
+        return {"network": self.spec.name, "variant": self.spec.variant, "size": self.spec.size}
 
     def scalars(self) -> dict[str, float]:
         gamma = self.gv.deconv.gamma.detach()
@@ -306,7 +306,7 @@ VARIANT_LOSSES: dict[str, dict[str, float]] = {
     "sgan_f": {"l1_stage1": 10.0, "l1_stage2": 10.0, "mdf": 0.1, "vgg": 0.1, "fft": 100.0, "adv": 0.1, "gp": 1.0},
 }
 for _variant, _loss in VARIANT_LOSSES.items():  # the config options model=sgan_b|sgan_e|sgan_f
-    register("model", _variant, {"kind": SGAN.kind, **spec_node(ModelSpec, variant=_variant),
+    register("model", _variant, {"kind": SGAN.kind, **spec_node(ModelSpec, name=_variant, variant=_variant),
                                  "loss": spec_node(LossWeights, **_loss)})
 
 # model=sgan_b_gated, the main job's network (+experiment=joint): SGAN-B whose untrained sandwich is the laser-aware
@@ -315,5 +315,5 @@ for _variant, _loss in VARIANT_LOSSES.items():  # the config options model=sgan_
 # keep it above the sensor image and ahead of Wiener from the first steps (docs/models.md Sec. 10)
 GATED = {"g2_residual": True, "g1_base": "filled", "g2_base": "wiener", "laser_gate": True,
          "g2_base_nsr_lasered": 100.0, "g2_gate": True}
-register("model", "sgan_b_gated", {"kind": SGAN.kind, **spec_node(ModelSpec, variant="sgan_b", **GATED),
-                                   "loss": spec_node(LossWeights)})
+_GATED_NODE = spec_node(ModelSpec, name="sgan_b_gated", variant="sgan_b", **GATED)
+register("model", "sgan_b_gated", {"kind": SGAN.kind, **_GATED_NODE, "loss": spec_node(LossWeights)})

@@ -28,9 +28,20 @@ def _widths(key: str, value, n_min: int) -> tuple[int, ...]:
     return tuple(require_number(f"{key}[{i}]", v, lo=1, hi=4096, integer=True) for i, v in enumerate(value))
 
 
+def network_name(key: str, name, default: str) -> str:
+    """A network's configured name (``key``): a short identifier, or ``default`` when null."""
+    if name is None:
+        return default
+    if not isinstance(name, str) or not name.replace("_", "").isalnum() or len(name) > 64:
+        raise ConfigError(key, name, "must be a name of letters, digits and underscores (at most 64), or null")
+    return name
+
+
 @dataclass(frozen=True)
 class ModelSpec(SpecMixin):
-    """variant: sgan_b | sgan_e | sgan_f (SGAN-F: RFT blocks in G1/G2 and FTC blocks in D1/D2).
+    """name: the network's name as configured (the model=NAME option it came from: sgan_b, sgan_b_gated, ...), in
+    the logs, metrics.json (network) and figure titles; null: the variant.
+    variant: sgan_b | sgan_e | sgan_f (SGAN-F: RFT blocks in G1/G2 and FTC blocks in D1/D2).
     size: paper | cpu | tiny; stem_width, widths (generator levels), d_widths (critic levels): null = preset.
     fe_features / fe_kernel: FE = C R R R with this many features and kernel (paper: 16, 5).
     attention: efficient self-attention in every generator and critic level; key_channels: d_k (paper: 8).
@@ -58,6 +69,7 @@ class ModelSpec(SpecMixin):
     at the CPU budget (docs/models.md Sec. 10).
     """
 
+    name: str | None = None
     variant: str = "sgan_b"
     size: str = "cpu"
     stem_width: int | None = None
@@ -85,6 +97,7 @@ class ModelSpec(SpecMixin):
     def __post_init__(self) -> None:
         p = self.prefix
         require_choice(f"{p}.variant", self.variant, VARIANTS)
+        object.__setattr__(self, "name", network_name(f"{p}.name", self.name, self.variant))
         require_choice(f"{p}.size", self.size, tuple(SIZES))
         preset = SIZES[self.size]
         stem = preset["stem_width"] if self.stem_width is None else self.stem_width

@@ -20,6 +20,7 @@ from codesign.config.store import register, spec_node
 from codesign.errors import ConfigError, require_choice, require_number
 from codesign.models import losses
 from codesign.models.restorer import Restorer, TrainContext
+from codesign.models.spec import network_name
 from codesign.models.unet import UNetBody, make_head, zero_conv
 from codesign.models.wiener import DeconvModule
 from codesign.spec_base import SpecMixin
@@ -29,11 +30,14 @@ SIZES = {"tiny": (4, (8, 8)), "cpu": (16, (16, 32, 64)), "paper": (64, (64, 128,
 
 @dataclass(frozen=True)
 class WienerUNetSpec(SpecMixin):
-    """size: tiny | cpu | paper (stem width and UNet levels); fe_features / fe_kernel: the feature extractor;
+    """name: the network's name as configured (model=NAME), in the logs, metrics.json (network) and figure titles;
+    null: wiener_unet. size: tiny | cpu | paper (stem width and UNet levels); fe_features / fe_kernel: the feature
+    extractor;
     gamma_init: initial learned noise power of the Wiener filter; attention: efficient self-attention per level;
     l1, fft: weights of the Charbonnier L1 and the FFT loss; charbonnier_eps."""
 
     kind: str = "wiener_unet"
+    name: str | None = None
     size: str = "cpu"
     fe_features: int = 8
     fe_kernel: int = 5
@@ -46,6 +50,7 @@ class WienerUNetSpec(SpecMixin):
 
     def __post_init__(self) -> None:
         p = self.prefix
+        object.__setattr__(self, "name", network_name(f"{p}.name", self.name, "wiener_unet"))
         require_choice(f"{p}.size", self.size, tuple(SIZES))
         require_number(f"{p}.fe_features", self.fe_features, lo=1, hi=1024, integer=True)
         require_number(f"{p}.fe_kernel", self.fe_kernel, lo=1, hi=15, integer=True)
@@ -107,7 +112,7 @@ class WienerUNet(Restorer):
         return terms
 
     def summary(self) -> dict:
-        return {"variant": self.kind, "size": self.spec.size}
+        return {"network": self.spec.name, "variant": self.kind, "size": self.spec.size}
 
     def scalars(self) -> dict[str, float]:
         gamma = self.gv.deconv.gamma.detach()
@@ -121,4 +126,4 @@ class WienerUNet(Restorer):
                               f"{need // 2}x downsampling needs padded_size >= {need}")
 
 
-register("model", "wiener_unet", spec_node(WienerUNetSpec))
+register("model", "wiener_unet", spec_node(WienerUNetSpec, name="wiener_unet"))

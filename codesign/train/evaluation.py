@@ -10,7 +10,7 @@ Methods (all scored on the sensor's field of view, the central image_size x imag
   sgan        the restorer (its ``method`` name: sgan for the sandwich GAN), no calibration
 The tuning set is drawn from the training distribution (train split, fixed seed), never from the test scenes.
 Metrics: 1-MSE, PSNR, SSIM, MS-SSIM, and 1-LPIPS / DISTS when their weights are given by path, all against the
-scene b as the paper scores them; plus psnr_affine / ssim_affine after a per-image least-squares gain and offset
+scene b as the paper scores them; plus psnr_matched / ssim_matched after a per-image least-squares gain and offset
 (the background strength alpha_b scales the whole image and is not known to any method, so raw PSNR mixes a
 brightness guess with restoration; the affine-matched scores isolate the restoration of structure).
 """
@@ -32,6 +32,7 @@ from codesign.data.params import (
     LASER_STRENGTHS,
     PRESETS,
     ROBUSTNESS_STAGES,
+    alpha_tag,
     laser_preset_name,
 )
 from codesign.errors import (
@@ -197,10 +198,10 @@ class Evaluator:
                 if callable(fn):
                     row[pname] = fn(x, target)
             matched = affine_match(x, target)
-            row["psnr_affine"] = quality.psnr(matched, target)
-            row["ssim_affine"] = quality.ssim(matched, target)
+            row["psnr_matched"] = quality.psnr(matched, target)
+            row["ssim_matched"] = quality.ssim(matched, target)
             if per_scene is not None:
-                per_scene[name] = row["psnr_affine"].flatten().tolist()
+                per_scene[name] = row["psnr_matched"].flatten().tolist()
             table[name] = {k: float(v.mean()) for k, v in row.items()}
         return table
 
@@ -238,9 +239,10 @@ def evaluate(evaluator: Evaluator, scenes: torch.Tensor, names: list[str], prese
         shown = {"input": centre(batch["sensor"], evaluator.n), **images}
         if preset in keep:
             kept[preset] = {**{k: v.detach().cpu() for k, v in shown.items()}, "truth": target.cpu()}
-        io.save_figure(run_dir / f"panel_{preset}.png", panel_figure(shown, target, names, preset, table))
+        network = getattr(evaluator.model.spec, "name", None)  # the restorer's configured name
+        io.save_figure(run_dir / f"panel_{preset}.png", panel_figure(shown, target, names, preset, table, network))
         log.info("%-10s %s", preset, "  ".join(f"{m} {table[m]['psnr']:.2f} dB/{table[m]['ssim']:.3f} "
-                                             f"(affine {table[m]['psnr_affine']:.2f})" for m in table))
+                                             f"(matched {table[m]['psnr_matched']:.2f})" for m in table))
     write_csv(run_dir / "evaluation.csv", rows)
     return results, per_scene, kept
 
@@ -261,27 +263,34 @@ METHOD_TITLES = {"input": "sensor image\n(autoscaled)", "sensor": "sensor image\
                  "sgan": "SGAN network", "wiener_unet": "Wiener + U-Net\nnetwork", "truth": "ground truth"}
 
 
-def method_title(name: str) -> str:
-    return METHOD_TITLES.get(name, name)
+def method_title(name: str, network: str | None = None) -> str:
+    """A column's title; ``network``: the restorer's name as configured (model.name), shown for its column."""
+    title = METHOD_TITLES.get(name, name)
+    return f"{network}\n({title})" if network and name in RESTORER_COLUMNS else title
+
+
+RESTORER_COLUMNS = ("sgan", "wiener_unet")
 
 
 def preset_description(preset: str) -> str:
-    """What an evaluation preset is: "robustness stage H1: alpha_l = 1e+06 (laser strength), ..." or "laser
-    strength alpha_l = 1e+06 (the paper's figure settings)"."""
+    """What an evaluation preset is: "robustness stage H1: laser strength alpha_l = 1e6, ..." or "laser_1e6:
+    laser strength alpha_l = 1e6 (the paper's figure settings)"."""
     from codesign.data.params import PRESETS, ROBUSTNESS_STAGES
 
     values = PRESETS.get(preset)
     if values is None:
         return preset
     if preset in ROBUSTNESS_STAGES:
-        return (f"robustness stage {preset}: laser strength alpha_l = {values['alpha_l']:g}, background alpha_b = "
+        return (f"robustness stage {preset}: laser strength alpha_l = {alpha_tag(values['alpha_l'])}, "
+                f"background alpha_b = "
                 f"{values['alpha_b']:g}, photon noise c1 = {values['c1']:g}")
     if preset.startswith("laser_"):
-        return f"{preset}: laser strength alpha_l = {values['alpha_l']:g} (the paper's figure settings)"
+        return f"{preset}: laser strength alpha_l = {alpha_tag(values['alpha_l'])} (the paper's figure settings)"
     return preset
 
 
-def panel_figure(images: dict, target: torch.Tensor, names: list[str], preset: str, table: dict):
+def panel_figure(images: dict, target: torch.Tensor, names: list[str], preset: str, table: dict,
+                 network: str | None = None):
     """The first three scenes (rows) under ``preset``: the sensor image, each method and the truth (columns), each
     method's title with its PSNR, the mean over every evaluated scene."""
     cols = list(images) + ["truth"]
@@ -298,7 +307,7 @@ def panel_figure(images: dict, target: torch.Tensor, names: list[str], preset: s
             ax.set_xticks([])
             ax.set_yticks([])
             if i == 0:
-                title = method_title(col)
+                title = method_title(col, network)
                 if col in table:
                     title += f"\n{table[col]['psnr']:.2f} dB"
                 ax.set_title(title, fontsize=8)
@@ -347,7 +356,7 @@ class EvaluateSpec(SpecMixin):
         put = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
         require_choice("evaluate.split", self.split, ("test", "train", "all"))
         put("max_scenes", require_number("evaluate.max_scenes", self.max_scenes, lo=1, hi=100000, integer=True))
-        allowed = ", ".join(f"{a:g}" for a in LASER_STRENGTHS)
+        allowed = ", ".join(alpha_tag(a) for a in LASER_STRENGTHS)
         lasers = require_list("evaluate.laser_strengths", self.laser_strengths,
                               f"must be a list of the paper's strengths {allowed}")
         for i, a in enumerate(lasers):
@@ -393,6 +402,6 @@ def run_evaluation(ev: dict, model, generators, data, run_dir: Path, seed: int, 
     results, per_scene, kept = evaluate(evaluator, scenes, names, presets, seed, run_dir, ev["overrides"], keep)
     calib = evaluator.calib_by_condition
     perceptual = {k: ("available" if callable(v) else v) for k, v in ev["perceptual"].items()}
-    out = {"evaluation": results, "evaluation_scenes": names, "evaluation_per_scene_psnr_affine": per_scene,
+    out = {"evaluation": results, "evaluation_scenes": names, "evaluation_per_scene_psnr_matched": per_scene,
            "baseline_calibration": calib, "perceptual_metrics": perceptual, **flat_summary(results)}
     return {**out, "images": kept} if keep else out

@@ -36,7 +36,7 @@ def check_resume_config(saved: dict, cfg: DictConfig, key: str, extra_keys: tupl
     saved_cfg, current = OmegaConf.create(_with_added_keys(saved)), OmegaConf.create(to_container(cfg))
     differ = []
     for dotted in RESUME_MUST_MATCH + tuple(extra_keys):
-        if _plain(OmegaConf.select(saved_cfg, dotted)) != _plain(OmegaConf.select(current, dotted)):
+        if _unlabelled(OmegaConf.select(saved_cfg, dotted)) != _unlabelled(OmegaConf.select(current, dotted)):
             differ.append(dotted)
     if differ:
         raise ConfigError(key, str(path), "was trained with different " + ", ".join(differ) + ": resume with the "
@@ -71,9 +71,10 @@ def resume_if_possible(trainer, cfg: DictConfig, run_dir: Path, extra_keys: tupl
 # A network trained on the computed PSF may be fine-tuned on a measured one (optics.psf_*), and back.
 INIT_MUST_MATCH = ("model", "optics", "sensor", "data.image_size", "data.padded_size")
 # a warm start keeps the network: the mask may change, and with it how its surface is made, the lines reported and
-# the scene's band (each only changes the blur the network is fine-tuned on, as another mask does)
-INIT_MAY_DIFFER = ("model.loss", "optics.laser_wavelengths_m", "optics.wrap_waves", "optics.scene_spectrum") + tuple(
-    f"optics.{k}" for k in MEASURED_DEFAULTS)
+# the scene's band (each only changes the blur the network is fine-tuned on, as another mask does); model.name is a
+# label
+INIT_MAY_DIFFER = ("model.loss", "model.name", "optics.laser_wavelengths_m", "optics.wrap_waves",
+                   "optics.scene_spectrum") + tuple(f"optics.{k}" for k in MEASURED_DEFAULTS)
 
 
 def load_initial_weights(model, path, cfg: DictConfig, key: str = "init.checkpoint") -> dict:
@@ -154,6 +155,13 @@ def _with_added_keys(saved: dict) -> dict:
 
 def _plain(value):
     return OmegaConf.to_container(value) if OmegaConf.is_config(value) else value
+
+
+def _unlabelled(value):
+    """A config block without its ``name``: the network's name (model.name) is a label, and checkpoints written
+    before it existed are named by their variant (ModelSpec: null name = the variant), so it may differ."""
+    value = _plain(value)
+    return {k: v for k, v in value.items() if k != "name"} if isinstance(value, dict) else value
 
 
 def apply_checkpoint_mask(mask, state: dict, path="checkpoint", key: str = "checkpoint") -> None:

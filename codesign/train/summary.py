@@ -27,10 +27,10 @@ def verdict(m: dict, method: str, condition: str = VERDICT_CONDITION) -> str:
     """One line: the learned system's PSNR (after the gain/offset match) against the published one at
     ``condition``, and whether the difference is outside the 95 % interval of the per-scene differences. One run
     is one seed: the seed-to-seed spread is not in it (benchmarks/codesign_study.py measures that)."""
-    learned = m["evaluation_per_scene_psnr_affine"][condition][method]
-    published = m["evaluation_per_scene_psnr_affine_baseline"][condition][method]
+    learned = m["evaluation_per_scene_psnr_matched"][condition][method]
+    published = m["evaluation_per_scene_psnr_matched_published"][condition][method]
     mean, noise = paired_difference(learned, published)
-    lsr_change = m["lsr"] / m["lsr_baseline"] - 1
+    lsr_change = m["lsr"] / m["lsr_published"] - 1
     alpha = ALPHA_NAMES.get(condition, condition)
     head = (f"verdict: the learned mask lets {abs(lsr_change):.0%} {'less' if lsr_change < 0 else 'more'} laser "
             f"light through; at alpha_l = {alpha} its restoration is {mean:+.2f} dB against the published system's")
@@ -47,7 +47,7 @@ def joint_summary(m: dict, method: str) -> str:
     lines = [f"== summary: {m['steps']} steps, seed {m.get('seed', 0)}, {scenes} held-out test scene(s) ==",
              f"{'mask':<11}{'LSR':>10}{'mtf_mean':>10}{'LSR / limit':>13}   (LSR: laser peak / unmasked peak; "
              "lower protects more)"]
-    for name, sfx in (("learned", ""), ("published", "_baseline")):
+    for name, sfx in (("learned", ""), ("published", "_published")):
         lines.append(f"{name:<11}{m['lsr' + sfx]:>10.3e}{m['mtf_mean' + sfx]:>10.4f}{m['lsr_over_limit' + sfx]:>13.2f}")
     if "recheck_gain_moved" in m:
         r = m["recheck"]
@@ -57,22 +57,24 @@ def joint_summary(m: dict, method: str) -> str:
                      f"({'ok' if m['recheck_agree'] else 'more than 2 %: partly the simulation, not the optics'})")
     conds = [c for c in ALPHA_NAMES if c in m["evaluation"]]
     lines.append("PSNR after gain/offset match [dB] at alpha_l = " + ", ".join(ALPHA_NAMES[c] for c in conds))
-    rows = (("learned mask + network", "evaluation", method), ("published mask + network", "evaluation_baseline",
-            method), ("  floor: sensor image (published)", "evaluation_baseline", "sensor"),
-            ("  floor: classical Wiener (published)", "evaluation_baseline", "wiener"))
+    net = m.get("network", "network")  # the network's name as configured (model.name)
+    rows = ((f"learned mask + {net}", "evaluation", method), (f"published mask + {net}", "evaluation_published",
+            method), ("  floor: sensor image (published)", "evaluation_published", "sensor"),
+            ("  floor: classical Wiener (published)", "evaluation_published", "wiener"))
     for label, key, col in rows:
-        lines.append(f"{label:<40}" + "".join(f"{m[key][c][col]['psnr_affine']:>8.2f}" for c in conds))
+        lines.append(f"{label:<40}" + "".join(f"{m[key][c][col]['psnr_matched']:>8.2f}" for c in conds))
     if VERDICT_CONDITION in conds:
         lines.append(verdict(m, method))
     return "\n".join(lines)
 
 
 def comparison_figure(learned: dict, published: dict, method: str, condition: str, rows: int = 3,
-                      names: list[str] | None = None, tables: dict | None = None):
+                      names: list[str] | None = None, tables: dict | None = None, network: str | None = None):
     """Both systems side by side at one condition: truth, then per mask its sensor image, Wiener and the network
     (``learned`` / ``published``: evaluation images, run_evaluation(keep=...)); a row per scene (``names``: their
     names), each panel with its PSNR against the truth [dB], each column's title with the mean over every
-    evaluated scene when ``tables`` ({"learned": table, "published": table}, the condition's evaluation tables)."""
+    evaluated scene when ``tables`` ({"learned": table, "published": table}, the condition's evaluation tables);
+    ``network``: the restorer's name as configured."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -82,10 +84,10 @@ def comparison_figure(learned: dict, published: dict, method: str, condition: st
 
     cols = [("ground truth", learned, "truth", None), ("published mask:\nsensor image", published, "input", None),
             ("published mask:\nclassical Wiener", published, "wiener", "published"),
-            (f"published mask:\n{method_title(method)}", published, method, "published"),
+            (f"published mask:\n{method_title(method, network)}", published, method, "published"),
             ("learned mask:\nsensor image", learned, "input", None),
             ("learned mask:\nclassical Wiener", learned, "wiener", "learned"),
-            (f"learned mask:\n{method_title(method)}", learned, method, "learned")]
+            (f"learned mask:\n{method_title(method, network)}", learned, method, "learned")]
     n = min(rows, learned["truth"].shape[0])
     fig, axes = plt.subplots(n, len(cols), figsize=(2.0 * len(cols), 2.1 * n + 0.9), squeeze=False)
     for i in range(n):

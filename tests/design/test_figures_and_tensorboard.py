@@ -129,16 +129,16 @@ def test_joint_logs_the_test_scores_per_laser_strength_as_scalars(tmp_path):
     from codesign.experiments.joint import _hparams
     from codesign.io.tensorboard import open_writer
 
-    table = {"sensor": {"psnr": 10.0}, "wiener": {"psnr": 12.0}, "sgan": {"psnr": 20.0, "psnr_affine": 21.0,
-                                                                         "ssim": 0.5, "ssim_affine": 0.6}}
-    metrics = {"variant": "v", "size": "s", "mask_kind": "halfring", "steps": 4, "lsr_max": 0.01, "psnr": 20.0,
+    table = {"sensor": {"psnr": 10.0}, "wiener": {"psnr": 12.0}, "sgan": {"psnr": 20.0, "psnr_matched": 21.0,
+                                                                         "ssim": 0.5, "ssim_matched": 0.6}}
+    metrics = {"network": "n", "variant": "v", "size": "s", "mask_kind": "halfring", "steps": 4, "lsr_max": 0.01, "psnr": 20.0,
                "evaluation": {"laser_0": table, "laser_1e6": table, "H1": table},
-               "evaluation_baseline": {"laser_1e6": table}}
+               "evaluation_published": {"laser_1e6": table}}
     _hparams(open_writer(tmp_path), None, metrics, "sgan")
     acc = EventAccumulator(str(tmp_path), size_guidance={"scalars": 0})
     acc.Reload()
     tags = set(acc.Tags()["scalars"])
-    assert {"test/psnr/alpha_l_0", "test/psnr/alpha_l_1e6", "test/psnr_affine/alpha_l_1e6", "test/psnr/stage_H1",
+    assert {"test/psnr/alpha_l_0", "test/psnr/alpha_l_1e6", "test/psnr_matched/alpha_l_1e6", "test/psnr/stage_H1",
             "test_published/psnr/alpha_l_1e6"} <= tags, sorted(tags)
     assert acc.Scalars("test/psnr/alpha_l_1e6")[0].value == 20.0
 
@@ -163,7 +163,7 @@ def test_evaluation_panel_explains_its_preset_columns_and_psnr():
         assert not {"input", "sensor", "wiener", "sgan", "truth"} & set(titles), titles  # no code names
         assert any("classical Wiener" in t for t in titles) and any("ground truth" in t for t in titles)
         head = fig._suptitle.get_text()
-        assert "alpha_l = 1e+06" in head and "robustness stage H1" in head  # H1 explained
+        assert "alpha_l = 1e6" in head and "robustness stage H1" in head  # H1 explained
         assert "mean over the 2 evaluated scenes" in head
     finally:
         plt.close(fig)

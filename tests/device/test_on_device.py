@@ -154,7 +154,7 @@ def test_the_evaluation_tunes_and_scores_on_the_device(tmp_path, device):
     images = ev.restore_all(batch)
     assert all(x.device.type == device.type for x in images.values())
     table = ev.score(images, batch["scene"][..., 8:56, 8:56])
-    assert all(np.isfinite(row["psnr_affine"]) and row["psnr_affine"] >= row["psnr"] - 1e-4 for row in table.values())
+    assert all(np.isfinite(row["psnr_matched"]) and row["psnr_matched"] >= row["psnr"] - 1e-4 for row in table.values())
 
 
 def test_a_training_step_never_synchronizes_with_the_gpu(tmp_path, device):

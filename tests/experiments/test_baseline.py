@@ -41,7 +41,7 @@ def test_baseline_writes_checkpoint_metrics_tables_and_panels(baseline_run):
         assert set(table) == set(METHODS)
         for method, row in table.items():
             assert 0 < row["psnr"] < 100 and -1 <= row["ssim"] <= 1 and 0 <= row["one_minus_mse"] <= 1
-            assert row["psnr_affine"] >= row["psnr"] - 1e-4  # a per-image least-squares fit only lowers MSE
+            assert row["psnr_matched"] >= row["psnr"] - 1e-4  # a per-image least-squares fit only lowers MSE
     assert m["psnr_sgan_laser_1e6"] == m["evaluation"]["laser_1e6"]["sgan"]["psnr"]
     rows = (baseline_run / "evaluation.csv").read_text().splitlines()
     assert rows[0].startswith("condition,method,one_minus_mse,psnr,ssim,ms_ssim") and len(rows) == 1 + 3 * 4

@@ -12,12 +12,13 @@ from pathlib import Path
 import pytest
 import torch
 
+from codesign.io.metric_names import upgrade
 from tests.cli import run_codesign
 from tests.conftest import REPO_ROOT as REPO
 
-KEYS = ("lsr", "lsr_baseline", "mtf_mean", "mtf_mean_baseline", "psnr", "psnr_baseline", "ssim", "ssim_baseline",
-        "r_n", "theta_n", "steps", "seconds", "lsr_max", "psnr_laser_1e6", "psnr_baseline_laser_1e6",
-        "psnr_laser_0", "ssim_baseline_laser_0", "diverged", "diverged_baseline", "phase_resolved",
+KEYS = ("lsr", "lsr_published", "mtf_mean", "mtf_mean_published", "psnr", "psnr_published", "ssim", "ssim_published",
+        "r_n", "theta_n", "steps", "seconds", "lsr_max", "psnr_laser_1e6", "psnr_published_laser_1e6",
+        "psnr_laser_0", "ssim_published_laser_0", "diverged", "diverged_published", "phase_resolved",
         "phase_resolved_start", "lsr_smooth_start", "lsr_max_over_start", "lsr_max_reachable")
 
 
@@ -44,8 +45,9 @@ def test_joint_writes_the_comparison_metrics(joint_run):
         assert k in m, k
     assert m["steps"] == 4 and len(m["r_n"]) == 5 and len(m["theta_n"]) == 5
     assert m["lsr_constraint_met"] is True and m["lsr_smooth"] <= m["lsr_max"] * (1 + 1e-6)
-    assert m["lsr_max"] == pytest.approx(m["lsr_smooth_baseline"], rel=1e-6)  # default: the published mask's
-    assert set(m["evaluation"]) == set(m["evaluation_baseline"]) == {"laser_0", "laser_1e6", "H1"}
+    assert m["lsr_max"] == pytest.approx(m["lsr_smooth_published"], rel=1e-6)  # default: the published mask's
+    assert set(m["evaluation"]) == set(m["evaluation_published"]) == {"laser_0", "laser_1e6", "H1"}
+    assert upgrade(m)[1] == {}  # every key under today's name (codesign.io.metric_names)
     learned = json.loads((joint_run / "learned_mask.json").read_text())
     assert learned["kind"] == "halfring" and learned["r"] == m["r_n"]
     for name in ("checkpoint.pt", "mtf.png", "compare_laser_1e6.png", "learned_phase.png", "learned_psf_log.png",
@@ -59,12 +61,13 @@ def test_joint_ends_with_the_summary_and_its_verdict(joint_run):
     m = json.loads((joint_run / "metrics.json").read_text())
     summary = console[console.index("== summary: 4 steps, seed 0, 2 held-out test scene(s) =="):]
     assert f"{'learned':<11}{m['lsr']:>10.3e}{m['mtf_mean']:>10.4f}" in summary
-    assert f"{'published':<11}{m['lsr_baseline']:>10.3e}" in summary
-    row = m["evaluation_baseline"]["laser_1e6"]["sensor"]["psnr_affine"]
+    assert f"{'published':<11}{m['lsr_published']:>10.3e}" in summary
+    row = m["evaluation_published"]["laser_1e6"]["sensor"]["psnr_matched"]
     assert "  floor: sensor image (published)" in summary and f"{row:>8.2f}" in summary
-    per = m["evaluation_per_scene_psnr_affine"]["laser_1e6"]["sgan"]
-    assert len(per) == 2 and sum(per) / 2 == pytest.approx(m["evaluation"]["laser_1e6"]["sgan"]["psnr_affine"])
+    per = m["evaluation_per_scene_psnr_matched"]["laser_1e6"]["sgan"]
+    assert len(per) == 2 and sum(per) / 2 == pytest.approx(m["evaluation"]["laser_1e6"]["sgan"]["psnr_matched"])
     assert "verdict: the learned mask lets" in summary and "(2 scenes; 95 % interval of the per-scene" in summary
+    assert m["network"] == "sgan_b_gated" and "learned mask + sgan_b_gated" in summary  # the configured name
     r = m["recheck"]
     assert r["learned"]["fine"]["pupil_n"] > r["learned"]["design"]["pupil_n"]
     assert r["published"]["whole"]["focal_n"] == 2 * r["published"]["design"]["focal_n"]
@@ -113,7 +116,7 @@ def test_a_run_killed_at_a_step_and_resumed_records_what_an_uninterrupted_run_re
     resumed = json.loads((run_dir / "metrics.json").read_text())
     whole = json.loads((joint_run / "metrics.json").read_text())
     assert resumed.keys() == whole.keys()
-    timing = {"seconds", "seconds_baseline", "checkpoint"}
+    timing = {"seconds", "seconds_published", "checkpoint"}
     assert [k for k in whole if k not in timing and resumed[k] != whole[k]] == []
     assert 1.0e6 < resumed["seconds"] < 1.0e6 + 300  # the whole training's, not the 2 steps after the resume
     # the same run directory under a changed constraint is refused, naming the key
@@ -129,7 +132,7 @@ def test_evaluate_of_a_joint_checkpoint_uses_the_learned_mask(joint_run, tmp_pat
     ev = json.loads((tmp_path / "eval" / "metrics.json").read_text())
     joint = json.loads((joint_run / "metrics.json").read_text())
     assert ev["evaluation"] == joint["evaluation"]  # the learned mask's sensor images, not the published mask's
-    assert ev["evaluation"] != joint["evaluation_baseline"]
+    assert ev["evaluation"] != joint["evaluation_published"]
 
 
 def test_warm_start_frozen_mask_continues_the_checkpoint_exactly(joint_run, tmp_path):
@@ -146,9 +149,9 @@ def test_warm_start_frozen_mask_continues_the_checkpoint_exactly(joint_run, tmp_
     pretrained = json.loads((joint_run / "published" / "metrics.json").read_text())
     assert m["val_psnr_start"] == pretrained["val_psnr_end"] and m["val_ssim_start"] == pretrained["val_ssim_end"]
     assert m["init_checkpoint"] == str(ckpt) and m["init_steps"] == 4 and m["init_mask_kind"] == "halfring"
-    assert m["lsr"] == m["lsr_baseline"]  # the frozen start mask is the published one
+    assert m["lsr"] == m["lsr_published"]  # the frozen start mask is the published one
     assert m["lsr_max_from"] == "the start mask's smooth LSR"
-    assert m["lsr_max"] == pytest.approx(m["lsr_smooth_baseline"], rel=1e-6)  # the start is the published mask
+    assert m["lsr_max"] == pytest.approx(m["lsr_smooth_published"], rel=1e-6)  # the start is the published mask
 
 
 def test_warm_start_from_other_image_sizes_is_refused_before_work(joint_run, tmp_path, monkeypatch, capsys):

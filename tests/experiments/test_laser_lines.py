@@ -71,7 +71,7 @@ def test_search_over_lines_constrains_the_worst_line(tmp_path):
     assert m["lsr_over"] == "wavelengths"
     best = m["laser_lines"]["best"]
     assert m["lsr_worst_line"] == best["lsr_worst"] == max(r["lsr"] for r in best["lines"])
-    assert m["lsr_worst_line_baseline"] == m["laser_lines"]["published"]["lsr_worst"]
+    assert m["lsr_worst_line_published"] == m["laser_lines"]["published"]["lsr_worst"]
     assert best["lines"][2]["lsr"] == pytest.approx(m["lsr"], rel=1e-6)
 
 

@@ -30,12 +30,12 @@ def test_simulate_writes_grids_captures_and_metrics(simulate_run):
         assert img.dtype == np.uint16 and img.shape == (256, 256)
     m = json.loads((simulate_run / "metrics.json").read_text())
     assert m["saturated_fraction_alpha_l_0"] == 0.0
-    assert 0.0 < m["saturated_fraction_alpha_l_1e+06"] < 0.2
-    assert m["laser_peak_alpha_l_0"] == 0.0 and m["laser_peak_alpha_l_1e+06"] > 1.0
+    assert 0.0 < m["saturated_fraction_alpha_l_1e6"] < 0.2
+    assert m["laser_peak_alpha_l_0"] == 0.0 and m["laser_peak_alpha_l_1e6"] > 1.0
     assert 0.0 < m["bsr"] <= 1.0 and 0.0 < m["lsr_sampled"] < 0.1
     assert m["seconds_per_image"] > 0 and m["sensor_path"] == "direct"
     # the 16-bit capture is the counts: a saturated laser pixel reads G e_sat = 0.37 * 25500 = 9435 DN
-    hot = np.asarray(Image.open(next(c for c in captures if "1e+06" in c.name)))
+    hot = np.asarray(Image.open(next(c for c in captures if "1e6" in c.name)))
     assert int(hot.max()) == 9435
     net = np.load(simulate_run / "example_sensor.npy")
     assert net.shape == (384, 384) and float(np.abs(net[:64]).max()) == 0.0  # zero padding 256 -> 384

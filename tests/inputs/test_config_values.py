@@ -87,7 +87,7 @@ ROWS = [
      "such as relu1_1, relu1_2, relu2_1, relu2_2, relu3_1, relu3_2, relu3_3, relu3_4, relu4_1, relu4_2, relu4_3, "
      "relu4_4, relu5_1, relu5_2, relu5_3, relu5_4"),
     ("baseline", "evaluate.laser_strengths=5", "evaluate.laser_strengths = 5: must be a list of the paper's "
-     "strengths 0, 10, 100, 1000, 10000, 100000, 1e+06"),
+     "strengths 0, 1e1, 1e2, 1e3, 1e4, 1e5, 1e6"),
     ("baseline", "evaluate.stages=H1",
      "evaluate.stages = 'H1': must be a list of robustness stages from E1, E2, M, H1, H2 (or [])"),
     ("baseline", "evaluate.laser_angle_rad=5",

@@ -54,7 +54,7 @@ def test_the_trainer_trains_it_without_critics_and_its_loss_falls(tmp_path):
     assert tr2.step == 25
 
 
-def test_the_evaluator_scores_it_without_the_g1_baseline(tmp_path):
+def test_the_evaluator_scores_it_without_the_g1_published(tmp_path):
     tr = tiny_trainer(tmp_path, *TINY)
     ev = Evaluator(tr.model, tr.model.generators(), tr.data, batch_size=8)
     ev.tune(tr.data.validation_batch(2))

@@ -195,7 +195,7 @@ def test_simulate_with_the_computed_psf_as_a_measured_file_writes_the_computed_r
                                                                                             monkeypatch):
     a = _run(tmp_path, "computed", "+experiment=simulate", "debug=smoke", monkeypatch=monkeypatch)
     b = _run(tmp_path, "measured", "+experiment=simulate", "debug=smoke", *_equal(files), monkeypatch=monkeypatch)
-    for key in ("saturated_fraction_alpha_l_1e+06", "laser_peak_alpha_l_1e+06", "lsr_sampled", "window_energy",
+    for key in ("saturated_fraction_alpha_l_1e6", "laser_peak_alpha_l_1e6", "lsr_sampled", "window_energy",
                 "bsr_window"):
         assert b[key] == pytest.approx(a[key], rel=1e-6), key
     assert b["measured_lsr"] == pytest.approx(b["design_lsr"], rel=1e-6) == a["lsr_sampled"]
