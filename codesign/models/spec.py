@@ -54,10 +54,11 @@ class ModelSpec(SpecMixin):
     g2_residual: G2's outputs are corrections to I_b^ (downsampled for the coarse scale), so that the untrained
     sandwich returns I_b^; g1_base: what G1's residual corrects, the sensor image (sensor) or the sensor image with
     its saturated and padded pixels filled from their surroundings (filled, codesign/models/fill.py). Both off by
-    default: at the CPU budget neither keeps the network ahead of the sensor image (docs/models.md Sec. 10).
+    default: at the CPU budget neither keeps the network ahead of the sensor image (docs/models.md Sec. 10; the
+    arms measured: docs/results_log.md).
     g2_base: what G2's residual corrects: I_b^ itself (i_b) or its classical Wiener deconvolution with the system
     OTF (wiener), whose noise-to-signal ratio is a learned scalar starting at g2_base_nsr; the untrained sandwich
-    then returns the classical pipeline's image (docs/models.md Sec. 10).
+    then returns the classical pipeline's image (docs/models.md Sec. 10; the arms measured: docs/results_log.md).
     laser_gate: both stages are told whether a laser is in the image, by the presence p = f / (f + f0) of
     saturated pixels (f: their fraction of the sensor's field; f0 learned, starting at laser_gate_f0): G1's
     correction is scaled by p (an unlasered image reaches G2 as measured, where G1 would otherwise apply the halo
@@ -66,7 +67,7 @@ class ModelSpec(SpecMixin):
     g2_gate: G2's correction is scaled by the same presence p (needs laser_gate and g2_residual): the training
     images nearly all carry a laser (alpha_l uniform on [0, 2e6]), so G2 learns corrections of lasered images only,
     and an image without saturated pixels gets the classical pipeline's image, which is what it scores best with
-    at the CPU budget (docs/models.md Sec. 10).
+    at the CPU budget (docs/models.md Sec. 10; the arms measured: docs/results_log.md).
     """
 
     name: str | None = None

@@ -16,7 +16,7 @@ for arm in default g2res filled; do
 done
 
 # After the per-condition tuning of the baselines (commit ed986ce): in-process arms of the filled base, 160 steps,
-# scored at chosen steps on the 12 photographs at alpha_l = 0 and 1e6 (docs/models.md Sec. 10, "Since then")
+# scored at chosen steps on the 12 photographs at alpha_l = 0 and 1e6 (docs/results_log.md, "Since then")
 R=benchmarks/results/early_steps
 F="model.g2_residual=true model.g1_base=filled"
 python -m benchmarks.early_steps --steps 160 --at 0,40,160 --out $R/filled.json $F
@@ -31,7 +31,7 @@ python -m benchmarks.early_steps --device cuda --steps 5000 --at 0,10,30,100,200
 
 # Third session (2026-11-27): model.laser_gate (G1's correction and the Wiener base's nsr follow the presence of
 # saturated pixels), with the Wiener base and EMA 0.999; the lasered nsr from 0.03 or from 100 (the value the
-# per-condition tuning picks for Wiener at alpha_l = 1e6); docs/models.md Sec. 10 "Then"
+# per-condition tuning picks for Wiener at alpha_l = 1e6); docs/results_log.md, "Then"
 G="$F model.g2_base=wiener trainer.ema=0.999 model.laser_gate=true"
 python -m benchmarks.early_steps --steps 160 --at 0,40,160 --out $R/filled_wienerbase_ema0.999_gate.json $G
 python -m benchmarks.early_steps --steps 160 --at 0,40,160 --out $R/filled_wienerbase_ema0.999_gate_nsr100.json $G \

@@ -1,0 +1,167 @@
+"""The figures the README and docs/ quote, checked against the results files they come from.
+
+    python -m benchmarks.doc_figures            # every quote; exit 1 and a line per mismatch when any differs
+
+Each Quote names a page, the results file a figure comes from, and how the page writes it: ``values`` reads the
+file and returns the figures as the page prints them, ``text`` places them (``{}`` each). The page must contain the
+text exactly. A rerun that changes a results file then fails the check until the page says the new figure, and a
+figure edited by hand cannot drift from its source. tests/test_doc_figures.py runs it in the default test run.
+Results files are read under today's metrics names (codesign.io.metric_names).
+"""
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from codesign.io.metric_names import read_metrics
+
+REPO = Path(__file__).resolve().parent.parent
+DESIGN = "benchmarks/results/full/design"
+PEAKS = f"{DESIGN}/continuous_lsr.json"
+WRAPPING = f"{DESIGN}/wrapping_spline_visible.json"
+STUDY = "benchmarks/results/codesign_study/study.json"
+GATED = "benchmarks/results/early_steps/unitdc_gate_g2gate_ema0.99{}.json"
+MAIN_JOB = "benchmarks/results/main_job/metrics.json"
+
+
+def sci(v: float, digits: int = 3) -> str:
+    """9.12e-4 (``digits`` significant digits, the exponent without padding), as the pages write LSRs."""
+    mantissa, exponent = f"{v:.{digits - 1}e}".split("e")
+    return f"{mantissa}e{int(exponent)}"
+
+
+def fixed(v: float, decimals: int = 2) -> str:
+    return f"{v:.{decimals}f}"
+
+
+def signed(v: float, decimals: int = 2) -> str:
+    return f"{v:+.{decimals}f}"
+
+
+def pct(v: float, decimals: int = 1) -> str:
+    """0.204 -> 20.4 %."""
+    return f"{100 * v:.{decimals}f} %"
+
+
+@dataclass(frozen=True)
+class Quote:
+    page: str
+    text: str
+    source: str
+    values: Callable[[dict], tuple]
+
+    def expected(self) -> str:
+        return self.text.format(*self.values(read_metrics(REPO / self.source)))
+
+
+def _peak(name: str, key: str) -> Callable[[dict], float]:
+    return lambda d: d["designs"][name][key]
+
+
+def _whole_window(d: dict) -> tuple:
+    """The spline searched on a window that holds its whole PSF, against the published mask on that window."""
+    lsr = _peak("spline_whole_window", "lsr_whole")(d)
+    published = read_metrics(REPO / DESIGN / "spline_whole_window" / "metrics.json")["lsr_published"]
+    return sci(lsr), f"{published / lsr:.1f}", sci(published), fixed(_peak("spline_whole_window",
+                                                                          "lsr_whole_over_limit")(d))
+
+
+def _wrapping_row(label: str, surface: str, depth: str, bold: tuple = ()) -> Quote:
+    """A row of docs/codesign.md's wrapping table: depth, the five lines, worst visible, yield, p95."""
+    def values(d):
+        s = d["surfaces"][surface]
+        lines = [sci(s[line]["lsr"], 3) if s[line]["lsr"] < 0.1 else f"{s[line]['lsr']:.3g}"
+                 for line in ("405", "450", "532", "633", "1064")]
+        cells = {"worst": sci(s["worst_visible"], 3), "yield": pct(s["tolerance"]["yield"]),
+                 "p95": sci(s["tolerance"]["lsr_p95"], 3)}
+        cells = {k: f"**{v}**" if k in bold else v for k, v in cells.items()}
+        return (depth.format(s["depth_m"] * 1e6), *lines, cells["worst"], cells["yield"], cells["p95"])
+    return Quote("docs/codesign.md", f"| {label} | {{}} um | " + " | ".join(["{}"] * 8) + " |", WRAPPING, values)
+
+
+def _study(arm: str, key: str) -> Callable[[dict], dict]:
+    return lambda d: d["summary"][arm][key]
+
+
+def _gated_row(seed: str, suffix: str) -> Quote:
+    def values(d):
+        at = d["steps"]["160"]
+        return tuple(fixed(at[c]["sgan"]) for c in ("laser_0", "laser_1e3", "laser_1e5", "laser_1e6"))
+    return Quote("docs/models.md", f"| {seed} | **network** | **{{}}** | **{{}}** | **{{}}** | **{{}}** |",
+                 GATED.format(suffix), values)
+
+
+def _main_job_summary(m: dict) -> tuple[str]:
+    """The printed end of the main job's run, rebuilt from its metrics.json exactly as the run prints it."""
+    from codesign.train.summary import joint_summary
+
+    return (joint_summary(m, "sgan"),)
+
+
+QUOTES: list[Quote] = [
+    # README's headline: the designs against the limit (certified continuous peaks)
+    Quote("README.md", "**LSR {}**, {}x below the published mask's {} and {}x the physical limit", PEAKS,
+          lambda d: _whole_window(d)),
+    Quote("README.md", "four starts reach LSR {}, {}x the", PEAKS,
+          lambda d: (sci(_peak("spline_multistart", "lsr_whole")(d)),
+                     fixed(_peak("spline_multistart", "lsr_whole_over_limit")(d)))),
+    Quote("README.md", "holds **LSR <= {} at each of them**", WRAPPING,
+          lambda d: (sci(d["surfaces"]["smooth"]["worst_visible"]),)),
+    Quote("docs/codesign.md", "{}, {}x the limit**", PEAKS,
+          lambda d: (sci(_peak("spline_multistart", "lsr_whole")(d), 4),
+                     fixed(_peak("spline_multistart", "lsr_whole_over_limit")(d)))),
+    # docs/codesign.md Sec. 5: wrapping as a design choice
+    _wrapping_row("continuous surface", "smooth", "{:.2f}", bold=("worst", "p95")),
+    _wrapping_row("2 pi-wrapped plate", "wrapped", "{:.3f}", bold=("yield",)),
+    _wrapping_row("2-wave plate", "2-wave", "{:.2f}"),
+    _wrapping_row("4-wave plate", "4-wave", "{:.2f}"),
+    # docs/codesign.md Sec. 7: the study's headline gains (study.json's summary)
+    Quote("docs/codesign.md", "**+{} dB** at alpha_l = 1e6 ({} +- {} against {} +- {}; paired gains +{} +- {}", STUDY,
+          lambda d: (fixed(_study("spline (frozen)", "net_psnr_matched_1e6")(d)["gain"]),
+                     fixed(_study("spline (frozen)", "net_psnr_matched_1e6")(d)["mean"]),
+                     fixed(_study("spline (frozen)", "net_psnr_matched_1e6")(d)["std"]),
+                     fixed(_study("published (frozen)", "net_psnr_matched_1e6")(d)["mean"]),
+                     fixed(_study("published (frozen)", "net_psnr_matched_1e6")(d)["std"]),
+                     fixed(_study("spline (frozen)", "net_psnr_matched_1e6")(d)["gain"]),
+                     fixed(_study("spline (frozen)", "net_psnr_matched_1e6")(d)["gain_std"]))),
+    Quote("docs/codesign.md", "Spiral (3 parameters): LSR {} (5x below), +{} +- {} dB at 1e6", STUDY,
+          lambda d: (sci(_study("spiral (frozen)", "lsr")(d)["mean"]),
+                     fixed(_study("spiral (frozen)", "net_psnr_matched_1e6")(d)["gain"]),
+                     fixed(_study("spiral (frozen)", "net_psnr_matched_1e6")(d)["gain_std"]))),
+    Quote("docs/codesign.md", "(-{} +- {} dB)", STUDY,
+          lambda d: (fixed(-_study("joint from published", "net_psnr_matched_1e6")(d)["gain"]),
+                     fixed(_study("joint from published", "net_psnr_matched_1e6")(d)["gain_std"]))),
+    # docs/models.md Sec. 10: the main job's network at the CPU budget, two seeds
+    _gated_row("0", ""),
+    _gated_row("1", "_seed1"),
+    # docs/codesign.md Sec. 7: the main job's summary as its run printed it (benchmarks/results/main_job/)
+    Quote("docs/codesign.md", "{}", MAIN_JOB, _main_job_summary),
+]
+
+
+def check(quotes: list[Quote] | None = None) -> list[str]:
+    """One line per quote whose page does not contain its figures as the results file has them."""
+    problems = []
+    for q in QUOTES if quotes is None else quotes:
+        try:
+            want = q.expected()
+        except (OSError, KeyError, ValueError) as e:
+            problems.append(f"{q.page}: cannot read the figures of {q.text!r} from {q.source}: {e!r}")
+            continue
+        if want not in (REPO / q.page).read_text():
+            problems.append(f"{q.page}: does not say {want!r} (from {q.source})")
+    return problems
+
+
+def main() -> int:
+    problems = check()
+    for p in problems:
+        print(p)
+    print(f"{len(QUOTES) - len(problems)} of {len(QUOTES)} quoted figures agree with their results files")
+    return 1 if problems else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
