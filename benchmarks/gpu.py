@@ -335,8 +335,8 @@ def keep_weights(src: Path, dst: Path) -> dict:
 def step_evaluate(p: dict, dev: torch.device, checkpoint: str, scenes: Path | None, work: Path, out: Path,
                   budget: float) -> dict:
     run = work / "evaluate"
-    source = ["data.scenes=folder", f"data.folder={scenes}", "evaluate.split=all", "evaluate.max_scenes=12"] \
-        if scenes else ["evaluate.split=test"]
+    source = ["data.scenes=folder", f"data.folder={scenes}", "evaluate.scenes=data", "evaluate.split=all",
+              "evaluate.max_scenes=12"] if scenes else ["evaluate.scenes=heldout"]
     cmd = [sys.executable, "-m", "codesign", "+experiment=evaluate", f"checkpoint={checkpoint}", f"device={dev}",
            "evaluate.laser_strengths=[0,1e3,1e6]", *source, *p["eval"], f"hydra.run.dir={run}"]
     rc, sec = run_logged(cmd, out / "evaluate.log", budget + 120)

@@ -20,7 +20,7 @@ from codesign.data.source import SceneSource
 from codesign.errors import ConfigError, require_choice, require_number, unknown_keys
 
 __all__ = ["SceneSampler", "DataConfig", "data_config", "build_scene_source", "build_scene_sampler",
-           "SceneSource", "builtin_scene_names"]
+           "SceneSource", "builtin_scene_names", "heldout_source", "HELDOUT_DIR"]
 
 
 class SceneSampler:
@@ -187,6 +187,18 @@ def build_scene_source(cfg: Mapping | DataConfig) -> SceneSource:
     source = SceneSource.from_folder(dc.folder, **kw) if dc.scenes == "folder" else SceneSource.builtin(**kw)
     source.config = dc
     return source
+
+
+HELDOUT_DIR = Path(__file__).resolve().parent / "heldout"
+
+
+def heldout_source() -> SceneSource:
+    """The photographs shipped for evaluation only (codesign/data/heldout/, sources and licences in its
+    SOURCES.md): 16 grayscale 512 x 512 scenes that no training, tuning or design step reads; split 'all'."""
+    if not HELDOUT_DIR.is_dir():
+        raise ConfigError("evaluate.scenes", "heldout", f"needs the held-out photographs at {HELDOUT_DIR}, which "
+                          "this installation lacks (reinstall codesign, or set evaluate.scenes=data)")
+    return SceneSource.from_folder(HELDOUT_DIR)
 
 
 def build_scene_sampler(cfg: Mapping | DataConfig, split: str, generator: torch.Generator,

@@ -65,6 +65,9 @@ def evaluations_figure(sweeps, front: list[dict], base: dict, limit, p_label: st
         if len(pts):  # no entry in the legend for a series with nothing to show
             ax.scatter(pts[:, 0], pts[:, 1], s=4, c=colour, label=f"{label} ({len(pts)})")
     ok = sorted((f for f in front if f["feasible"]), key=lambda f: f["mtf_floor"] or 0)
+    if best is not None and len(ok) == 1 and np.isclose(ok[0]["lsr"], best["lsr"]) \
+            and np.isclose(ok[0]["mtf_mean"], best["mtf_mean"]):
+        ok = []  # one floor whose best is the searched design: drawn once, as the design
     if ok:
         ax.plot([f["mtf_mean"] for f in ok], [f["lsr"] for f in ok], "o-" if len(ok) > 1 else "o", color="C0",
                 mfc="none", label="best per floor (continuous peak)")

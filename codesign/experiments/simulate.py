@@ -62,7 +62,7 @@ def _grid_figure(images: np.ndarray, rows: list[str], cols: list[float], log_vie
             ax.set_xticks([])
             ax.set_yticks([])
             if i == 0:
-                ax.set_title(f"alpha_l = {cols[j]:g}", fontsize=8)
+                ax.set_title(f"alpha_l = {alpha_tag(cols[j])}", fontsize=8)
             if j == 0:
                 ax.set_ylabel(rows[i], fontsize=8)
     bar = fig.colorbar(im, ax=axes, shrink=0.9)

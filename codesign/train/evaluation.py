@@ -28,6 +28,7 @@ import torch.nn.functional as F
 
 from codesign.camera import field_of_view as centre
 from codesign.config.store import register, spec_node
+from codesign.data.scenes import heldout_source
 from codesign.data.params import (
     LASER_STRENGTHS,
     PRESETS,
@@ -331,18 +332,23 @@ def flat_summary(results: dict) -> dict:
     return out
 
 
+EVAL_SCENES = ("heldout", "data")
+
+
 @dataclass(frozen=True)
 class EvaluateSpec(SpecMixin):
-    """The ``evaluate`` block. split: test | train | all (of the data source: data.scenes / data.folder);
-    max_scenes; laser_strengths: the paper's figure strengths evaluated (laser on axis); stages: robustness stages
+    """The ``evaluate`` block. scenes: heldout (the 16 photographs shipped for evaluation only,
+    codesign/data/heldout/, never trained on) | data (the data source's ``split``: data.scenes / data.folder);
+    split: test | train | all (with scenes=data); max_scenes: the first this many scenes; laser_strengths: the paper's figure strengths evaluated (laser on axis); stages: robustness stages
     (supplement table); tuning_size: training-split crops that, simulated under each condition, tune the
     baselines' nsr and gain for it;
     batch_size: images per network pass (memory); laser_angle_rad: [n_u, n_v] to move the laser off axis in every
     condition, null = the presets (on axis); lpips_weights, dists_weights: paths of LPIPS (VGG16) / DISTS weights,
     null = reported as unavailable."""
 
+    scenes: str = "heldout"
     split: str = "test"
-    max_scenes: int = 8
+    max_scenes: int = 16
     laser_strengths: tuple = LASER_STRENGTHS
     stages: tuple = tuple(ROBUSTNESS_STAGES)
     tuning_size: int = 8
@@ -354,6 +360,7 @@ class EvaluateSpec(SpecMixin):
 
     def __post_init__(self) -> None:
         put = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
+        require_choice("evaluate.scenes", self.scenes, EVAL_SCENES)
         require_choice("evaluate.split", self.split, ("test", "train", "all"))
         put("max_scenes", require_number("evaluate.max_scenes", self.max_scenes, lo=1, hi=100000, integer=True))
         allowed = ", ".join(alpha_tag(a) for a in LASER_STRENGTHS)
@@ -383,19 +390,21 @@ register("evaluate", "default", spec_node(EvaluateSpec))
 def eval_settings(cfg) -> dict:
     """Validate ``evaluate.*`` (and load LPIPS / DISTS when given), before any training or simulation."""
     ev = EvaluateSpec.from_config(dict(cfg.get("evaluate") or {}))
-    return {"split": ev.split, "max_scenes": ev.max_scenes, "lasers": list(ev.laser_strengths),
+    return {"scenes": ev.scenes, "split": ev.split, "max_scenes": ev.max_scenes, "lasers": list(ev.laser_strengths),
             "stages": list(ev.stages), "tuning": ev.tuning_size, "batch_size": ev.batch_size,
             "perceptual": quality.perceptual_metrics(ev.lpips_weights, ev.dists_weights),
             "overrides": {} if ev.laser_angle_rad is None else {"laser_angle_rad": list(ev.laser_angle_rad)}}
 
 
 def run_evaluation(ev: dict, model, generators, data, run_dir: Path, seed: int, keep: tuple[str, ...] = ()) -> dict:
-    """Tune the baselines per condition on training-split crops, then score every method on the chosen split.
+    """Tune the baselines per condition on training-split crops, then score every method on the held-out
+    photographs (evaluate.scenes=heldout) or the chosen split of the data source (evaluate.scenes=data).
     ``keep``: presets whose images the result carries under "images" (not JSON: pop it before writing metrics)."""
-    names = data.source.split_names(ev["split"])[: ev["max_scenes"]]
+    source = heldout_source() if ev.get("scenes", "data") == "heldout" else data.source
+    names = source.split_names("all" if source is not data.source else ev["split"])[: ev["max_scenes"]]
     if not names:
         raise ConfigError("evaluate.split", ev["split"], "has no scenes in this data source")
-    scenes = data.source.fixed_batch(names, data.camera.scene_size)
+    scenes = source.fixed_batch(names, data.camera.scene_size)
     evaluator = Evaluator(model, generators, data, ev["perceptual"], batch_size=ev["batch_size"])
     evaluator.tune_per_condition(data.validation_scenes(ev["tuning"]), data.validation_noise_seed)
     presets = conditions(ev["lasers"], ev["stages"])

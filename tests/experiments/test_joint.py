@@ -47,6 +47,7 @@ def test_joint_writes_the_comparison_metrics(joint_run):
     assert m["lsr_constraint_met"] is True and m["lsr_smooth"] <= m["lsr_max"] * (1 + 1e-6)
     assert m["lsr_max"] == pytest.approx(m["lsr_smooth_published"], rel=1e-6)  # default: the published mask's
     assert set(m["evaluation"]) == set(m["evaluation_published"]) == {"laser_0", "laser_1e6", "H1"}
+    assert m["evaluation_scenes"] == ["awning.png", "bridge_city.png"]  # the shipped held-out photographs
     assert upgrade(m)[1] == {}  # every key under today's name (codesign.io.metric_names)
     learned = json.loads((joint_run / "learned_mask.json").read_text())
     assert learned["kind"] == "halfring" and learned["r"] == m["r_n"]

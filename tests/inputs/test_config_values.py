@@ -94,7 +94,7 @@ ROWS = [
      "evaluate.laser_angle_rad = 5: must be [n_u, n_v] in radians, or null"),
     ("baseline", "evaluate.laser_angle_rad=[nan,0]", "evaluate.laser_angle_rad[0] = nan: must be a finite number"),
     ("baseline", "+evaluate.foo=1", "evaluate.foo = 1: unknown key; allowed: batch_size, dists_weights, "
-     "laser_angle_rad, laser_strengths, lpips_weights, max_scenes, split, stages, tuning_size"),
+     "laser_angle_rad, laser_strengths, lpips_weights, max_scenes, scenes, split, stages, tuning_size"),
     ("baseline", "data.image_size=48 data.padded_size=50",  # the PSF kernel fits the padded sensor image
      "data.padded_size = 50: must be >= data.image_size + PSF kernel - 1 = 48 + 5 - 1 = 52 at this pitch, so that "
      "deconvolution does not wrap"),
