@@ -339,9 +339,9 @@ EVAL_SCENES = ("heldout", "data")
 class EvaluateSpec(SpecMixin):
     """The ``evaluate`` block. scenes: heldout (the 16 photographs shipped for evaluation only,
     codesign/data/heldout/, never trained on) | data (the data source's ``split``: data.scenes / data.folder);
-    split: test | train | all (with scenes=data); max_scenes: the first this many scenes; laser_strengths: the paper's figure strengths evaluated (laser on axis); stages: robustness stages
-    (supplement table); tuning_size: training-split crops that, simulated under each condition, tune the
-    baselines' nsr and gain for it;
+    split: test | train | all (with scenes=data); max_scenes: the first this many scenes; laser_strengths: the
+    paper's figure strengths evaluated (laser on axis); stages: robustness stages (supplement table); tuning_size:
+    training-split crops that, simulated under each condition, tune the baselines' nsr and gain for it;
     batch_size: images per network pass (memory); laser_angle_rad: [n_u, n_v] to move the laser off axis in every
     condition, null = the presets (on axis); lpips_weights, dists_weights: paths of LPIPS (VGG16) / DISTS weights,
     null = reported as unavailable."""
