@@ -24,6 +24,7 @@ WRAPPING = f"{DESIGN}/wrapping_spline_visible.json"
 STUDY = "benchmarks/results/codesign_study/study.json"
 GATED = "benchmarks/results/early_steps/unitdc_gate_g2gate_ema0.99{}.json"
 MAIN_JOB = "benchmarks/results/main_job/metrics.json"
+GRADIENT = "benchmarks/results/mask_gradient/published_seed{}.json"
 
 
 def sci(v: float, digits: int = 3) -> str:
@@ -136,6 +137,9 @@ QUOTES: list[Quote] = [
     # docs/models.md Sec. 10: the main job's network at the CPU budget, two seeds
     _gated_row("0", ""),
     _gated_row("1", "_seed1"),
+    # docs/codesign.md Sec. 7: the mask gradient's signal against its noise, two seeds
+    Quote("docs/codesign.md", "is **{}** (seed 0) and **{}** (seed 1)", GRADIENT.format(0),
+          lambda d: (fixed(d["snr_one_batch"]), fixed(read_metrics(REPO / GRADIENT.format(1))["snr_one_batch"]))),
     # docs/codesign.md Sec. 7: the main job's summary as its run printed it (benchmarks/results/main_job/)
     Quote("docs/codesign.md", "{}", MAIN_JOB, _main_job_summary),
 ]
