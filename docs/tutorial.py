@@ -22,13 +22,14 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 PAGE = REPO / "docs" / "tutorial.md"
-# picture on the page -> the file of a run that it is (a glob: the panel's and comparison's names carry a preset)
+# picture on the page -> the file of a run that it is (the panel at the paper's strongest laser; a glob where a name
+# carries what the run chose)
 PICTURES = {
     "1_search_pareto.png": "outputs/tutorial/1_search/pareto.png",
     "2_psf_psf_log.png": "outputs/tutorial/2_psf/psf_log.png",
     "2_psf_mtf.png": "outputs/tutorial/2_psf/mtf.png",
     "3_simulate_sensor_grid_log.png": "outputs/tutorial/3_simulate/sensor_grid_log.png",
-    "4_evaluate_panel.png": "outputs/tutorial/4_evaluate/panel_*.png",
+    "4_evaluate_panel.png": "outputs/tutorial/4_evaluate/panel_laser_1e6.png",
     "5_joint_compare.png": "outputs/tutorial/5_joint/compare_*.png",
     "6_export_report.png": "outputs/tutorial/6_export/report.png",
     "7_tolerance.png": "outputs/tutorial/7_tolerance/tolerance.png",
