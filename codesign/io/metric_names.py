@@ -19,17 +19,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
-# old word -> today's word, applied to whole underscore-separated words of a key
+# old word -> today's word, applied to whole underscore-separated words of a key but its first
 WORDS = {"affine": "matched", "baseline": "published"}
-# keys holding one of WORDS' old words that are not metric names and keep it
-KEEP = frozenset({"baseline", "baselines"})
 _PLUS_EXPONENT = re.compile(r"(alpha_l_\d+(?:\.\d+)?)e\+0*(\d+)")
 
 
 def new_name(key: str) -> str:
     """Today's name of a metrics key (unchanged when it is already today's)."""
-    if key in KEEP:
-        return key
     key = _PLUS_EXPONENT.sub(r"\1e\2", key)
     parts = key.split("_")
     # a word is renamed only as a metric qualifier: after the first word (``baseline_*`` keys name the experiment)

@@ -240,7 +240,8 @@ def evaluate(evaluator: Evaluator, scenes: torch.Tensor, names: list[str], prese
         shown = {"input": centre(batch["sensor"], evaluator.n), **images}
         if preset in keep:
             kept[preset] = {**{k: v.detach().cpu() for k, v in shown.items()}, "truth": target.cpu()}
-        network = getattr(evaluator.model.spec, "name", None)  # the restorer's configured name
+        # the restorer's column titled with its configured name
+        network = (evaluator.model.method, getattr(evaluator.model.spec, "name", None))
         io.save_figure(run_dir / f"panel_{preset}.png", panel_figure(shown, target, names, preset, table, network))
         log.info("%-10s %s", preset, "  ".join(f"{m} {table[m]['psnr']:.2f} dB/{table[m]['ssim']:.3f} "
                                              f"(matched {table[m]['psnr_matched']:.2f})" for m in table))
@@ -265,12 +266,9 @@ METHOD_TITLES = {"input": "sensor image\n(autoscaled)", "sensor": "sensor image\
 
 
 def method_title(name: str, network: str | None = None) -> str:
-    """A column's title; ``network``: the restorer's name as configured (model.name), shown for its column."""
+    """A column's title; ``network``: the restorer's name as configured (model.name), given for its column."""
     title = METHOD_TITLES.get(name, name)
-    return f"{network}\n({title})" if network and name in RESTORER_COLUMNS else title
-
-
-RESTORER_COLUMNS = ("sgan", "wiener_unet")
+    return f"{network}\n({title})" if network else title
 
 
 def preset_description(preset: str) -> str:
@@ -291,9 +289,11 @@ def preset_description(preset: str) -> str:
 
 
 def panel_figure(images: dict, target: torch.Tensor, names: list[str], preset: str, table: dict,
-                 network: str | None = None):
+                 network: tuple[str, str | None] | None = None):
     """The first three scenes (rows) under ``preset``: the sensor image, each method and the truth (columns), each
-    method's title with its PSNR, the mean over every evaluated scene."""
+    method's title with its PSNR, the mean over every evaluated scene; ``network``: (the restorer's column, its
+    configured name), the name shown in that column's title."""
+    column, name = network or (None, None)
     cols = list(images) + ["truth"]
     rows = min(len(names), 3)
     from codesign.io.plots import plt  # matplotlib only when a figure is drawn (import codesign stays light)
@@ -308,7 +308,7 @@ def panel_figure(images: dict, target: torch.Tensor, names: list[str], preset: s
             ax.set_xticks([])
             ax.set_yticks([])
             if i == 0:
-                title = method_title(col, network)
+                title = method_title(col, name if col == column else None)
                 if col in table:
                     title += f"\n{table[col]['psnr']:.2f} dB"
                 ax.set_title(title, fontsize=8)
@@ -400,8 +400,8 @@ def run_evaluation(ev: dict, model, generators, data, run_dir: Path, seed: int, 
     """Tune the baselines per condition on training-split crops, then score every method on the held-out
     photographs (evaluate.scenes=heldout) or the chosen split of the data source (evaluate.scenes=data).
     ``keep``: presets whose images the result carries under "images" (not JSON: pop it before writing metrics)."""
-    source = heldout_source() if ev.get("scenes", "data") == "heldout" else data.source
-    names = source.split_names("all" if source is not data.source else ev["split"])[: ev["max_scenes"]]
+    source, split = (heldout_source(), "all") if ev["scenes"] == "heldout" else (data.source, ev["split"])
+    names = source.split_names(split)[: ev["max_scenes"]]
     if not names:
         raise ConfigError("evaluate.split", ev["split"], "has no scenes in this data source")
     scenes = source.fixed_batch(names, data.camera.scene_size)

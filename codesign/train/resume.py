@@ -28,16 +28,14 @@ log = logging.getLogger("codesign.train")
 # Config blocks that must match between a checkpoint and the run that resumes it (trainer.* may change).
 RESUME_MUST_MATCH = ("model", "optics", "material", "mask", "sensor", "data.image_size", "data.padded_size",
                      "data.batch_size", "data.scenes", "data.folder", "data.test_fraction", "data.split_seed")
+# model.name is a label: checkpoints written before it existed are named by their variant (null name = the variant)
+RESUME_MAY_DIFFER = ("model.name",)
 
 
 def check_resume_config(saved: dict, cfg: DictConfig, key: str, extra_keys: tuple = (), path="checkpoint") -> None:
     """A checkpoint (``path``) resumed under a different model, physics or data geometry is a ConfigError naming
     the file and the keys."""
-    saved_cfg, current = OmegaConf.create(_with_added_keys(saved)), OmegaConf.create(to_container(cfg))
-    differ = []
-    for dotted in RESUME_MUST_MATCH + tuple(extra_keys):
-        if _unlabelled(OmegaConf.select(saved_cfg, dotted)) != _unlabelled(OmegaConf.select(current, dotted)):
-            differ.append(dotted)
+    differ = _differing(saved, cfg, RESUME_MUST_MATCH + tuple(extra_keys), RESUME_MAY_DIFFER)
     if differ:
         raise ConfigError(key, str(path), "was trained with different " + ", ".join(differ) + ": resume with the "
                           "same settings, or start a new run directory")
@@ -85,13 +83,7 @@ def load_initial_weights(model, path, cfg: DictConfig, key: str = "init.checkpoi
     the checkpoint's step and mask family."""
     state = load_checkpoint(path, key)
     check_trained(state, path, key)
-    saved, current = OmegaConf.create(_with_added_keys(state["config"])), OmegaConf.create(to_container(cfg))
-    for node in (saved, current):
-        for dotted in INIT_MAY_DIFFER:
-            parent, _, leaf = dotted.rpartition(".")
-            if OmegaConf.select(node, parent) is not None:
-                OmegaConf.select(node, parent).pop(leaf, None)
-    differ = [k for k in INIT_MUST_MATCH if _plain(OmegaConf.select(saved, k)) != _plain(OmegaConf.select(current, k))]
+    differ = _differing(state["config"], cfg, INIT_MUST_MATCH, INIT_MAY_DIFFER)
     if differ:
         raise ConfigError(key, str(path), "was trained with different " + ", ".join(differ) + ": a warm start keeps "
                           "the network, the optics, the sensor and the image sizes (only the mask may change)")
@@ -101,7 +93,7 @@ def load_initial_weights(model, path, cfg: DictConfig, key: str = "init.checkpoi
     load_module_state(model, state["model"], key, path, what)
     if state.get("ema"):  # the generators the checkpoint restores with (and was evaluated with): its averages
         load_ema_weights(model.generators(), state, key, path, what)
-    mask = OmegaConf.select(saved, "mask.kind")
+    mask = OmegaConf.select(OmegaConf.create(state["config"]), "mask.kind")
     log.info("network weights from %s (step %d, trained on mask %s)", path, int(state["step"]), mask)
     return {"init_checkpoint": str(path), "init_steps": int(state["step"]), "init_mask_kind": mask}
 
@@ -157,11 +149,16 @@ def _plain(value):
     return OmegaConf.to_container(value) if OmegaConf.is_config(value) else value
 
 
-def _unlabelled(value):
-    """A config block without its ``name``: the network's name (model.name) is a label, and checkpoints written
-    before it existed are named by their variant (ModelSpec: null name = the variant), so it may differ."""
-    value = _plain(value)
-    return {k: v for k, v in value.items() if k != "name"} if isinstance(value, dict) else value
+def _differing(saved: dict, cfg: DictConfig, must_match: tuple, may_differ: tuple) -> list[str]:
+    """The keys of ``must_match`` whose values differ between a checkpoint's configuration (``saved``, with the keys
+    added since it was written) and this run's, ``may_differ``'s leaves left out of both."""
+    nodes = OmegaConf.create(_with_added_keys(saved)), OmegaConf.create(to_container(cfg))
+    for node in nodes:
+        for dotted in may_differ:
+            parent, _, leaf = dotted.rpartition(".")
+            if OmegaConf.select(node, parent) is not None:
+                OmegaConf.select(node, parent).pop(leaf, None)
+    return [k for k in must_match if _plain(OmegaConf.select(nodes[0], k)) != _plain(OmegaConf.select(nodes[1], k))]
 
 
 def apply_checkpoint_mask(mask, state: dict, path="checkpoint", key: str = "checkpoint") -> None:

@@ -167,6 +167,12 @@ def test_evaluation_panel_explains_its_preset_columns_and_psnr():
         assert "mean over the 2 evaluated scenes" in head
     finally:
         plt.close(fig)
+    fig = panel_figure(images, torch.rand(2, 1, 16, 16), ["cell", "chelsea"], "H1", table, ("sgan", "sgan_b_gated"))
+    try:  # the restorer's column carries its configured name, no other column does
+        titles = [ax.get_title() for ax in fig.axes if ax.get_title()]
+        assert [t for t in titles if "sgan_b_gated" in t] == ["sgan_b_gated\n(SGAN network)\n20.00 dB"]
+    finally:
+        plt.close(fig)
 
 
 def test_joint_comparison_has_row_labels_and_psnr_values():
