@@ -60,7 +60,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap.add_argument("--scenes", type=Path, default=SCENES, help="held-out photographs (every one is evaluated)")
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--smoke", action="store_true", help="every step at smoke size (a check, not a result)")
+    ap.add_argument("--render", action="store_true", help="run nothing: rewrite OUT/study.md from OUT/study.json")
     args = ap.parse_args(argv)
+    if args.render:
+        if not (args.out / "study.json").is_file():
+            ap.error(f"--render: no {args.out / 'study.json'} to render")
+        return args
     args.design = args.design or list(DEFAULT_DESIGNS)
     problems = []
     if len(set(args.seeds)) < 2:
@@ -225,6 +230,37 @@ def goal_met(summary: dict) -> dict[str, bool]:
     return out
 
 
+JOINT_GOAL_DB = 0.5  # issue 36: the joint stage at least +0.5 dB over its frozen arm at alpha_l = 1e6
+
+
+def joint_vs_frozen(per_run: dict[str, dict]) -> dict[str, dict]:
+    """Per start (published, every design): its joint arm minus its frozen arm, paired by seed, for the network's
+    PSNR matched at every alpha_l: the mean and standard deviation of the paired gains, the seed spread (the larger
+    standard deviation of the two arms), significant when |mean| > 2 x spread, and the joint stage's goal (>= +0.5 dB
+    at alpha_l = 1e6 and significant)."""
+    out = {}
+    for arm, seeds in per_run.items():
+        if not arm.startswith("joint from "):
+            continue
+        start = arm[len("joint from "):]
+        frozen = per_run[REFERENCE if start == "published" else f"{start} (frozen)"]
+        row = {}
+        for alpha in ALPHAS:
+            key = f"net_psnr_matched_{alpha}"
+            if key not in next(iter(seeds.values())):
+                continue
+            common = sorted(set(seeds) & set(frozen))
+            gains = [seeds[s][key] - frozen[s][key] for s in common]
+            spread = max(statistics.stdev([seeds[s][key] for s in common]),
+                         statistics.stdev([frozen[s][key] for s in common])) if len(common) > 1 else float("nan")
+            mean = statistics.mean(gains)
+            row[alpha] = {"gain": mean, "gain_std": statistics.stdev(gains) if len(gains) > 1 else 0.0,
+                          "spread": spread, "significant": abs(mean) > 2 * spread, "seeds": len(common)}
+        row["goal_met"] = row["1e6"]["gain"] >= JOINT_GOAL_DB and row["1e6"]["significant"]
+        out[start] = row
+    return out
+
+
 def figure(per_run: dict, path: Path) -> Path:
     import matplotlib
 
@@ -248,7 +284,15 @@ def figure(per_run: dict, path: Path) -> Path:
     return save_figure(path, fig)
 
 
+def _arm_order(arm: str) -> tuple:
+    """The published arms first, then each design's frozen arm before its joint arm (study.json's keys are sorted)."""
+    start = arm[len("joint from "):] if arm.startswith("joint from ") else arm.replace(" (frozen)", "")
+    return (start != "published", start, arm.startswith("joint from "))
+
+
 def render(res: dict, fig_name: str) -> str:
+    res = {**res, "summary": dict(sorted(res["summary"].items(), key=lambda kv: _arm_order(kv[0]))),
+           "runs": dict(sorted(res["runs"].items(), key=lambda kv: _arm_order(kv[0])))}
     s, m = res["settings"], res["machine"]
     lines = [f"# Co-design study ({'smoke: not a result' if s['smoke'] else 'CPU budget'})", "",
              f"Command: `{res['command']}`; {m.get('cpu', '?')}, {m.get('threads', '?')} threads, torch "
@@ -289,16 +333,34 @@ def render(res: dict, fig_name: str) -> str:
         floor_rows.append([arm] + [f"{row[f'{w}_psnr_matched_{a}']['mean']:.2f}" for w in ("sensor", "wiener")
                                    for a in ALPHAS])
     lines += [markdown_table(["arm"] + [f"{w} PSNR matched {a}" for w in ("sensor", "Wiener") for a in ALPHAS],
-                             floor_rows), "", f"![PSNR matched at 1e6 against LSR]({fig_name})", ""]
+                             floor_rows), ""]
+    jvf = joint_vs_frozen({arm: {int(k): v for k, v in seeds.items()} for arm, seeds in res["runs"].items()})
+    if jvf:
+        lines += ["The joint stage: each joint arm against its own frozen arm (same start, steps, data and seed), "
+                  "paired by seed: mean gain +- the standard deviation of the paired gains; **bold** beyond twice "
+                  f"the seed spread. Goal: >= +{JOINT_GOAL_DB} dB at alpha_l = 1e6, beyond twice the spread.", "",
+                  markdown_table(["joint arm - frozen arm"] + [f"PSNR matched {a}" for a in ALPHAS] +
+                                 ["seed spread 1e6", "goal"],
+                                 [[f"joint from {start} - {start} (frozen)"] + [
+                                     (f"**{row[a]['gain']:+.2f}**" if row[a]["significant"] else f"{row[a]['gain']:+.2f}")
+                                     + f" +- {row[a]['gain_std']:.2f}" for a in ALPHAS]
+                                  + [f"{row['1e6']['spread']:.2f}", "met" if row["goal_met"] else "not met"]
+                                  for start, row in jvf.items()]), ""]
+    lines += [f"![PSNR matched at 1e6 against LSR]({fig_name})", ""]
     return "\n".join(lines)
 
 
 def main(argv=None) -> int:
     args = parse_args(argv)
     out = args.out.resolve()
+    if args.render:
+        res = json.loads((out / "study.json").read_text())
+        write_text(out / "study.md", render(res, "psnr_vs_lsr.png"))
+        print(f"wrote {out / 'study.md'} from study.json")
+        return 0
     runs = out / "runs"
     t0 = time.perf_counter()
-    common = ["+experiment=joint", "codesign.compare_published=false", "logging.tensorboard=false",
+    common = ["+experiment=joint", "codesign.protocol=single", "codesign.compare_published=false", "logging.tensorboard=false",
               *OBJECTIVES[args.objective], *EVALUATE, *(SMOKE if args.smoke else [])]
     plan = arms(args.designs)
     n = len(args.seeds)

@@ -201,9 +201,12 @@ def mask_search(*overrides: str, run_dir: str | Path | None = None) -> dict[str,
 def train_restorer(*overrides: str, run_dir: str | Path | None = None, experiment: str = "baseline"
                    ) -> dict[str, Any]:
     """Train and evaluate a restoration network on a fixed mask (``+experiment=baseline``; ``experiment="joint"``
-    co-designs the mask too). overrides e.g. ``"model=sgan_b"``, ``"trainer.steps=200"``, ``"debug=smoke"``.
-    Writes checkpoint.pt (restore() takes it), evaluation.csv; returns metrics.json with ``run_dir``: baseline's
-    ``psnr_<method>_<preset>`` (dB) and ``ssim_<method>_<preset>`` for method sgan / sensor / wiener /
-    g1_wiener and preset laser_<alpha_l> / H1 (e.g. ``psnr_sgan_laser_1e6``), ``steps``, ``seconds`` (wall, s);
-    joint's ``psnr``, ``psnr_published``, ``lsr``, ``lsr_published``, ... (README)."""
+    runs the main job, which designs and co-designs the mask too). overrides e.g. ``"model=sgan_b"``,
+    ``"trainer.steps=200"``, ``"debug=smoke"``. Writes checkpoint.pt (restore() takes it), evaluation.csv; returns
+    metrics.json with ``run_dir``: baseline's ``psnr_<method>_<preset>`` (dB) and ``ssim_<method>_<preset>`` for
+    method sgan / sensor / wiener / g1_wiener and preset laser_<alpha_l> / H1 (e.g. ``psnr_sgan_laser_1e6``),
+    ``steps``, ``seconds`` (wall, s); the main job's ``masks``, ``systems`` (per system and laser_<alpha_l>:
+    ``psnr_matched``, ``psnr``, ``ssim``), ``gains``, ``goal`` and ``checkpoint`` (the co-designed network's);
+    with ``"codesign.protocol=single"`` one joint run's ``psnr``, ``psnr_published``, ``lsr``, ``lsr_published``,
+    ... (README, docs/codesign.md)."""
     return run(experiment, *overrides, run_dir=run_dir)

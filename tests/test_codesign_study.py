@@ -59,6 +59,22 @@ def test_gain_is_paired_by_seed_and_significant_only_beyond_twice_the_spread():
     assert study.goal_met(out) == {"clear": True, "noisy": False}  # both at a quarter of the LSR
 
 
+def test_joint_vs_frozen_pairs_each_joint_arm_with_its_own_frozen_arm():
+    ref = {0: _run(8e-3, 20.0), 1: _run(8e-3, 20.4), 2: _run(8e-3, 19.6)}  # std 0.4
+    frozen = {0: _run(2e-3, 24.0), 1: _run(2e-3, 24.1), 2: _run(2e-3, 23.9)}  # std 0.1
+    joint = {s: _run(2e-3, v["net_psnr_matched_1e6"] + 0.6) for s, v in frozen.items()}  # +0.6 at every seed
+    joint_pub = {s: _run(8e-3, v["net_psnr_matched_1e6"] + 0.6) for s, v in ref.items()}  # +0.6, spread 0.4
+    out = study.joint_vs_frozen({study.REFERENCE: ref, "joint from published": joint_pub, "spline (frozen)": frozen,
+                                 "joint from spline": joint})
+    assert set(out) == {"published", "spline"}
+    g = out["spline"]["1e6"]
+    assert g["gain"] == pytest.approx(0.6) and g["spread"] == pytest.approx(0.1) and g["significant"]
+    assert g["seeds"] == 3 and out["spline"]["goal_met"] is True
+    p = out["published"]["1e6"]
+    assert p["gain"] == pytest.approx(0.6) and p["spread"] == pytest.approx(0.4) and not p["significant"]
+    assert out["published"]["goal_met"] is False
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--seeds", "3"], "--seeds: give at least 2 different seeds"),
     (["--steps", "0"], "--steps 0: must be >= 1"),

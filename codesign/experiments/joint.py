@@ -19,7 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 from codesign.config.runtime import check_seed, logging_spec, to_container
 from codesign.design.check import camera_sampling_report, report_sampling, sampling_of, verify_design
 from codesign.design.limits import MTFLimit
-from codesign.train.lsr_constraint import CodesignSpec, LSRConstraint
+from codesign.train.lsr_constraint import CodesignSpec, LSRConstraint, published_fraction
 from codesign.design.merit import MaskMonitor, metrics_spec, published_reference
 from codesign.fab.laser_lines import lines_summary, log_lines, run_lines
 from codesign.optics.masks.records import write_record
@@ -29,6 +29,7 @@ from codesign.io.tensorboard import open_writer, tensorboard_enabled
 from codesign.optics import HalfRingMask, circular_mtf
 from codesign.optics.masks import published_mask_config
 from codesign.train import distributed
+from codesign.train.base_tuning import tune_base_nsr
 from codesign.train.checkpoint import CHECKPOINT_NAME
 from codesign.train.data import SimulatedData
 from codesign.train.evaluation import conditions, eval_settings, run_evaluation
@@ -40,6 +41,7 @@ from codesign.train.spec import InitSpec, TrainerSpec
 from codesign.train.summary import comparison_figure, joint_summary
 from codesign.train.optim import init_weights
 from codesign.train.trainer import Trainer
+from codesign.experiments.main_job import IMAGES_FILE, run_protocol, save_images
 from codesign.experiments.protocol import Experiment
 
 log = logging.getLogger("codesign.joint")
@@ -48,10 +50,11 @@ log = logging.getLogger("codesign.joint")
 EXPERIMENT = Experiment(
     summary="the main job: mask and restorer trained end to end, compared with the published system",
     first_work="_train",
-    root_keys=("codesign", "init"),
+    root_keys=("codesign", "init", "search"),
     outputs=("metrics.json", "checkpoint.pt", "learned_mask.json", "evaluation.csv", "mtf.png"),
     resumes=True,
     distributed=True,
+    smoke={"search.max_evals": 8, "search.polish_max_evals": 4, "codesign.finetune_steps": 2},
 )
 
 PUBLISHED_DIR = "published"
@@ -113,6 +116,18 @@ def _scores(evaluation: dict, method: str, suffix: str = "") -> dict:
 
 
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
+    """codesign.protocol=codesign: the main job's stages (codesign/experiments/main_job.py), each stage's training
+    a run_single; single: one run_single."""
+    cs = CodesignSpec.from_config(to_container(cfg.get("codesign")) or {})
+    if cs.protocol == "single":
+        return run_single(cfg, run_dir, device)
+    return run_protocol(cfg, run_dir, device, run_single)
+
+
+def run_single(cfg: DictConfig, run_dir: Path, device: torch.device, evaluate: bool = True) -> float:
+    """One joint training of the configured mask (its published comparison when codesign.compare_published); then,
+    when ``evaluate``, the evaluation on the held-out scenes (without: metrics.json holds the training's figures,
+    the pretraining stages of the codesign protocol)."""
     seed = check_seed(cfg)
     spec = TrainerSpec.from_config(to_container(cfg.trainer))
     cs = CodesignSpec.from_config(to_container(cfg.get("codesign")) or {})
@@ -137,6 +152,8 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         sampling = camera_sampling_report(camera, cfg, log, "the start mask")
         start.update(phase_resolved_start=sampling["phase_resolved"], phase_sampling_start=sampling["phase_sampling"],
                      **_check_lsr_max(lsr_max, cs, monitor, system, camera.mask, constrained))
+    if not warm:
+        start.update(_tune_base(model, data, ev))
     mask = MaskCodesign(camera=camera, spec=cs, lsr_max=lsr_max, lsr_p=ms.lsr_p, lsr_grids=ms.lsr_grids,
                         steps=spec.steps, device=device, monitor=monitor, dist=ctx, lines=constrained)
     trainer = Trainer(model=model, data=data, spec=spec, run_dir=run_dir, device=device, config=to_container(cfg),
@@ -187,16 +204,24 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
                                                          camera.mask.plate_cell_m)
         for name in ("learned", "published"):
             log_lines(summary, name, f"{name} mask")
-    keep = (COMPARED,) if published is not None and COMPARED in conditions(ev["lasers"], ev["stages"]) else ()
+    if not evaluate:
+        io.write_json(run_dir / "metrics.json", metrics)
+        _hparams(trainer.writer, cfg, metrics, model.method)
+        log.info("joint: lsr %.4g, mtf_mean %.4g after %d steps (not evaluated); wrote %s", metrics["lsr"],
+                 metrics["mtf_mean"], steps, run_dir)
+        return float("nan")
+    keep = (COMPARED,) if COMPARED in conditions(ev["lasers"], ev["stages"]) else ()
     joint_eval = run_evaluation(ev, model, trainer.restoring_modules(), data, run_dir, seed, keep)
     for key in ("evaluation", "evaluation_scenes", "evaluation_per_scene_psnr_matched"):
         metrics[key] = joint_eval[key]
+    if keep:  # the first scenes' restorations at COMPARED, for the main job's figure of every system
+        save_images(run_dir / IMAGES_FILE, joint_eval["images"][COMPARED], model.method)
     metrics.update(_scores(joint_eval["evaluation"], model.method))  # with or without the published comparison
 
     if published is not None:
         extra, pub_images = _published_evaluation(*published, run_dir, ev, seed, keep)
         metrics.update(extra)
-        if keep:
+        if keep and pub_images:
             io.save_figure(run_dir / f"compare_{COMPARED}.png", comparison_figure(
                 joint_eval["images"][COMPARED], pub_images[COMPARED], model.method, COMPARED, network=model.spec.name,
                 names=joint_eval["evaluation_scenes"], tables={"learned": joint_eval["evaluation"][COMPARED],
@@ -234,6 +259,14 @@ def _recheck(mask, reference, spec, band, tolerance: float) -> dict:
             "recheck_agree": agree}
 
 
+def _tune_base(model, data, ev: dict) -> dict:
+    """model.g2_base_nsr_tuned on fresh weights: the Wiener base's nsr tuned to this mask (codesign/train/
+    base_tuning.py) on as many training crops as the evaluation tunes its floors on; what metrics.json records."""
+    if not getattr(getattr(model, "spec", None), "g2_base_nsr_tuned", False):
+        return {}
+    return {"g2_base_nsr_tuned": tune_base_nsr(model, data, ev["tuning"])}
+
+
 def _network(cfg, init: InitSpec, seed: int) -> tuple:
     """The restorer with its starting weights: seeded fresh ones, or a warm start's (init.checkpoint); and what the
     run records of the latter."""
@@ -250,12 +283,14 @@ def _lsr_max(cs: CodesignSpec, monitor: MaskMonitor, system, mask, reference, li
     if cs.lsr_max == "start":
         return LSRConstraint(cs, system, 1.0, monitor.p, monitor.grids, lines).measure(mask), \
             f"the start mask's smooth LSR{worst}"
-    if cs.lsr_max is not None:
+    share = published_fraction(cs.lsr_max) if cs.lsr_max is not None else 1.0
+    if share is None:
         return float(cs.lsr_max), "given"
+    part = "" if share == 1 else f"1/{1 / share:g} of "
     if lines is not None:
-        return LSRConstraint(cs, system, 1.0, monitor.p, monitor.grids, lines).measure(reference), \
-            f"the published mask's smooth LSR{worst}"
-    return monitor.reference[0]["lsr_smooth"], "the published mask's smooth LSR"
+        return share * LSRConstraint(cs, system, 1.0, monitor.p, monitor.grids, lines).measure(reference), \
+            f"the {part}published mask's smooth LSR{worst}"
+    return share * monitor.reference[0]["lsr_smooth"], f"the {part}published mask's smooth LSR"
 
 
 # codesign.lsr_max this many times below the start mask's smooth LSR draws a warning: the constraint then
@@ -288,8 +323,10 @@ def _published_train(cfg, published_cfg, init, spec, steps, seed, device, run_di
     pub_cfg.mask = published_cfg
     pub_spec = TrainerSpec.from_config({**to_container(cfg.trainer), "steps": steps, "time_budget_s": None,
                                         "resume": None})
-    model, _ = _network(pub_cfg, init, seed)  # the same initial weights as the joint network
+    model, warm = _network(pub_cfg, init, seed)  # the same initial weights as the joint network
     data = SimulatedData(pub_cfg, device, seed, ctx)
+    if not warm:
+        _tune_base(model, data, eval_settings(pub_cfg))
     trainer = Trainer(model=model, data=data, spec=pub_spec, run_dir=sub, device=device, config=to_container(pub_cfg),
                       seed=seed, dist=ctx)
     timing = _train(trainer, pub_cfg, sub, log_every, "published mask")

@@ -312,8 +312,11 @@ for _variant, _loss in VARIANT_LOSSES.items():  # the config options model=sgan_
 # model=sgan_b_gated, the main job's network (+experiment=joint): SGAN-B whose untrained sandwich is the laser-aware
 # classical pipeline (G1 corrects the filled sensor image, G2 the unit-DC Wiener deconvolution of I_b^ at an nsr
 # that follows the laser's presence) and whose learned corrections are gated by that presence: the options that
-# keep it above the sensor image and ahead of Wiener from the first steps (docs/models.md Sec. 10)
+# keep it above the sensor image and ahead of Wiener from the first steps (docs/models.md Sec. 10); and tuned to the
+# mask it restores: the base's nsr set per mask before a run from fresh weights, as the classical floor is, and a
+# laser's presence counted from 1 % of saturated pixels, so that a weak laser's few saturated pixels (alpha_l = 1e3)
+# leave the image to that tuned base (the main job's measurements: docs/codesign.md Sec. 7)
 GATED = {"g2_residual": True, "g1_base": "filled", "g2_base": "wiener", "laser_gate": True,
-         "g2_base_nsr_lasered": 100.0, "g2_gate": True}
+         "g2_base_nsr_lasered": 100.0, "g2_gate": True, "laser_gate_f0": 1e-2, "g2_base_nsr_tuned": True}
 _GATED_NODE = spec_node(ModelSpec, name="sgan_b_gated", variant="sgan_b", **GATED)
 register("model", "sgan_b_gated", {"kind": SGAN.kind, **_GATED_NODE, "loss": spec_node(LossWeights)})

@@ -68,6 +68,10 @@ class ModelSpec(SpecMixin):
     images nearly all carry a laser (alpha_l uniform on [0, 2e6]), so G2 learns corrections of lasered images only,
     and an image without saturated pixels gets the classical pipeline's image, which is what it scores best with
     at the CPU budget (docs/models.md Sec. 10; the arms measured: docs/results_log.md).
+    g2_base_nsr_tuned: with g2_base=wiener, a run from fresh weights first sets the unlasered nsr (g2_base_nsr's
+    parameter) to the value of the evaluation's Wiener grid whose restorations of training-split crops without a
+    laser score best after the gain/offset match, as the classical floor is tuned (codesign/train/base_tuning.py):
+    the right nsr depends on the mask, and 0.03 is the published mask's (the +experiment=joint main job sets it).
     """
 
     name: str | None = None
@@ -93,6 +97,7 @@ class ModelSpec(SpecMixin):
     laser_gate_f0: float = 1e-3
     g2_base_nsr_lasered: float = 3e-2
     g2_gate: bool = False
+    g2_base_nsr_tuned: bool = False
     prefix: str = field(default="model", compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -130,9 +135,12 @@ class ModelSpec(SpecMixin):
                               "correction)")
         require_number(f"{p}.g2_head_layers", self.g2_head_layers, lo=1, hi=8, integer=True)
         for key in ("attention", "coarse_to_fine", "g1_residual", "g2_linear_skip", "g2_residual", "laser_gate",
-                    "g2_gate"):
+                    "g2_gate", "g2_base_nsr_tuned"):
             if not isinstance(getattr(self, key), bool):
                 raise ConfigError(f"{p}.{key}", getattr(self, key), "must be true or false")
+        if self.g2_base_nsr_tuned and self.g2_base != "wiener":
+            raise ConfigError(f"{p}.g2_base_nsr_tuned", True, "needs model.g2_base=wiener (it tunes that Wiener "
+                              "base's nsr)")
 
     @property
     def generator_block(self) -> str:

@@ -24,12 +24,40 @@ from codesign.optics import metrics
 from codesign.spec_base import SpecMixin
 
 SCHEDULES = ("constant", "trainer", "cosine")
+PROTOCOLS = ("codesign", "single")
+
+
+def published_fraction(value) -> float | None:
+    """The share of the published mask's LSR that ``value`` names: published -> 1, published/K -> 1 / K (K > 1);
+    None for anything else."""
+    if value == "published":
+        return 1.0
+    if not isinstance(value, str) or not value.startswith("published/"):
+        return None
+    try:
+        k = float(value[len("published/"):])
+    except ValueError:
+        return None
+    return 1.0 / k if math.isfinite(k) and k > 1 else None
 
 
 @dataclass(frozen=True)
 class CodesignSpec(SpecMixin):
-    """lsr_max: the smooth-LSR ceiling (null = the published mask's smooth LSR; start = the start mask's own, so a
-    searched design can only improve; p of the smooth LSR: metrics.lsr_p);
+    """protocol: codesign (the main job: a design stage, the restorer trained on the designed and on the published
+    mask, then joint, designed-frozen and published arms fine-tuned from them; codesign/experiments/main_job.py) |
+    single (one joint training of the configured mask from the start, with its published comparison: the study's
+    arms, the GPU runs). design: the mask family the codesign protocol's design stage searches (search.*), starting
+    from the published system; null = no design stage: the configured mask is the start (mask=halfring: the
+    published half rings). finetune_steps: the steps of each arm after the restorer's trainer.steps (codesign
+    protocol).
+    lsr_max: the LSR ceiling. Under the codesign protocol it bounds the certified (true) peak of the designed and
+    the co-designed mask (the design stage's search.lsr_ceiling, the joint stage's peak guard): null = a quarter of
+    the published mask's with a design stage, the published mask's without; under the single protocol it bounds the
+    smooth LSR: null = the published mask's smooth LSR; start = the start mask's own, so a searched design can only
+    improve (p of the smooth LSR: metrics.lsr_p). Either protocol takes a number in (0, 1], published (the published
+    mask's) or published/K (K > 1: its K-th part).
+    peak_max: a ceiling on the certified peak LSR that the guard also keeps after every mask update (null: none;
+    the codesign protocol's joint stage sets it to lsr_max).
     penalty_weight, margin: the penalty (0 weight = off); guard, guard_halvings, guard_tolerance: the
     feasibility guard (relative tolerance on lsr_max).
     mask_lr: Adam learning rate of the mask parameters (units of the parameters per step: r_n in lambda f / W_a,
@@ -43,7 +71,11 @@ class CodesignSpec(SpecMixin):
     published mask's worst).
     """
 
+    protocol: str = "codesign"
+    design: str | None = "spline"
+    finetune_steps: int = 60
     lsr_max: float | str | None = None
+    peak_max: float | None = None
     penalty_weight: float = 1.0e4
     margin: float = 0.02
     guard: bool = True
@@ -59,11 +91,18 @@ class CodesignSpec(SpecMixin):
 
     def __post_init__(self) -> None:
         p = self.prefix
-        if self.lsr_max is not None and self.lsr_max != "start":
+        require_choice(f"{p}.protocol", self.protocol, PROTOCOLS)
+        if self.design is not None:
+            from codesign.optics.masks import FAMILIES
+            require_choice(f"{p}.design", self.design, tuple(sorted(k for k in FAMILIES if k != "halfring")))
+        require_number(f"{p}.finetune_steps", self.finetune_steps, lo=1, hi=10**7, integer=True)
+        if self.lsr_max is not None and self.lsr_max != "start" and published_fraction(self.lsr_max) is None:
             if isinstance(self.lsr_max, str):
-                raise ConfigError(f"{p}.lsr_max", self.lsr_max, "must be null (the published mask's smooth LSR), "
-                                  "start (the start mask's) or a number in (0, 1]")
+                raise ConfigError(f"{p}.lsr_max", self.lsr_max, "must be null (the protocol's default), start (the "
+                                  "start mask's), published, published/K (K > 1) or a number in (0, 1]")
             require_number(f"{p}.lsr_max", self.lsr_max, lo=0, lo_open=True, hi=1)
+        if self.peak_max is not None:
+            require_number(f"{p}.peak_max", self.peak_max, lo=0, lo_open=True, hi=1)
         require_number(f"{p}.penalty_weight", self.penalty_weight, lo=0)
         require_number(f"{p}.margin", self.margin, lo=0, hi=0.5)
         require_number(f"{p}.guard_halvings", self.guard_halvings, lo=0, hi=60, integer=True)
@@ -120,6 +159,10 @@ class LSRConstraint:
         self.lines = lines
         self.shortened = 0  # updates the guard shortened
         self.undone = 0  # updates the guard undid entirely
+        # codesign.peak_max: the certified peak is kept too (a smooth LSR at p = 16 lets the peak itself drift: from
+        # 1.05e-3 to 1.42e-3 under a held smooth LSR in the co-design study, docs/codesign.md Sec. 7)
+        self.peak_max = spec.peak_max
+        self.peak: float | None = None  # the certified peak LSR of the current parameters, when peak_max is set
 
     def smooth_lsr(self, psf: torch.Tensor, phase: torch.Tensor | None = None, cell_m: float | None = None
                    ) -> torch.Tensor:
@@ -134,6 +177,11 @@ class LSRConstraint:
     def measure(self, mask) -> float:
         phase = mask.phase()
         return float(self.smooth_lsr(self.system.psf(phase, mask.plate_cell_m), phase, mask.plate_cell_m))
+
+    @torch.no_grad()
+    def measure_peak(self, mask) -> float:
+        """The certified continuous peak LSR of ``mask`` (codesign/optics/peak.py; the design line's)."""
+        return self.system.continuous_peak(mask.phase(), cell_m=mask.plate_cell_m).value / self.system.uncoded_peak
 
     def penalty(self, lsr: torch.Tensor) -> torch.Tensor:
         excess = torch.relu(lsr / self.lsr_max - (1.0 - self.spec.margin))
@@ -150,8 +198,22 @@ class LSRConstraint:
         lsr = self.measure(mask)
         if not self.spec.guard:
             return lsr, 1.0
-        limit = max(self.lsr_max, previous_lsr) * (1.0 + self.spec.guard_tolerance)
-        if lsr <= limit:  # NaN fails this test and is undone below
+        tol = 1.0 + self.spec.guard_tolerance
+        limit = max(self.lsr_max, previous_lsr) * tol
+        peak_limit = None if self.peak_max is None else max(self.peak_max, self.peak or 0.0) * tol
+
+        def feasible(value: float) -> bool:  # NaN fails both tests
+            if not value <= limit:
+                return False
+            if peak_limit is None:
+                return True
+            peak = self.measure_peak(mask)
+            if peak <= peak_limit:
+                self.peak = peak
+                return True
+            return False
+
+        if feasible(lsr):
             return lsr, 1.0
         t = 1.0
         for _ in range(self.spec.guard_halvings):
@@ -159,7 +221,7 @@ class LSRConstraint:
             restore(mask, [a + t * (b - a) for a, b in zip(previous, raw)])
             mask.project()
             lsr = self.measure(mask)
-            if lsr <= limit:
+            if feasible(lsr):
                 self.shortened += 1
                 return lsr, t
         restore(mask, previous)

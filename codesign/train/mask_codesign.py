@@ -44,6 +44,8 @@ class MaskCodesign:
         self.constraint = LSRConstraint(spec, camera.system, lsr_max, lsr_p, lsr_grids, lines)
         self.monitor = monitor
         self.lsr = self.constraint.measure(self.mask)  # smooth LSR of the current parameters
+        if self.constraint.peak_max is not None:
+            self.constraint.peak = self.constraint.measure_peak(self.mask)
         self.max_rank_difference = 0.0
         self.kept: float | None = None  # the share of the last mask update the guard kept
         self._before: list[torch.Tensor] = []
@@ -104,6 +106,8 @@ class MaskCodesign:
                "constraint/guard_undone": c.undone}
         if self.kept is not None:
             out["constraint/mask_step_kept"] = self.kept
+        if c.peak is not None:
+            out.update({"constraint/lsr_peak": c.peak, "constraint/peak_max": c.peak_max})
         return {**out, **{f"mask_params/{k}": v for k, v in self.mask.summary().items()}}
 
     def progress(self) -> str:
@@ -118,15 +122,16 @@ class MaskCodesign:
     def record(self) -> dict:
         """What metrics.json reports of the mask's training."""
         c = self.constraint
+        peak = {} if c.peak_max is None else {"peak_max": c.peak_max, "lsr_peak_guarded": c.peak}
         return {"mask_max_rank_difference": self.max_rank_difference, "guard_shortened": c.shortened,
-                "guard_undone": c.undone, "mask_rollbacks": 0}
+                "guard_undone": c.undone, "mask_rollbacks": 0, **peak}
 
     # ---- checkpoints ----------------------------------------------------------------------------------------------
     def state_dict(self) -> dict:
         c = self.constraint
         return {"mask": self.mask.state_dict(),
                 "constraint": {"lsr_max": c.lsr_max, "lsr": self.lsr, "shortened": c.shortened, "undone": c.undone,
-                               "mask_rollbacks": 0},
+                               "mask_rollbacks": 0, "peak": c.peak},
                 "laser_halo": self.camera.halo_state()}  # the far PSF's refresh schedule and source values
 
     def load_state_dict(self, state: dict) -> None:
@@ -134,5 +139,7 @@ class MaskCodesign:
         c = state["constraint"]
         self.lsr = float(c["lsr"])
         self.constraint.shortened, self.constraint.undone = int(c["shortened"]), int(c["undone"])
+        if c.get("peak") is not None:
+            self.constraint.peak = float(c["peak"])
         self.camera.invalidate()
         self.camera.load_halo_state(state.get("laser_halo"))

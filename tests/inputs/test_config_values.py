@@ -98,8 +98,16 @@ ROWS = [
     ("baseline", "data.image_size=48 data.padded_size=50",  # the PSF kernel fits the padded sensor image
      "data.padded_size = 50: must be >= data.image_size + PSF kernel - 1 = 48 + 5 - 1 = 52 at this pitch, so that "
      "deconvolution does not wrap"),
-    ("joint", "codesign.lsr_max=best", "codesign.lsr_max = 'best': must be null (the published mask's smooth LSR), "
-     "start (the start mask's) or a number in (0, 1]"),
+    ("joint", "codesign.lsr_max=best", "codesign.lsr_max = 'best': must be null (the protocol's default), start (the "
+     "start mask's), published, published/K (K > 1) or a number in (0, 1]"),
+    ("joint", "codesign.lsr_max=published/0.5", "codesign.lsr_max = 'published/0.5': must be null (the protocol's "
+     "default), start (the start mask's), published, published/K (K > 1) or a number in (0, 1]"),
+    ("joint", "codesign.protocol=both", "codesign.protocol = 'both': must be one of codesign, single"),
+    ("joint", "codesign.design=halfring", "codesign.design = 'halfring': must be one of pixel, spiral, spline, "
+     "zernike"),
+    ("joint", "codesign.finetune_steps=0", "codesign.finetune_steps = 0: must be an integer >= 1 and <= 1e+07"),
+    ("joint", "search.lsr_ceiling=0.001", "search.lsr_ceiling = 0.001: is set by the main job from codesign.lsr_max "
+     "(give codesign.lsr_max instead)"),
     ("joint", "codesign.mask_lr=-1", "codesign.mask_lr = -1: must be a finite number >= 0 and <= 10"),
     ("joint", "+init.foo=1", "init.foo = 1: unknown key; allowed: checkpoint"),
     ("joint", "init.checkpoint=/nonexistent/ck.pt", "init.checkpoint = '/nonexistent/ck.pt': no such checkpoint file"),

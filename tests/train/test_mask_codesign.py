@@ -99,6 +99,46 @@ def test_guard_shortens_a_violating_update_and_an_infeasible_start_only_descends
     assert lsr_new <= lsr0 * (1 + 1e-6)
 
 
+def test_peak_guard_keeps_the_certified_peak_where_the_smooth_lsr_alone_lets_it_rise(tmp_path):
+    """codesign.peak_max: with the smooth ceiling wide open, random large moves raise the certified peak; with the
+    peak guard every kept move ends with a certified peak at or below max(peak_max, the peak before it), the guard's
+    record being the certified peak of the parameters it kept."""
+    from codesign.train.lsr_constraint import restore
+
+    tr = joint_trainer(tmp_path)
+    mask, system, spec = tr.codesign.mask, tr.data.camera.system, tr.codesign.spec
+    start = snapshot(mask)
+    open_smooth = LSRConstraint(spec, system, 1.0, tr.codesign.constraint.p)
+    peak0 = open_smooth.measure_peak(mask)
+    moves = [3.0 * torch.randn(p.shape, generator=torch.Generator().manual_seed(5 + k), dtype=p.dtype)
+             for k, p in enumerate(mask.parameters())]
+
+    def move(constraint) -> float:
+        restore(mask, start)
+        prev = snapshot(mask)
+        with torch.no_grad():
+            for p, d in zip(mask.parameters(), moves):
+                p.add_(d)
+        constraint.enforce(mask, prev, 1.0)  # the smooth ceiling (1.0) never binds
+        return constraint.measure_peak(mask)
+
+    assert move(open_smooth) > 1.05 * peak0  # without the guard this move raises the peak
+    guarded = LSRConstraint(spec.replace(peak_max=peak0), system, 1.0, tr.codesign.constraint.p)
+    guarded.peak = peak0
+    after = move(guarded)
+    assert after <= peak0 * (1 + spec.guard_tolerance)
+    assert guarded.shortened + guarded.undone == 1
+    assert guarded.peak == pytest.approx(after if guarded.shortened else peak0, rel=1e-9)
+
+
+def test_lsr_max_as_a_share_of_the_published_mask():
+    from codesign.train.lsr_constraint import published_fraction
+
+    assert published_fraction("published") == 1.0 and published_fraction("published/4") == 0.25
+    assert [published_fraction(v) for v in ("published/1", "published/x", "published/inf", "start", 0.5)] == \
+        [None] * 5
+
+
 def test_penalty_is_zero_inside_the_margin_and_quadratic_beyond(tmp_path):
     tr = joint_trainer(tmp_path)
     c = tr.codesign.constraint
