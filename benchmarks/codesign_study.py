@@ -342,7 +342,8 @@ def render(res: dict, fig_name: str) -> str:
                   markdown_table(["joint arm - frozen arm"] + [f"PSNR matched {a}" for a in ALPHAS] +
                                  ["seed spread 1e6", "goal"],
                                  [[f"joint from {start} - {start} (frozen)"] + [
-                                     (f"**{row[a]['gain']:+.2f}**" if row[a]["significant"] else f"{row[a]['gain']:+.2f}")
+                                     (f"**{row[a]['gain']:+.2f}**" if row[a]["significant"]
+                                      else f"{row[a]['gain']:+.2f}")
                                      + f" +- {row[a]['gain_std']:.2f}" for a in ALPHAS]
                                   + [f"{row['1e6']['spread']:.2f}", "met" if row["goal_met"] else "not met"]
                                   for start, row in jvf.items()]), ""]
@@ -360,7 +361,8 @@ def main(argv=None) -> int:
         return 0
     runs = out / "runs"
     t0 = time.perf_counter()
-    common = ["+experiment=joint", "codesign.protocol=single", "codesign.compare_published=false", "logging.tensorboard=false",
+    common = ["+experiment=joint", "codesign.protocol=single", "codesign.compare_published=false",
+              "logging.tensorboard=false",
               *OBJECTIVES[args.objective], *EVALUATE, *(SMOKE if args.smoke else [])]
     plan = arms(args.designs)
     n = len(args.seeds)

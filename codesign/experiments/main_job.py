@@ -33,12 +33,14 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from codesign.config.runtime import check_seed, to_container
-from codesign.design.merit import MaskMonitor, metrics_spec, published_reference
+from codesign.design.merit import metrics_spec, published_reference
 from codesign.design.search_spec import SearchSpec
+from codesign.errors import ConfigError
 from codesign.fab.laser_lines import lines_summary, run_lines
 from codesign.io import files as io
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask
 from codesign.optics.masks import FAMILIES, published_mask_config
+from codesign.train import distributed
 from codesign.train.evaluation import eval_settings
 from codesign.train.lsr_constraint import CodesignSpec, published_fraction
 from codesign.train.model_setup import build_model
@@ -94,8 +96,8 @@ def _stage_cfg(cfg: DictConfig, mask: dict, **changes) -> DictConfig:
 
 
 class Progress:
-    """One line per stage with the time left over every stage: training stages at the seconds per step measured so
-    far (before the first: unknown), the design stage at its evaluations."""
+    """One line per stage with the training time left over every stage, at the seconds per step (stage overheads
+    and evaluations included) of the stages done so far; inside a stage, its search or trainer logs its own ETA."""
 
     def __init__(self, steps: dict[str, int]):
         self.steps, self.t0 = dict(steps), time.perf_counter()
@@ -119,6 +121,9 @@ def run_protocol(cfg: DictConfig, run_dir: Path, device: torch.device, train) ->
     """The stages above; ``train(cfg, run_dir, device, evaluate)``: one single joint run (joint.run_single)."""
     seed = check_seed(cfg)
     cs = CodesignSpec.from_config(to_container(cfg.get("codesign")) or {})
+    if distributed.current().enabled:  # its search and its folders are one process's
+        raise ConfigError("codesign.protocol", cs.protocol, "runs in one process; under torchrun train one joint run "
+                          "with codesign.protocol=single")
     spec = TrainerSpec.from_config(to_container(cfg.trainer))
     init = InitSpec.from_config(to_container(cfg.get("init")) or {})
     eval_settings(cfg)  # every setting checked before any work
@@ -127,7 +132,7 @@ def run_protocol(cfg: DictConfig, run_dir: Path, device: torch.device, train) ->
     search = _check_search(cfg) if designing else None
     if init.checkpoint:  # a warm start that does not fit is refused now, not after the design stage
         load_initial_weights(build_model(cfg), init.checkpoint, cfg)
-    ms = metrics_spec(cfg)
+    metrics_spec(cfg)  # checked before any work
     system = OpticalSystem(OpticsSpec.from_config(to_container(cfg.optics)), device=device)
     published_cfg = published_mask_config(mask_cfg)
     published = published_reference(mask_cfg, system)
@@ -202,7 +207,7 @@ def run_protocol(cfg: DictConfig, run_dir: Path, device: torch.device, train) ->
     images = {s: torch.load(stages[s] / IMAGES_FILE) for s in EVALUATED if (stages[s] / IMAGES_FILE).is_file()}
     if len(images) == len(EVALUATED):
         arrays = _mask_arrays(system, cfg, stages, published)
-        io.save_figure(run_dir / "systems.png", systems_figure(arrays, images, record, ms.mtf_band))
+        io.save_figure(run_dir / "systems.png", systems_figure(arrays, images, record))
     text = protocol_summary(record)
     io.write_json(run_dir / "metrics.json", record)
     io.atomic_write_bytes(run_dir / "summary.txt", lambda f: f.write(text.encode() + b"\n"))
@@ -222,7 +227,6 @@ def _check_search(cfg: DictConfig) -> SearchSpec:
     """search.* of the design stage, checked before any work (its ceiling is the protocol's, set later)."""
     block = to_container(cfg.get("search")) or {}
     if block.get("lsr_ceiling") is not None:
-        from codesign.errors import ConfigError
         raise ConfigError("search.lsr_ceiling", block["lsr_ceiling"], "is set by the main job from codesign.lsr_max "
                           "(give codesign.lsr_max instead)")
     return SearchSpec.from_config({**block, "lsr_ceiling": 1.0})

@@ -123,45 +123,49 @@ def protocol_summary(r: dict) -> str:
     return "\n".join(lines)
 
 
-def systems_figure(arrays: dict, images: dict, r: dict, band: tuple[float, float]):
-    """Top: the phase of the published, designed and co-designed masks; middle: their PSFs (log10 of LSR units, so
-    the colour reads the laser suppression); bottom: one scene at the compared laser strength: the truth, the
-    published sensor image and every system's restoration with its PSNR."""
+def systems_figure(arrays: dict, images: dict, r: dict):
+    """Top: the phase of the published, designed and co-designed masks and their PSFs (log10 of LSR units, so the
+    colour reads the laser suppression); bottom: one scene at the compared laser strength: the truth, each mask's
+    sensor image and every system's restoration with its PSNR after the gain/offset match (the summary's figure)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from codesign.train.evaluation import affine_match
+
     net = r.get("network") or r["method"]
     shown = [("ground truth", "published", "truth"), ("published:\nsensor image", "published", "input"),
              ("published +\nWiener", "published", "wiener"), (f"published +\n{net}", "published", "network"),
-             ("designed +\nWiener", "designed", "wiener"), (f"designed +\n{net}", "designed", "network"),
-             (f"co-designed +\n{net}", "codesigned", "network")]
-    fig = plt.figure(figsize=(2.0 * len(shown), 8.4), layout="constrained")
-    grid = fig.add_gridspec(3, len(shown))
+             ("designed:\nsensor image", "designed", "input"), ("designed +\nWiener", "designed", "wiener"),
+             (f"designed +\n{net}", "designed", "network"), (f"co-designed +\n{net}", "codesigned", "network")]
+    fig = plt.figure(figsize=(1.9 * len(shown), 6.6), layout="constrained")
+    grid = fig.add_gridspec(2, 2 * len(arrays), height_ratios=(1.25, 1))
+    top = grid[0, :].subgridspec(1, 2 * len(arrays))
     for j, (name, a) in enumerate(arrays.items()):
-        ax = fig.add_subplot(grid[0, 2 * j:2 * j + 2])
+        ax = fig.add_subplot(top[0, 2 * j])
         ax.imshow(np.angle(np.exp(1j * a["phase"])), cmap="twilight", vmin=-np.pi, vmax=np.pi)
         ax.set_title(f"{name} mask: phase", fontsize=8)
         ax.set_axis_off()
-        ax = fig.add_subplot(grid[1, 2 * j:2 * j + 2])
+        ax = fig.add_subplot(top[0, 2 * j + 1])
         m = a["psf"].shape[0]
         c = slice(m // 4, m - m // 4)  # the central half of the window
-        ax.imshow(np.log10(np.maximum(a["psf"][c, c], 1e-9)), cmap="magma", vmin=-7, vmax=-2)
-        lsr = r["masks"][name]["lsr"]
-        ax.set_title(f"{name}: PSF, log10 (LSR {lsr:.3g})", fontsize=8)
+        im = ax.imshow(np.log10(np.maximum(a["psf"][c, c], 1e-9)), cmap="magma", vmin=-7, vmax=-2)
+        ax.set_title(f"{name}: PSF, log10\n(LSR {r['masks'][name]['lsr']:.3g})", fontsize=8)
         ax.set_axis_off()
-    truth = images["published"]["truth"][0, 0].numpy()
+    fig.colorbar(im, ax=fig.axes[-1], fraction=0.05, label="log10 (PSF / unmasked peak)")
+    bottom = grid[1, :].subgridspec(1, len(shown))
+    truth = images["published"]["truth"][:1]
     for j, (title, stage, key) in enumerate(shown):
-        img = images[stage][key][0, 0].numpy()
-        ax = fig.add_subplot(grid[2, j])
-        vmax = max(float(np.percentile(img, 99.5)), 1e-6) if key == "input" else 1.0
-        ax.imshow(img, cmap="gray", vmin=0, vmax=vmax)
+        img = images[stage][key][:1]
+        ax = fig.add_subplot(bottom[0, j])
+        vmax = max(float(np.percentile(img.numpy(), 99.5)), 1e-6) if key == "input" else 1.0
+        ax.imshow(img[0, 0].numpy(), cmap="gray", vmin=0, vmax=vmax)
         ax.set_axis_off()
-        if key not in ("truth", "input"):
-            mse = float(np.mean((np.clip(img, 0, 1) - truth) ** 2))
+        if key != "truth":
+            mse = float((affine_match(img.float(), truth.float()) - truth).square().mean())
             title += f"\n{-10 * math.log10(max(mse, 1e-12)):.2f} dB"
         ax.set_title(title, fontsize=8)
     fig.suptitle(f"main job: the published, designed and co-designed cameras; bottom: {r['scenes'][0]} at alpha_l = "
-                 f"1e6 (PSNR of this scene; MTF band {band[0]:g}-{band[1]:g} cycles/pixel)", fontsize=9)
+                 "1e6 (this scene's PSNR after the gain/offset match)", fontsize=9)
     return fig

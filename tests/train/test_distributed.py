@@ -104,7 +104,8 @@ def test_two_gloo_ranks_hold_identical_mask_and_weights_and_match_one_process(tm
 @pytest.mark.slow  # 26 s: torchrun joint + resume; twin: test_seeded_runs_reproduce_and_resume_continues_exactly
 def test_torchrun_joint_writes_from_rank_zero_and_resumes_in_one_process(tmp_path):
     run_dir = tmp_path / "run"
-    common = ["+experiment=joint", "codesign.protocol=single", "debug=smoke", "threads=1", "codesign.compare_published=false",
+    common = ["+experiment=joint", "codesign.protocol=single", "debug=smoke", "threads=1",
+              "codesign.compare_published=false",
               "codesign.warmup_fraction=0", "data.batch_size=4", f"hydra.run.dir={run_dir}"]
     res = run_torchrun("-m", "codesign", *common, "trainer.steps=4", "trainer.checkpoint_every=4")
     assert res.returncode == 0, _out(res)

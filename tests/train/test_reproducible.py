@@ -66,7 +66,8 @@ def test_two_joint_processes_give_identical_metrics(tmp_path):
     metrics = []
     for k in range(2):
         run_dir = tmp_path / f"run{k}"
-        r = run_codesign("+experiment=joint", "codesign.protocol=single", "debug=smoke", "optics.pupil_pitch_m=9.974e-6", "optics.focal_n=640",
+        r = run_codesign("+experiment=joint", "codesign.protocol=single", "debug=smoke",
+                         "optics.pupil_pitch_m=9.974e-6", "optics.focal_n=640",
                          "codesign.compare_published=false", "evaluate.laser_strengths=[1.0e6]",
                          "logging.tensorboard=false", f"hydra.run.dir={run_dir}", timeout=300)
         assert r.returncode == 0, r.stderr[-3000:]
