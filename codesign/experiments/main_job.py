@@ -42,7 +42,9 @@ from codesign.optics import OpticalSystem, OpticsSpec, build_mask
 from codesign.optics.masks import FAMILIES, published_mask_config
 from codesign.train import distributed
 from codesign.train.evaluation import eval_settings
+from codesign.train.data import SimulatedData
 from codesign.train.lsr_constraint import CodesignSpec, published_fraction
+from codesign.train.memory import check_training_fits
 from codesign.train.model_setup import build_model
 from codesign.train.protocol_summary import protocol_summary, summary_record, systems_figure
 from codesign.train.resume import load_initial_weights
@@ -130,11 +132,14 @@ def run_protocol(cfg: DictConfig, run_dir: Path, device: torch.device, train) ->
     mask_cfg = to_container(cfg.mask)
     designing = cs.design is not None
     search = _check_search(cfg) if designing else None
-    if init.checkpoint:  # a warm start that does not fit is refused now, not after the design stage
-        load_initial_weights(build_model(cfg), init.checkpoint, cfg)
     metrics_spec(cfg)  # checked before any work
-    system = OpticalSystem(OpticsSpec.from_config(to_container(cfg.optics)), device=device)
     published_cfg = published_mask_config(mask_cfg)
+    # a warm start that does not fit, or a batch this machine cannot hold, is refused now, not after the design stage
+    probe, model = _stage_cfg(cfg, published_cfg), build_model(cfg)
+    if init.checkpoint:
+        load_initial_weights(model, init.checkpoint, cfg)
+    check_training_fits(model, SimulatedData(probe, device, seed), spec, device, "joint")
+    system = OpticalSystem(OpticsSpec.from_config(to_container(cfg.optics)), device=device)
     published = published_reference(mask_cfg, system)
     lines = run_lines(cfg, system, "codesign.lsr_over" if cs.lsr_over == "wavelengths" else None)
     with torch.no_grad():
