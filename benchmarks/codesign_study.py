@@ -193,11 +193,26 @@ def recheck(record: Path) -> dict:
             "window_energy_whole": check["whole"]["window_energy"]}
 
 
+def _spread(values: list[float]) -> float:
+    return statistics.stdev(values) if len(values) > 1 else float("nan")
+
+
+def paired_gain(arm: dict[int, dict], against: dict[int, dict], key: str) -> dict:
+    """``arm`` minus ``against`` (seed -> figures) in ``key``, paired by seed: the mean gain and the standard
+    deviation of the paired gains; the seed spread, taken as the larger standard deviation of the two arms (stricter
+    than the paired one: it counts the seed-to-seed swing that both arms share; NaN below 2 seeds); significant when
+    |mean gain| > 2 x the spread; the number of seeds paired."""
+    common = sorted(set(arm) & set(against))
+    gains = [arm[s][key] - against[s][key] for s in common]
+    spread = max(_spread([arm[s][key] for s in sorted(arm)]), _spread([against[s][key] for s in sorted(against)]))
+    mean = statistics.mean(gains)
+    return {"gain": mean, "gain_std": statistics.stdev(gains) if len(gains) > 1 else 0.0, "spread": spread,
+            "significant": abs(mean) > 2 * spread, "seeds": len(common)}
+
+
 def summarize(per_run: dict[str, dict[int, dict]]) -> dict:
-    """Per arm: mean and sample standard deviation over seeds of every figure; the gain over the frozen published
-    arm paired by seed, with the standard deviation of the paired gains; significant when |mean gain| > 2 x the
-    seed spread, taken as the larger standard deviation of the two arms (stricter than the paired one: it counts
-    the seed-to-seed swing that both arms share)."""
+    """Per arm: mean and sample standard deviation over seeds of every figure, and (paired_gain) its gain over the
+    frozen published arm."""
     ref = per_run[REFERENCE]
     out = {}
     for arm, seeds in per_run.items():
@@ -206,13 +221,8 @@ def summarize(per_run: dict[str, dict[int, dict]]) -> dict:
         for k in keys:
             vals = [seeds[s][k] for s in sorted(seeds)]
             row[k] = {"mean": statistics.mean(vals), "std": statistics.stdev(vals) if len(vals) > 1 else 0.0}
-        if arm != REFERENCE:
-            for k in keys:
-                gains = [seeds[s][k] - ref[s][k] for s in sorted(seeds) if s in ref]
-                spread = max(row[k]["std"], statistics.stdev([ref[s][k] for s in sorted(ref)]))
-                mean = statistics.mean(gains)
-                row[k].update(gain=mean, gain_std=statistics.stdev(gains) if len(gains) > 1 else 0.0,
-                              spread=spread, significant=abs(mean) > 2 * spread)
+            if arm != REFERENCE:
+                row[k].update(paired_gain(seeds, ref, k))
         out[arm] = row
     return out
 
@@ -234,28 +244,16 @@ JOINT_GOAL_DB = 0.5  # issue 36: the joint stage at least +0.5 dB over its froze
 
 
 def joint_vs_frozen(per_run: dict[str, dict]) -> dict[str, dict]:
-    """Per start (published, every design): its joint arm minus its frozen arm, paired by seed, for the network's
-    PSNR matched at every alpha_l: the mean and standard deviation of the paired gains, the seed spread (the larger
-    standard deviation of the two arms), significant when |mean| > 2 x spread, and the joint stage's goal (>= +0.5 dB
-    at alpha_l = 1e6 and significant)."""
+    """Per start (published, every design): its joint arm against its frozen arm (paired_gain) in the network's PSNR
+    matched at every alpha_l, and the joint stage's goal (>= +0.5 dB at alpha_l = 1e6 and significant)."""
     out = {}
     for arm, seeds in per_run.items():
         if not arm.startswith("joint from "):
             continue
         start = arm[len("joint from "):]
         frozen = per_run[REFERENCE if start == "published" else f"{start} (frozen)"]
-        row = {}
-        for alpha in ALPHAS:
-            key = f"net_psnr_matched_{alpha}"
-            if key not in next(iter(seeds.values())):
-                continue
-            common = sorted(set(seeds) & set(frozen))
-            gains = [seeds[s][key] - frozen[s][key] for s in common]
-            spread = max(statistics.stdev([seeds[s][key] for s in common]),
-                         statistics.stdev([frozen[s][key] for s in common])) if len(common) > 1 else float("nan")
-            mean = statistics.mean(gains)
-            row[alpha] = {"gain": mean, "gain_std": statistics.stdev(gains) if len(gains) > 1 else 0.0,
-                          "spread": spread, "significant": abs(mean) > 2 * spread, "seeds": len(common)}
+        row = {alpha: paired_gain(seeds, frozen, f"net_psnr_matched_{alpha}") for alpha in ALPHAS
+               if f"net_psnr_matched_{alpha}" in next(iter(seeds.values()))}
         row["goal_met"] = row["1e6"]["gain"] >= JOINT_GOAL_DB and row["1e6"]["significant"]
         out[start] = row
     return out

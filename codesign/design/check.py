@@ -58,7 +58,7 @@ def evaluate_on(spec, mask, band, dtype=torch.float32, design_spec=None) -> dict
     phase = sampled.phase().to(dtype)
     psf = system.psf(phase, sampled.plate_cell_m)
     h0 = system.uncoded_peak
-    out = {"lsr": system.continuous_peak(phase, cell_m=sampled.plate_cell_m).value / h0,
+    out = {"lsr": system.continuous_lsr(phase, sampled.plate_cell_m),
            "lsr_sampled": float(psf.max()) / h0, "window_energy": float(psf.sum()), "pupil_n": spec.grid_n,
            "focal_n": spec.focal_n}
     if design_spec is None or design_spec.focal_n == spec.focal_n:

@@ -80,7 +80,7 @@ def mask_figures_of_merit(system, mask, radial: RadialMTF, band: tuple[float, fl
     out = {"lsr_sampled": sampled, "lsr_smooth": smooth, "mtf_mean": float(mean), "mtf_min": float(mn),
            "bsr": float(psf.sum()) / system.uncoded_energy}
     if refine:
-        out["lsr"] = system.continuous_peak(phase, cell_m=mask.plate_cell_m).value / h0
+        out["lsr"] = system.continuous_lsr(phase, mask.plate_cell_m)
         out["lsr_smooth_gap"] = smooth / out["lsr"] - 1
     else:
         out["lsr_smooth_gap"] = smooth / sampled - 1

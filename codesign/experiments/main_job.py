@@ -147,8 +147,7 @@ def run_protocol(cfg: DictConfig, run_dir: Path, device: torch.device, train) ->
             phase = {"published": published.phase().detach()}
             published_peak = lines_summary(lines, phase, published.plate_cell_m)["published"]["lsr_worst"]
         else:
-            published_peak = system.continuous_peak(published.phase(), cell_m=published.plate_cell_m).value \
-                / system.uncoded_peak
+            published_peak = system.continuous_lsr(published.phase(), published.plate_cell_m)
     lsr_max, lsr_max_from = lsr_ceiling(cs, published_peak, designing)
     stages = {s: run_dir / s for s in STAGES}
     same = not designing and mask_cfg == published_cfg  # the published system is then the designed one
@@ -181,7 +180,7 @@ def run_protocol(cfg: DictConfig, run_dir: Path, device: torch.device, train) ->
         ("designed", designed_cfg, {**frozen, "trainer.steps": cs.finetune_steps}, True, "restorer"),
         # (c) joint: the network already restores this mask, so the mask moves from the first step (no warm-up)
         ("codesigned", designed_cfg, {"trainer.steps": cs.finetune_steps, "codesign.warmup_fraction": 0.0,
-                                      "codesign.lsr_max": "start", "codesign.peak_max": lsr_max}, True, "restorer"),
+                                      "codesign.peak_max": lsr_max}, True, "restorer"),
         # (d) the published system: the same restorer, the same steps, the published mask frozen
         ("published", published_cfg, {**frozen, "trainer.steps": cs.finetune_steps}, True, "published_restorer"),
     ]

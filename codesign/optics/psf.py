@@ -156,3 +156,7 @@ class OpticalSystem(torch.nn.Module):
                                            s.lambda_f, s.focal_pitch_m, s.focal_n, self.grid.aperture,
                                            s.pupil_pitch_m)
         return self._peak_search(self.field(phase.detach()), cell_m, rel_tol)
+
+    def continuous_lsr(self, phase: torch.Tensor, cell_m: float | None = None) -> float:
+        """The LSR every report gives: the certified continuous peak (``continuous_peak``) over the uncoded peak."""
+        return self.continuous_peak(phase, cell_m=cell_m).value / self.uncoded_peak

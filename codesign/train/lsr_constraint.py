@@ -181,7 +181,7 @@ class LSRConstraint:
     @torch.no_grad()
     def measure_peak(self, mask) -> float:
         """The certified continuous peak LSR of ``mask`` (codesign/optics/peak.py; the design line's)."""
-        return self.system.continuous_peak(mask.phase(), cell_m=mask.plate_cell_m).value / self.system.uncoded_peak
+        return self.system.continuous_lsr(mask.phase(), mask.plate_cell_m)
 
     def penalty(self, lsr: torch.Tensor) -> torch.Tensor:
         excess = torch.relu(lsr / self.lsr_max - (1.0 - self.spec.margin))
