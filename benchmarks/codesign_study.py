@@ -371,7 +371,8 @@ def main(argv=None) -> int:
         # then the whole pipeline's, not only the fine-tuning's
         pre_dir = runs / "pretrain" / f"seed{seed}"
         run("pretrain", f"pretraining on the published mask, seed {seed}", pre_dir,
-            [*common, "codesign.mask_lr=0", f"trainer.steps={args.pretrain_steps}", f"seed={seed}"])
+            [*common, "codesign.mask_lr=0", f"trainer.steps={args.pretrain_steps}", f"seed={seed}",
+             "init.checkpoint=null"])  # from fresh weights, as the recorded study (joint's default is auto)
         checkpoint = pre_dir / "checkpoint.pt"
         for arm, overrides in plan.items():
             run_dir = runs / folder(arm) / f"seed{seed}"

@@ -25,7 +25,7 @@ from codesign.design.merit import evaluate_mask, metrics_spec, published_referen
 from codesign.errors import ConfigError
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask
 from codesign.optics.masks import Mask
-from codesign.train.checkpoint import load_checkpoint
+from codesign.train.checkpoint import PRETRAINED, load_checkpoint
 
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 
@@ -183,11 +183,13 @@ def restore(input: str | Path, checkpoint: str | Path, *overrides: str,
             run_dir: str | Path | None = None) -> dict[str, Any]:
     """Restore 16-bit sensor captures with a trained checkpoint (``+experiment=restore``). input: one 16-bit
     PNG/TIFF of sensor counts (DN) at the checkpoint's data.image_size, or a folder of them; checkpoint: a
-    checkpoint.pt of baseline / joint (e.g. benchmarks/results/gpu/checkpoint.pt, 256 px). Writes
+    checkpoint.pt of baseline / joint (e.g. benchmarks/results/gpu/checkpoint.pt, 256 px), or 'pretrained' (the
+    shipped restorer for any mask, 96 px: codesign/models/pretrained/README.md). Writes
     restored_<name>.png (radiance 0..1 as 0..65535) into run_dir; returns metrics.json (``outputs``,
     ``seconds_per_image``, ...) with ``run_dir``."""
-    return run("restore", f"input={Path(input).resolve()}", f"checkpoint={Path(checkpoint).resolve()}",
-               *overrides, run_dir=run_dir)
+    named = str(checkpoint) in PRETRAINED  # a shipped checkpoint's name stays a name
+    return run("restore", f"input={Path(input).resolve()}",
+               f"checkpoint={checkpoint if named else Path(checkpoint).resolve()}", *overrides, run_dir=run_dir)
 
 
 def mask_search(*overrides: str, run_dir: str | Path | None = None) -> dict[str, Any]:

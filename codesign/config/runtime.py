@@ -59,6 +59,12 @@ def explicit_keys() -> frozenset[str]:
         return frozenset()
 
 
+def mask_typed(typed: frozenset[str]) -> bool:
+    """Whether a command line (``typed``: explicit_keys()) gives the mask: evaluate and restore then image through
+    it, not through the checkpoint's (a restorer trained for many masks, data.masks, restores through any)."""
+    return any(k == "mask" or k.startswith("mask.") for k in typed)
+
+
 def to_container(node) -> dict:
     """A config node as plain Python containers, interpolations resolved ({} for None)."""
     return OmegaConf.to_container(node, resolve=True) if node is not None else {}

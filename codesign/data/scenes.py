@@ -123,6 +123,9 @@ class DataConfig:
     scene when >= 2 scenes); split_seed: seed of the fixed train/test split (hash of seed and relative path);
     flips: random horizontal / vertical flips of training crops; cache_mb: decoded-image cache, MiB (least recently
     used images are evicted); params: the Sec. 6.2 scene-parameter distribution (ParamConfig).
+    masks: train a restorer over a pool of masks (a list of 'published', 'defocus:R' or mask-record paths; null = the
+    configured mask alone; codesign/train/mask_pool.py); mask_every: steps per pool member; mask_draws: random draws
+    around each listed mask; mask_jitter: their spread, times each mask's RMS parameter value.
     """
 
     scenes: str = "builtin"
@@ -135,6 +138,10 @@ class DataConfig:
     flips: bool = True
     cache_mb: float = 1024.0
     params: ParamConfig = field(default_factory=ParamConfig)
+    masks: tuple | None = None
+    mask_every: int = 4
+    mask_draws: int = 0
+    mask_jitter: float = 0.1
 
 
 DATA_KEYS = tuple(f.name for f in fields(DataConfig))
@@ -177,6 +184,11 @@ def data_config(cfg: Mapping | Any) -> DataConfig:
         flips=flips,
         cache_mb=require_number("data.cache_mb", cfg.get("cache_mb", d.cache_mb), lo=0),
         params=param_config(cfg.get("params")),
+        masks=None if cfg.get("masks") is None else tuple(cfg.get("masks")),
+        mask_every=require_number("data.mask_every", cfg.get("mask_every", d.mask_every), lo=1, integer=True),
+        mask_draws=require_number("data.mask_draws", cfg.get("mask_draws", d.mask_draws), lo=0, hi=1000,
+                                  integer=True),
+        mask_jitter=require_number("data.mask_jitter", cfg.get("mask_jitter", d.mask_jitter), lo=0, hi=10),
     )
 
 

@@ -16,8 +16,9 @@ from codesign.train import distributed
 from codesign.train.checkpoint import CHECKPOINT_NAME
 from codesign.train.data import SimulatedData
 from codesign.train.evaluation import eval_settings, run_evaluation
+from codesign.train.mask_pool import build_mask_pool
 from codesign.train.memory import check_training_fits
-from codesign.train.resume import load_initial_weights, resume_if_possible
+from codesign.train.resume import initial_checkpoint, load_initial_weights, resume_if_possible
 from codesign.train.model_setup import build_model, distributed_metrics, run_metrics
 from codesign.train.spec import InitSpec, TrainerSpec
 from codesign.train.optim import init_weights
@@ -47,9 +48,11 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     model = build_model(cfg)
     init_weights(model)
     # fine-tuning: the weights of a trained checkpoint (a resumed run then loads its own checkpoint over them)
-    warm = load_initial_weights(model, init.checkpoint, cfg) if init.checkpoint else {}
+    start = initial_checkpoint(init.checkpoint, cfg)
+    warm = load_initial_weights(model, start, cfg) if start else {}
     ctx = distributed.current()
     data = SimulatedData(cfg, device, seed, ctx)
+    data.use_pool(build_mask_pool(cfg, data.camera, seed))  # data.masks: one restorer for a pool of masks
     sampling = {**camera_sampling_report(data.camera, cfg, log), **measured_psf_report(data.camera, cfg, log)} \
         if ctx.is_main else {}
     memory = check_training_fits(model, data, spec, device, "baseline")  # before any training
@@ -74,6 +77,8 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
                "vgg_loss": model.loss_status,
                "loss_first": first, "loss_last": last, **trainer.last_val,
                "checkpoint": str(run_dir / CHECKPOINT_NAME)}
+    if data.pool is not None:
+        metrics["mask_pool"] = data.pool.report()
     metrics.update(run_evaluation(ev, model, trainer.restoring_modules(), data, run_dir, seed))
     io.write_json(run_dir / "metrics.json", metrics)
     writer = trainer.writer

@@ -9,7 +9,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from codesign.camera import with_measured_psf
-from codesign.config.runtime import check_seed, explicit_keys
+from codesign.config.runtime import check_seed, explicit_keys, mask_typed
 from codesign.design.check import camera_sampling_report
 from codesign.design.measured_merit import measured_psf_report
 from codesign.errors import ConfigError
@@ -37,9 +37,12 @@ EXPERIMENT = Experiment(
 def merged_eval_config(cfg: DictConfig, ckpt_cfg: DictConfig, typed: frozenset[str]) -> DictConfig:
     """The checkpoint's physics, model and data split, with the scene-source keys typed on this command line
     (``typed``: e.g. data.scenes, data.folder), this run's measured PSF (optics.psf_*, when it gives one) and its
-    ``evaluate`` block. Untyped data keys keep the checkpoint's values, so the test split is the one held out
-    during training."""
+    ``evaluate`` block, and the mask when one is typed here (mask=... / mask.*=...: a restorer trained for many
+    masks, data.masks, restores through any). Untyped data keys keep the checkpoint's values, so the test split is
+    the one held out during training."""
     merged = with_measured_psf(OmegaConf.create(OmegaConf.to_container(ckpt_cfg, resolve=True)), cfg, typed)
+    if mask_typed(typed):
+        merged.mask = OmegaConf.create(OmegaConf.to_container(cfg.mask, resolve=True))
     for key in data_keys_of_this_run(typed):
         merged.data[key] = cfg.data.get(key)
     merged.evaluate = cfg.get("evaluate")
@@ -60,6 +63,7 @@ def from_this_run(err: ConfigError, cfg: DictConfig, typed: frozenset[str]) -> b
     psf_here = cfg.get("optics") is not None and (cfg.optics.get("psf_file") is not None or "optics" in typed or any(
         k.startswith("optics.psf_") for k in typed))
     return (key.startswith("evaluate.") or (key.startswith("optics.psf_") and psf_here)
+            or (key.startswith("mask") and mask_typed(typed))
             or any(key == f"data.{k}" for k in data_keys_of_this_run(typed)))
 
 
@@ -118,8 +122,9 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     merged = merged_eval_config(cfg, ckpt_cfg, typed)
     seed = check_seed(cfg)
     data = simulated_data(merged, cfg, typed, path, device, seed)
-    apply_checkpoint_mask(data.camera.mask, state, path)
-    data.camera.invalidate()
+    if not mask_typed(typed):  # a co-designed checkpoint's learned mask, unless a mask is given here
+        apply_checkpoint_mask(data.camera.mask, state, path)
+        data.camera.invalidate()
     metrics = {**run_metrics(merged, model, device), "checkpoint": str(path), "steps": int(state["step"]),
                **camera_sampling_report(data.camera, merged, log), **measured_psf_report(data.camera, merged, log)}
     metrics.update(run_evaluation(ev, CheckedRestorer(model, path), generators, data, run_dir, seed))

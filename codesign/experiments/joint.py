@@ -20,6 +20,7 @@ from codesign.config.runtime import check_seed, logging_spec, to_container
 from codesign.design.check import camera_sampling_report, report_sampling, sampling_of, verify_design
 from codesign.design.limits import MTFLimit
 from codesign.train.lsr_constraint import CodesignSpec, LSRConstraint, published_fraction
+from codesign.errors import ConfigError
 from codesign.design.merit import MaskMonitor, metrics_spec, published_reference
 from codesign.fab.laser_lines import lines_summary, log_lines, run_lines
 from codesign.optics.masks.records import write_record
@@ -35,7 +36,7 @@ from codesign.train.data import SimulatedData
 from codesign.train.evaluation import conditions, eval_settings, run_evaluation
 from codesign.train.mask_codesign import MaskCodesign
 from codesign.train.memory import check_training_fits
-from codesign.train.resume import load_initial_weights, resume_if_possible
+from codesign.train.resume import initial_checkpoint, load_initial_weights, resume_if_possible
 from codesign.train.model_setup import build_model, distributed_metrics, run_metrics
 from codesign.train.spec import InitSpec, TrainerSpec
 from codesign.train.summary import comparison_figure, joint_summary
@@ -119,6 +120,10 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     """codesign.protocol=codesign: the main job's stages (codesign/experiments/main_job.py), each stage's training
     a run_single; single: one run_single."""
     cs = CodesignSpec.from_config(to_container(cfg.get("codesign")) or {})
+    if cfg.data.get("masks") is not None:
+        raise ConfigError("data.masks", to_container(cfg.data.masks), "trains one restorer over a pool of frozen "
+                          "masks (+experiment=baseline data.masks=[...]); a joint run trains one mask: leave it null "
+                          "and warm-start from such a restorer with init.checkpoint=PATH")
     if cs.protocol == "single":
         return run_single(cfg, run_dir, device)
     return run_protocol(cfg, run_dir, device, run_single)
@@ -273,7 +278,8 @@ def _network(cfg, init: InitSpec, seed: int) -> tuple:
     torch.manual_seed(seed)
     model = build_model(cfg)
     init_weights(model)
-    warm = load_initial_weights(model, init.checkpoint, cfg) if init.checkpoint else {}
+    start = initial_checkpoint(init.checkpoint, cfg)
+    warm = load_initial_weights(model, start, cfg) if start else {}
     return model, warm
 
 

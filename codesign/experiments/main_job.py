@@ -47,7 +47,7 @@ from codesign.train.lsr_constraint import CodesignSpec, published_fraction
 from codesign.train.memory import check_training_fits
 from codesign.train.model_setup import build_model
 from codesign.train.protocol_summary import protocol_summary, summary_record, systems_figure
-from codesign.train.resume import load_initial_weights
+from codesign.train.resume import initial_checkpoint, load_initial_weights
 from codesign.train.spec import InitSpec, TrainerSpec
 
 log = logging.getLogger("codesign.main_job")
@@ -128,6 +128,11 @@ def run_protocol(cfg: DictConfig, run_dir: Path, device: torch.device, train) ->
                           "with codesign.protocol=single")
     spec = TrainerSpec.from_config(to_container(cfg.trainer))
     init = InitSpec.from_config(to_container(cfg.get("init")) or {})
+    asked = init.checkpoint
+    if init.checkpoint == "auto":  # resolved once: every stage then starts from the same weights
+        cfg = OmegaConf.create(to_container(cfg))
+        cfg.init.checkpoint = initial_checkpoint(init.checkpoint, cfg)
+        init = InitSpec.from_config(to_container(cfg.init))
     eval_settings(cfg)  # every setting checked before any work
     mask_cfg = to_container(cfg.mask)
     designing = cs.design is not None
@@ -172,7 +177,7 @@ def run_protocol(cfg: DictConfig, run_dir: Path, device: torch.device, train) ->
     if init.checkpoint:
         log.info("main job: the restorer starts from %s (init.checkpoint)", init.checkpoint)
     else:
-        log.info("main job: no pretrained restorer given (init.checkpoint=null): the restorer trains from scratch")
+        log.info("main job: no pretrained restorer (init.checkpoint=%s): the restorer trains from scratch", asked)
     frozen = {"codesign.mask_lr": 0.0}
     plan = [
         ("restorer", designed_cfg, {**frozen, "trainer.steps": spec.steps}, False, None),

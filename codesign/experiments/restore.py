@@ -14,9 +14,10 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+from omegaconf import OmegaConf
 
 from codesign.camera import build_camera, field_of_view, with_measured_psf
-from codesign.config.runtime import explicit_keys
+from codesign.config.runtime import explicit_keys, mask_typed
 from codesign.design.check import camera_sampling_report
 from codesign.design.measured_merit import measured_psf_report
 from codesign.errors import ConfigError
@@ -95,14 +96,18 @@ def run(cfg, run_dir: Path, device: torch.device) -> float:
     if not cfg.get("checkpoint"):
         raise ConfigError("checkpoint", cfg.get("checkpoint"), "give the trained model: checkpoint=PATH")
     model, generators, ckpt_cfg, state = load_trained(cfg.checkpoint, device)
-    ckpt_cfg = with_measured_psf(ckpt_cfg, cfg, explicit_keys())  # the Wiener stage's OTF then is the measured PSF's
+    typed = explicit_keys()
+    ckpt_cfg = with_measured_psf(ckpt_cfg, cfg, typed)  # the Wiener stage's OTF then is the measured PSF's
+    if mask_typed(typed):  # the captures came through this mask (a restorer trained for many: data.masks)
+        ckpt_cfg.mask = OmegaConf.create(OmegaConf.to_container(cfg.mask, resolve=True))
     try:
         camera = build_camera(ckpt_cfg, device, torch.float32)
     except ConfigError as err:  # the checkpoint's own settings: say so, not just the key
         if err.key.startswith("optics.psf_"):  # a measured PSF's file (this run's, or the checkpoint's own)
             raise
         raise stored_config_error("checkpoint", cfg.checkpoint, err) from None
-    apply_checkpoint_mask(camera.mask, state, cfg.checkpoint)
+    if not mask_typed(typed):
+        apply_checkpoint_mask(camera.mask, state, cfg.checkpoint)
     sensor = camera.sensor
     # every file checked before any work
     images = validate(files, sensor.image_size, sensor.saturation_dn, sensor.padded_size)

@@ -36,9 +36,28 @@ def _unreadable(p: Path, err: Exception) -> str:
     return "is not a torch checkpoint file (it is neither a torch archive nor a pickle)"
 
 
+# checkpoints shipped in the package, found by name (checkpoint=pretrained, init.checkpoint=pretrained); their model
+# cards beside them (codesign/models/pretrained/README.md)
+PRETRAINED_DIR = Path(__file__).resolve().parents[1] / "models" / "pretrained"
+PRETRAINED = {"pretrained": "sgan_b_gated_pool.pt"}
+
+
+def checkpoint_path(path: str | Path, key: str = "checkpoint") -> Path:
+    """The file of ``path``: a shipped checkpoint's name (PRETRAINED) or a path."""
+    name = str(path)
+    if name in PRETRAINED:
+        p = PRETRAINED_DIR / PRETRAINED[name]
+        if not p.is_file():
+            raise ConfigError(key, name, f"names the shipped restorer {p}, which this installation lacks (reinstall "
+                              "codesign, or give a checkpoint path)")
+        return p
+    return Path(name).expanduser()
+
+
 def load_checkpoint(path: str | Path, key: str = "checkpoint") -> dict:
-    """Load a checkpoint dict on the CPU; a missing, truncated or foreign file is a ConfigError naming ``key``."""
-    p = Path(str(path)).expanduser()
+    """Load a checkpoint dict on the CPU (``path``: a file, or a shipped checkpoint's name, e.g. 'pretrained'); a
+    missing, truncated or foreign file is a ConfigError naming ``key``."""
+    p = checkpoint_path(path, key)
     if p.is_dir():
         inside = p / CHECKPOINT_NAME
         hint = f": give the file, e.g. {key}={inside}" if inside.is_file() else ""

@@ -55,6 +55,7 @@ class SimulatedData:
             raise ConfigError("data.batch_size", self.sampler.batch_size, f"must be divisible by the number of "
                               f"processes ({dist.world}): it is the global batch, split evenly across the ranks")
         self.camera.frozen_optics()
+        self.pool = None  # a MaskPool (data.masks): training batches through a pool of masks, set by use_pool
         self._val_inputs: tuple | None = None  # the validation batch's scenes and parameters (validation_batch)
 
     @property
@@ -71,14 +72,22 @@ class SimulatedData:
         return self.camera.image_size
 
     # ---- batches --------------------------------------------------------------------------------------------
-    def simulate(self, scenes: torch.Tensor, params, seed: int, optics=None) -> dict:
+    def use_pool(self, pool) -> None:
+        """Train over ``pool`` (codesign/train/mask_pool.py: data.masks); the configured mask keeps validation."""
+        if pool is not None and self.camera.trainable:
+            raise ConfigError("data.masks", pool.names, "trains a restorer over frozen masks: a mask that trains "
+                              "has one optics (leave data.masks null in a joint run)")
+        self.pool = pool
+
+    def simulate(self, scenes: torch.Tensor, params, seed: int, optics=None, camera: Camera | None = None) -> dict:
         """Simulate a batch through the current mask's frozen optics (no gradient, kernels cached), or through
-        ``optics`` (the camera's OpticsOutputs of a trainable mask: gradient kept, kernels recomputed)."""
+        ``optics`` (the camera's OpticsOutputs of a trainable mask: gradient kept, kernels recomputed); ``camera``:
+        another (frozen) camera than the run's, a pool member's."""
         # the parameters stay on the host, where the simulator makes its decisions; the scenes go to the device
         # from page-locked memory without waiting for it
         params = params.to(dtype=torch.float32)
         scenes = _to_device(scenes, self.device)
-        out = self.camera(scenes, params, seed, optics)
+        out = (camera if camera is not None else self.camera)(scenes, params, seed, optics)
         out["read_noise_mean_e"] = params.read_noise_mean_e  # the black level a classical pipeline subtracts
         return out
 
@@ -99,7 +108,13 @@ class SimulatedData:
         return scenes, params, [base + i for i in range(b)[part]]
 
     def train_batch(self, step: int) -> dict:
-        """The batch of training step ``step`` (see train_draw); with the mask's graph while it trains."""
+        """The batch of training step ``step`` (see train_draw); with the mask's graph while it trains; through
+        the step's pool member, with its OTF, under data.masks."""
+        if self.pool is not None:
+            camera = self.pool.camera(step)
+            out = self.simulate(*self.train_draw(step), camera=camera)
+            out["otf"] = camera.otf
+            return out
         if not self.camera.trainable:
             return self.simulate(*self.train_draw(step))
         optics = self.camera.current_optics()

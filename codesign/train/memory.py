@@ -10,6 +10,7 @@ minutes of setup. The estimate:
                double-counts and what the backward frees as it goes)
   simulation   batch x the scene crop's FFT plane x SIMULATION_BYTES (scene, irradiance, spectra, noise fields)
   laser halo   the far PSF plane (when sensor.laser_halo): its FFT buffers and float64 integral image
+  mask pool    data.masks: every further pool member's kept halo (its float64 integral image) and PSF spectra
   base         the interpreter and its libraries
 
 Calibrated on the peak resident memory of real CPU baseline runs (preset cpu, 2 steps, /usr/bin/time -v):
@@ -32,6 +33,8 @@ ACTIVATION_FACTOR = 1.0
 SIMULATION_BYTES = 64  # per sample and FFT-plane pixel
 BASE_BYTES = 2**29  # the interpreter, torch and the rest of the process
 HALO_BYTES = 40  # per far-plane pixel: complex64 pupil plane and spectrum, float32 PSF, float64 integral image
+KEPT_HALO_BYTES = 10  # per far-plane pixel of a pool member's kept halo: its float64 integral image, slack (measured)
+KEPT_OPTICS_BYTES = 2**24  # a pool member's window PSF, kernels and their float64 spectra
 GIB = 2**30
 
 
@@ -69,8 +72,9 @@ def saved_bytes_per_sample(model, padded: int) -> int:
     return saved
 
 
-def training_estimate(model, camera, batch: int, ema: bool = False) -> dict:
-    """The estimate (bytes per part and total) of a training run of ``model`` on ``camera``'s images."""
+def training_estimate(model, camera, batch: int, ema: bool = False, pool_members: int = 0) -> dict:
+    """The estimate (bytes per part and total) of a training run of ``model`` on ``camera``'s images (and on those
+    of ``pool_members`` further masks, data.masks)."""
     params = sum(p.numel() for m in model.generators() + model.critics() for p in m.parameters())
     parts = {
         "parameters": params * (5 if ema else 4) * 4,
@@ -81,7 +85,12 @@ def training_estimate(model, camera, batch: int, ema: bool = False) -> dict:
     if camera.halo_on:  # sensor.laser_halo, and no measured PSF (which has no halo)
         from codesign.optics.far_field import far_spec
 
-        parts["laser_halo"] = far_spec(camera.system.spec, camera.sensor.side_m).focal_n ** 2 * HALO_BYTES
+        far_n = far_spec(camera.system.spec, camera.sensor.side_m).focal_n
+        parts["laser_halo"] = far_n ** 2 * HALO_BYTES
+        if pool_members:
+            parts["mask_pool"] = pool_members * (far_n ** 2 * KEPT_HALO_BYTES + KEPT_OPTICS_BYTES)
+    elif pool_members:
+        parts["mask_pool"] = pool_members * KEPT_OPTICS_BYTES
     return {**parts, "total": sum(parts.values())}
 
 
@@ -89,7 +98,9 @@ def check_training_fits(model, data, spec, device, task: str) -> dict:
     """``check_fits`` of a training run: this process's share of data.batch_size (the global batch)."""
     batch = data.sampler.batch_size
     share = -(-batch // data.dist.world)
-    return check_fits(training_estimate(model, data.camera, share, bool(spec.ema)), device,
+    pool = getattr(data, "pool", None)
+    members = len(pool.cameras) if pool is not None else 0
+    return check_fits(training_estimate(model, data.camera, share, bool(spec.ema), members), device,
                       f"+experiment={task} (batch {share} per process)", batch)
 
 

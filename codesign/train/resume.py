@@ -77,6 +77,27 @@ INIT_MAY_DIFFER = ("model.loss", "model.name", "model.laser_gate_f0", "model.g2_
                    "optics.scene_spectrum") + tuple(f"optics.{k}" for k in MEASURED_DEFAULTS)
 
 
+def initial_checkpoint(value: str | None, cfg: DictConfig) -> str | None:
+    """``init.checkpoint`` as the checkpoint to start from: 'auto' is the shipped restorer ('pretrained') when it fits
+    this run (the same network, optics, sensor and image sizes: INIT_MUST_MATCH), else None (fresh weights), said in
+    the log either way; any other value as given."""
+    if value != "auto":
+        return value
+    try:
+        state = load_checkpoint("pretrained", "init.checkpoint")
+    except ConfigError as err:
+        log.info("init.checkpoint=auto: %s: the restorer starts from fresh weights", err)
+        return None
+    differ = _differing(state["config"], cfg, INIT_MUST_MATCH, INIT_MAY_DIFFER)
+    if differ:
+        log.info("init.checkpoint=auto: the shipped restorer was trained with another %s than this run: the restorer "
+                 "starts from fresh weights", ", ".join(differ))
+        return None
+    log.info("init.checkpoint=auto: the shipped restorer (checkpoint=pretrained) fits this run: the restorer starts "
+             "from it")
+    return "pretrained"
+
+
 def load_initial_weights(model, path, cfg: DictConfig, key: str = "init.checkpoint") -> dict:
     """Start ``model`` from the weights of a checkpoint trained on another mask (a warm start): weights only (no
     optimizer, step or mask; the generators' EMA averages where the checkpoint has them, the network it reports);

@@ -95,7 +95,9 @@ register("trainer", "default", spec_node(TrainerSpec))
 class InitSpec(SpecMixin):
     """A warm start (``init.*`` of +experiment=joint and baseline): checkpoint: a training checkpoint whose network
     weights the run starts from (trained on another mask or PSF; the same model, optics, sensor and image sizes, the
-    measured-PSF keys optics.psf_* aside; null = fresh weights). The mask comes from mask / mask.init, never from
+    measured-PSF keys optics.psf_* aside; 'pretrained' = the shipped restorer trained over many masks,
+    codesign/models/pretrained/README.md; 'auto' = that one where it fits the run, else fresh weights; null = fresh
+    weights). The mask comes from mask / mask.init, never from
     this checkpoint."""
 
     checkpoint: str | None = None

@@ -53,7 +53,7 @@ def test_every_stage_runs_in_its_folder_from_the_right_start(main_job):
         m = _metrics(main_job / s)
         assert m["lsr"] == m["lsr_published"]
     console = (main_job.parent / "console.txt").read_text()
-    assert "no pretrained restorer given (init.checkpoint=null): the restorer trains from scratch" in console
+    assert "no pretrained restorer (init.checkpoint=auto): the restorer trains from scratch" in console
     assert "main job: stage 6/6 published" in console
 
 

@@ -69,7 +69,27 @@ ROWS = [
     ("simulate", "+simulate.foo=1",
      "simulate.foo = 1: unknown key; allowed: laser_angle_rad, laser_strengths, params, scenes, timing_repeats"),
     ("simulate", "+data.foo=1", "data.foo = 1: unknown key; allowed: batch_size, cache_mb, flips, folder, "
-     "image_size, padded_size, params, scenes, split_seed, test_fraction"),
+     "image_size, mask_draws, mask_every, mask_jitter, masks, padded_size, params, scenes, split_seed, "
+     "test_fraction"),
+    # ---- data.masks: a restorer trained over a pool of masks ------------------------------------------------
+    ("baseline", "data.masks=published", "data.masks = 'published': must be a list of masks, each 'published', "
+     "'defocus:R' (R in rad, 0 < R <= 200) or the path of a mask record (best_mask.json, learned_mask.json), or "
+     "null for the configured mask alone"),
+    ("baseline", "data.masks=[]", "data.masks = []: must be a non-empty list of masks, each 'published', 'defocus:R' (R in "
+     "rad, 0 < R <= 200) or the path of a mask record (best_mask.json, learned_mask.json), or null for the "
+     "configured mask alone"),
+    ("baseline", "data.masks=[published,defocus:0]", "data.masks[1] = 'defocus:0': a defocus member is "
+     "'defocus:R' with R a number of rad in (0, 200]"),
+    ("baseline", "data.masks=[defocus:abc]", "data.masks[0] = 'defocus:abc': a defocus member is 'defocus:R' with "
+     "R a number of rad in (0, 200]"),
+    ("baseline", "data.masks=[/nonexistent.json]", "data.masks[0] = '/nonexistent.json': is neither 'published', "
+     "'defocus:R' nor an existing mask record file"),
+    ("baseline", "data.masks=[published] data.mask_every=0", "data.mask_every = 0: must be an integer >= 1"),
+    ("baseline", "data.masks=[published] data.mask_jitter=-1", "data.mask_jitter = -1: must be a finite number >= 0 "
+     "and <= 10"),
+    ("joint", "data.masks=[published]", "data.masks = ['published']: trains one restorer over a pool of frozen "
+     "masks (+experiment=baseline data.masks=[...]); a joint run trains one mask: leave it null and warm-start "
+     "from such a restorer with init.checkpoint=PATH"),
     ("simulate", "data.image_size=4096 data.padded_size=4096", "data.image_size = 4096: must be <= "
      "sensor.resolution (2532): the sensor is binned to the network resolution, never upsampled"),
     ("simulate", "data.padded_size=100000",  # named as typed (it was sensor.padded_size, a key nobody typed)

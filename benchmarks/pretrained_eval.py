@@ -1,0 +1,104 @@
+"""``python -m benchmarks.pretrained_eval``: a restorer checkpoint against classical Wiener and the sensor image, mask
+by mask, on photographs it never trained on (issue 35's quality goal and its "one restorer for any mask" control).
+
+For every mask it runs ``+experiment=evaluate checkpoint=CKPT mask=...`` on the scenes folder (default: the 12
+photographs of ../shared/data/scenes, all of them) at alpha_l = 0, 1e3, 1e5, 1e6, and reports per mask and laser
+strength: PSNR after the gain/offset match, plain PSNR and SSIM of the network, of Wiener (tuned per condition) and
+of the sensor image, and the network's paired gain over each (mean over the scenes +- the 95 % interval of the
+per-scene differences).
+
+    python -m benchmarks.pretrained_eval --checkpoint pretrained --masks published,heldout \\
+        --out benchmarks/results/pretrained/eval_pool_seed0.json
+
+Masks: ``published`` (the five half rings), ``heldout`` (benchmarks/results/pretrained/heldout_mask.json, the spline
+design at a quarter of the published peak that no pool held), or the path of any mask record.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from codesign.train.summary import paired_difference
+
+ROOT = Path(__file__).resolve().parents[1]
+HELDOUT_MASK = ROOT / "benchmarks" / "results" / "pretrained" / "heldout_mask.json"
+SCENES = ROOT.parent / "shared" / "data" / "scenes"
+ALPHAS = ("0", "1e3", "1e5", "1e6")
+METHODS = ("sgan", "wiener", "sensor")
+
+
+def mask_overrides(mask: str) -> list[str]:
+    if mask == "published":
+        return ["mask=halfring"]
+    path = HELDOUT_MASK if mask == "heldout" else Path(mask).resolve()
+    return ["mask=" + json.loads(path.read_text())["kind"], f"mask.init={path}"]
+
+
+def evaluate(checkpoint: str, mask: str, scenes: Path, threads: int, work: Path) -> dict:
+    run = work / mask.replace("/", "_")
+    cmd = [sys.executable, "-m", "codesign", "+experiment=evaluate", f"checkpoint={checkpoint}",
+           *mask_overrides(mask), "data.scenes=folder", f"data.folder={scenes}", "evaluate.scenes=data",
+           "evaluate.split=all", "evaluate.max_scenes=100", f"evaluate.laser_strengths=[{','.join(ALPHAS)}]",
+           "evaluate.stages=[]", f"threads={threads}", "logging.tensorboard=false", f"hydra.run.dir={run}"]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    if proc.returncode:
+        raise SystemExit(f"evaluate failed on mask {mask}:\n{proc.stderr[-3000:]}")
+    m = json.loads((run / "metrics.json").read_text())
+    out = {"command": "python " + " ".join(cmd[1:-1]), "seconds": round(time.perf_counter() - t0, 1),
+           "scenes": m["evaluation_scenes"], "steps": m.get("steps"), "alpha": {}}
+    for a in ALPHAS:
+        cond = f"laser_{a}"
+        table, per = m["evaluation"][cond], m["evaluation_per_scene_psnr_matched"][cond]
+        row = {meth: {q: round(table[meth][q], 3) for q in ("psnr_matched", "psnr", "ssim")} for meth in METHODS}
+        for floor in ("wiener", "sensor"):
+            mean, half = paired_difference(per["sgan"], per[floor])
+            row[f"gain_over_{floor}"] = {"mean": round(mean, 3), "interval": None if half is None else round(half, 3)}
+        out["alpha"][a] = row
+    return out
+
+
+def table(result: dict) -> str:
+    lines = []
+    for mask, r in result["masks"].items():
+        lines.append(f"mask {mask} ({len(r['scenes'])} scenes; checkpoint step {r['steps']}): PSNR matched / plain "
+                     f"/ SSIM, and the network's gain over Wiener and over the sensor image (matched PSNR, 95 %)")
+        for a, row in r["alpha"].items():
+            cells = "  ".join(f"{m} {row[m]['psnr_matched']:.2f}/{row[m]['psnr']:.2f}/{row[m]['ssim']:.3f}"
+                              for m in METHODS)
+            gw, gs = row["gain_over_wiener"], row["gain_over_sensor"]
+            lines.append(f"  alpha_l={a:>4}: {cells}  | vs wiener {gw['mean']:+.2f} +- {gw['interval']:.2f}  "
+                         f"vs sensor {gs['mean']:+.2f} +- {gs['interval']:.2f}")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--checkpoint", required=True, help="a checkpoint path or 'pretrained'")
+    p.add_argument("--masks", default="published,heldout")
+    p.add_argument("--scenes", type=Path, default=SCENES)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--out", type=Path, required=True)
+    a = p.parse_args(argv)
+    if not a.scenes.is_dir():
+        p.error(f"--scenes: no folder {a.scenes}")
+    work = Path(tempfile.mkdtemp(prefix="codesign_pretrained_eval_"))
+    result = {"checkpoint": a.checkpoint, "scenes_folder": str(a.scenes), "date": time.strftime("%Y-%m-%d"),
+              "masks": {}}
+    for mask in [m.strip() for m in a.masks.split(",") if m.strip()]:
+        result["masks"][mask] = evaluate(a.checkpoint, mask, a.scenes.resolve(), a.threads, work)
+        print(table({"masks": {mask: result["masks"][mask]}}), flush=True)
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = a.out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(result, indent=2) + "\n")
+    tmp.replace(a.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

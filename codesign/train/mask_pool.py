@@ -1,0 +1,157 @@
+"""``data.masks``: one restorer for many masks, trained over a pool of them.
+
+A restorer takes the system's OTF beside the sensor image, so one network can restore through any mask it is given,
+if it has seen many while it learned. With ``data.masks`` set, a restorer's training batches are imaged through a
+fixed pool of frozen masks, another one drawn every ``data.mask_every`` steps, and each batch carries its mask's OTF;
+validation and evaluation keep the configured mask (``mask``). Pool members, each a string:
+
+- ``published``: the published five half rings (under the configured conventions when ``mask`` is a half ring);
+- ``defocus:R``: a spline surface holding a defocus of R rad at the pupil's edge (R = 20 to 60 gives near flat-top
+  PSFs whose LSR spans about 1e-3 to 1e-4 at the default optics);
+- a mask record (``best_mask.json`` of a search, ``learned_mask.json`` of a joint run), any family.
+
+``data.mask_draws`` adds that many random draws around every member: its parameter vector plus ``data.mask_jitter``
+times its RMS value times a standard normal draw per parameter, kept in the family's bounds. The pool is fixed at the
+start (every member's optics computed once and cached; a mask's laser halo takes seconds), and which member serves
+step k is a function of (seed, k // mask_every) alone, so a resumed run trains on the masks an uninterrupted one does.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from codesign.camera import Camera
+from codesign.data.scenes import data_config
+from codesign.errors import ConfigError, require_list
+from codesign.optics.masks import FAMILIES, build_mask, published_mask_config
+from codesign.sensor.simulator import SensorSimulator
+
+log = logging.getLogger("codesign.train")
+
+ALLOWED = ("must be a list of masks, each 'published', 'defocus:R' (R in rad, 0 < R <= 200) or the path of a mask "
+           "record (best_mask.json, learned_mask.json), or null for the configured mask alone")
+
+
+def pool_settings(cfg: DictConfig) -> dict | None:
+    """The checked data.masks / mask_every / mask_draws / mask_jitter, or None when data.masks is null."""
+    masks = cfg.data.get("masks")
+    if masks is None:
+        return None
+    dc = data_config(cfg.data)  # the numbers, checked under their keys
+    items = require_list("data.masks", OmegaConf.to_container(masks, resolve=True)
+                         if OmegaConf.is_config(masks) else masks, ALLOWED)
+    if not items:
+        raise ConfigError("data.masks", items, ALLOWED.replace("a list", "a non-empty list"))
+    for i, item in enumerate(items):
+        _check_item(f"data.masks[{i}]", item)
+    return {"masks": [str(m) for m in items], "every": dc.mask_every, "draws": dc.mask_draws,
+            "jitter": dc.mask_jitter}
+
+
+def _check_item(key: str, item) -> None:
+    if not isinstance(item, str) or not item.strip():
+        raise ConfigError(key, item, "must be 'published', 'defocus:R' or the path of a mask record")
+    if item == "published":
+        return
+    if item.startswith("defocus:"):
+        try:
+            value = float(item.split(":", 1)[1])
+        except ValueError:
+            value = float("nan")
+        if not 0 < value <= 200:
+            raise ConfigError(key, item, "a defocus member is 'defocus:R' with R a number of rad in (0, 200]")
+        return
+    path = Path(item).expanduser()
+    if not path.is_file():
+        raise ConfigError(key, item, "is neither 'published', 'defocus:R' nor an existing mask record file")
+    try:
+        kind = json.loads(path.read_text()).get("kind")
+    except (OSError, ValueError, AttributeError):
+        kind = None
+    if kind not in FAMILIES:
+        raise ConfigError(key, item, f"is not a mask record (a JSON object whose 'kind' is one of "
+                          f"{', '.join(sorted(FAMILIES))})")
+
+
+def _member_masks(item: str, cfg: DictConfig, grid, aperture_m: float, draws: int, jitter: float, rng) -> list:
+    """(name, frozen Mask) of the member ``item`` and its ``draws`` random draws."""
+    mask_cfg = OmegaConf.to_container(cfg.mask, resolve=True)
+    if item == "published":
+        mask = build_mask(published_mask_config(mask_cfg), grid, aperture_m, prefix="data.masks")
+    elif item.startswith("defocus:"):
+        mask = build_mask({**FAMILIES["spline"].Spec.defaults(), "kind": "spline"}, grid, aperture_m,
+                          prefix="data.masks")
+        mask.set_vector(mask.defocus_vector(float(item.split(":", 1)[1])))
+    else:
+        kind = json.loads(Path(item).expanduser().read_text())["kind"]
+        mask = build_mask({**FAMILIES[kind].Spec.defaults(), "kind": kind, "init": str(Path(item).expanduser())},
+                          grid, aperture_m, prefix="data.masks")
+    out = [(item, mask.freeze())]
+    x = mask.to_vector()
+    lo, hi = mask.bounds()
+    scale = float(x.square().mean().sqrt())
+    for k in range(draws):
+        drawn = copy.deepcopy(mask)
+        step = torch.from_numpy(rng.standard_normal(x.numel())) * (jitter * scale)
+        drawn.set_vector(torch.minimum(torch.maximum(x + step, lo), hi))
+        drawn.project()
+        out.append((f"{item} draw {k + 1}", drawn.freeze()))
+    return out
+
+
+class MaskPool:
+    """Frozen cameras, one per pool member, sharing the optical system (and the laser line and the scene's band) of
+    ``base``; each has its own sensor simulator, so that every member keeps its kernels cached."""
+
+    def __init__(self, names: list[str], cameras: list[Camera], every: int, seed: int):
+        self.names, self.cameras, self.every, self.seed = names, cameras, every, seed
+
+    def index(self, step: int) -> int:
+        """The member serving training step ``step``: drawn from (seed, step // every) alone (resumes exactly)."""
+        gen = torch.Generator().manual_seed(self.seed * 1_000_003 + step // self.every + 17)
+        return int(torch.randint(len(self.cameras), (1,), generator=gen))
+
+    def camera(self, step: int) -> Camera:
+        return self.cameras[self.index(step)]
+
+    def lsr(self) -> list[float]:
+        """Each member's sampled LSR (window PSF peak / unmasked peak; the certified peak is a search's job)."""
+        out = []
+        for cam in self.cameras:
+            state = cam.frozen_optics().state
+            out.append(float(state.psf.max() / state.uncoded_peak))
+        return out
+
+    def report(self) -> list[dict]:
+        return [{"mask": n, "lsr_sampled": v} for n, v in zip(self.names, self.lsr())]
+
+
+def build_mask_pool(cfg: DictConfig, base: Camera, seed: int) -> MaskPool | None:
+    """The pool of ``data.masks`` around ``base`` (the run's camera), or None when data.masks is null; every
+    member built and its optics computed before training starts."""
+    settings = pool_settings(cfg)
+    if settings is None:
+        return None
+    if base.measured is not None:
+        raise ConfigError("data.masks", settings["masks"], "trains over computed masks: a measured PSF "
+                          "(optics.psf_file) fixes the optics (leave one of them null)")
+    system, aperture = base.system, base.system.spec.aperture_diameter_m
+    rng = np.random.default_rng(seed + 424243)
+    names, cameras = [], []
+    for item in settings["masks"]:
+        for name, mask in _member_masks(item, cfg, system.grid, aperture, settings["draws"], settings["jitter"], rng):
+            sim = SensorSimulator(base.simulator.sensor, base.simulator.optics, base.simulator.skip_unneeded)
+            cameras.append(Camera(system, mask, sim, base.device, None, base.laser_line, base.scene_spectrum))
+            names.append(name)
+    pool = MaskPool(names, cameras, settings["every"], seed)
+    lsr = pool.lsr()
+    log.info("data.masks: %d masks (%d listed, %d draws each at jitter %g), a new one every %d steps; sampled LSR "
+             "%.3g to %.3g", len(cameras), len(settings["masks"]), settings["draws"], settings["jitter"],
+             settings["every"], min(lsr), max(lsr))
+    return pool
