@@ -26,6 +26,7 @@ GATED = "benchmarks/results/early_steps/unitdc_gate_g2gate_ema0.99{}.json"
 MAIN_JOB = "benchmarks/results/main_job/metrics.json"
 MAIN_JOB_SEED1 = "benchmarks/results/main_job/seed1/metrics.json"
 GRADIENT = "benchmarks/results/mask_gradient/published_seed{}.json"
+PRETRAINED = "benchmarks/results/pretrained/eval_{}.json"
 
 
 def sci(v: float, digits: int = 3) -> str:
@@ -95,6 +96,15 @@ def _gated_row(seed: str, suffix: str) -> Quote:
                  GATED.format(suffix), values)
 
 
+def _pool_row(label: str, run: str) -> Quote:
+    """A row of docs/models.md Sec. 11: a network through the held-out mask, matched PSNR (gain over Wiener)."""
+    def values(d):
+        rows = d["masks"]["heldout"]["alpha"]
+        return tuple(f"{fixed(rows[a]['sgan']['psnr_matched'])} ({signed(rows[a]['gain_over_wiener']['mean'])} ± "
+                     f"{fixed(rows[a]['gain_over_wiener']['interval'])})" for a in ("0", "1e3", "1e5", "1e6"))
+    return Quote("docs/models.md", f"| {label} | " + " | ".join(["{}"] * 4) + " |", PRETRAINED.format(run), values)
+
+
 def _total_gains(m: dict) -> tuple[str, ...]:
     """The main job's total gain per alpha_l as the page writes it: +4.20 +- 1.45."""
     from codesign.train.protocol_summary import GAINS
@@ -147,6 +157,10 @@ QUOTES: list[Quote] = [
     # docs/models.md Sec. 10: the main job's network at the CPU budget, two seeds
     _gated_row("0", ""),
     _gated_row("1", "_seed1"),
+    # docs/models.md Sec. 11: the shipped pool restorer and a one-mask network through the held-out mask
+    _pool_row("pool of 12 masks (shipped)", "pool_seed0"),
+    _pool_row("this mask alone", "single_heldout"),
+    _pool_row("pool of 10 spline masks, no half rings", "spline_pool"),
     # docs/codesign.md Sec. 7: the mask gradient's signal against its noise, two seeds
     Quote("docs/codesign.md", "is **{}** (seed 0) and **{}** (seed 1)", GRADIENT.format(0),
           lambda d: (fixed(d["snr_one_batch"]), fixed(read_metrics(REPO / GRADIENT.format(1))["snr_one_batch"]))),
