@@ -41,8 +41,8 @@ import torch
 from torch.autograd import DeviceType
 from torch.profiler import ProfilerActivity, profile
 
-from benchmarks.common import cuda_sync, machine, markdown_table, peak_cuda_mib, restorer, run_logged, \
-    timeit, write_json, write_text
+from benchmarks.common import cuda_sync, keep_weights, machine, markdown_table, peak_cuda_mib, restorer, \
+    run_logged, timeit, write_json, write_text
 
 REPO = Path(__file__).resolve().parent.parent
 RESULTS = REPO / "benchmarks" / "results" / "gpu"
@@ -319,17 +319,6 @@ def step_train(p: dict, dev: torch.device, work: Path, out: Path, budget: float)
         res.update(keep_weights(run / "checkpoint.pt", out / "checkpoint.pt"))
     print(f"  training: exit {rc}, {res.get('steps', '?')} steps in {sec:.0f} s", flush=True)
     return res
-
-
-def keep_weights(src: Path, dst: Path) -> dict:
-    """The trained checkpoint without its optimizer, scheduler and RNG states: what +experiment=evaluate, restore
-    and init.checkpoint read, at a third of the size (the cpu-width SGAN-B: about 10 MiB, which a results folder
-    and a device tool's returned files hold)."""
-    from codesign.train.checkpoint import TRAINED_ENTRIES, load_checkpoint, save_checkpoint
-
-    state = load_checkpoint(src)
-    save_checkpoint(dst, {k: state[k] for k in (*TRAINED_ENTRIES, "mask") if k in state})
-    return {"checkpoint": dst.name, "checkpoint_mib": round(dst.stat().st_size / 2**20, 2)}
 
 
 def step_evaluate(p: dict, dev: torch.device, checkpoint: str, scenes: Path | None, work: Path, out: Path,

@@ -30,6 +30,8 @@ from pathlib import Path
 
 import torch
 
+from benchmarks.common import keep_weights
+
 ROOT = Path(__file__).resolve().parents[1]
 MASKS = "codesign/models/pretrained/masks"  # relative to the checkout, where the runs start
 POOL = ["published", f"{MASKS}/spline_half.json", f"{MASKS}/spline_eighth.json", "defocus:20", "defocus:35",
@@ -109,7 +111,6 @@ def main(argv=None) -> int:
         record["runs"][name] = {"command": " ".join(["python"] + cmd[1:]).replace(str(work), "RUN"), "exit": rc,
                                 "wall_s": round(time.perf_counter() - t0, 1), **keep}
         if (run / "checkpoint.pt").is_file():
-            from benchmarks.gpu import keep_weights
             record["runs"][name].update(keep_weights(run / "checkpoint.pt", a.out / f"{name}.pt"))
         print(f"{name}: exit {rc}, steps {metrics.get('steps')}, {metrics.get('seconds', float('nan')):.0f} s",
               flush=True)
