@@ -17,7 +17,7 @@ from codesign.data.builtin import builtin_scene_names
 from codesign.data.images import SceneLoadWarning, UnreadableImage
 from codesign.data.paramconfig import ParamConfig, param_config
 from codesign.data.source import SceneSource
-from codesign.errors import ConfigError, require_choice, require_number, unknown_keys
+from codesign.errors import ConfigError, require_choice, require_list, require_number, unknown_keys
 
 __all__ = ["SceneSampler", "DataConfig", "data_config", "build_scene_source", "build_scene_sampler",
            "SceneSource", "builtin_scene_names", "heldout_source", "HELDOUT_DIR"]
@@ -145,6 +145,19 @@ class DataConfig:
 
 
 DATA_KEYS = tuple(f.name for f in fields(DataConfig))
+MASKS_ALLOWED = ("must be a list of masks, each 'published', 'defocus:R' (R in rad, 0 < R <= 200) or the path of a "
+                 "mask record (best_mask.json, learned_mask.json), or null for the configured mask alone")
+
+
+def _masks(value) -> tuple | None:
+    """data.masks as a tuple of its members (each member checked where the pool is built:
+    codesign/train/mask_pool.py), or None."""
+    if value is None:
+        return None
+    items = require_list("data.masks", value, MASKS_ALLOWED)
+    if not items:
+        raise ConfigError("data.masks", items, MASKS_ALLOWED.replace("a list", "a non-empty list"))
+    return tuple(items)
 
 
 def data_config(cfg: Mapping | Any) -> DataConfig:
@@ -184,7 +197,7 @@ def data_config(cfg: Mapping | Any) -> DataConfig:
         flips=flips,
         cache_mb=require_number("data.cache_mb", cfg.get("cache_mb", d.cache_mb), lo=0),
         params=param_config(cfg.get("params")),
-        masks=None if cfg.get("masks") is None else tuple(cfg.get("masks")),
+        masks=_masks(cfg.get("masks")),
         mask_every=require_number("data.mask_every", cfg.get("mask_every", d.mask_every), lo=1, integer=True),
         mask_draws=require_number("data.mask_draws", cfg.get("mask_draws", d.mask_draws), lo=0, hi=1000,
                                   integer=True),

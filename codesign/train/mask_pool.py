@@ -18,7 +18,6 @@ step k is a function of (seed, k // mask_every) alone, so a resumed run trains o
 from __future__ import annotations
 
 import copy
-import json
 import logging
 from pathlib import Path
 
@@ -28,37 +27,28 @@ from omegaconf import DictConfig, OmegaConf
 
 from codesign.camera import Camera
 from codesign.data.scenes import data_config
-from codesign.errors import ConfigError, require_list
-from codesign.optics.masks import FAMILIES, build_mask, published_mask_config
+from codesign.errors import ConfigError
+from codesign.optics.masks import FAMILIES, build_mask, load_record, published_mask_config
 from codesign.sensor.simulator import SensorSimulator
 
 log = logging.getLogger("codesign.train")
 
-ALLOWED = ("must be a list of masks, each 'published', 'defocus:R' (R in rad, 0 < R <= 200) or the path of a mask "
-           "record (best_mask.json, learned_mask.json), or null for the configured mask alone")
-
-
 def pool_settings(cfg: DictConfig) -> dict | None:
-    """The checked data.masks / mask_every / mask_draws / mask_jitter, or None when data.masks is null."""
-    masks = cfg.data.get("masks")
-    if masks is None:
+    """The checked data.masks / mask_every / mask_draws / mask_jitter, or None when data.masks is null; every
+    member's family ("masks": (member, family) pairs, None for 'published' and 'defocus:R')."""
+    dc = data_config(cfg.data)  # the list and the numbers, checked under their keys
+    if dc.masks is None:
         return None
-    dc = data_config(cfg.data)  # the numbers, checked under their keys
-    items = require_list("data.masks", OmegaConf.to_container(masks, resolve=True)
-                         if OmegaConf.is_config(masks) else masks, ALLOWED)
-    if not items:
-        raise ConfigError("data.masks", items, ALLOWED.replace("a list", "a non-empty list"))
-    for i, item in enumerate(items):
-        _check_item(f"data.masks[{i}]", item)
-    return {"masks": [str(m) for m in items], "every": dc.mask_every, "draws": dc.mask_draws,
-            "jitter": dc.mask_jitter}
+    members = [(str(m), _check_item(f"data.masks[{i}]", m)) for i, m in enumerate(dc.masks)]
+    return {"masks": members, "every": dc.mask_every, "draws": dc.mask_draws, "jitter": dc.mask_jitter}
 
 
-def _check_item(key: str, item) -> None:
+def _check_item(key: str, item) -> str | None:
+    """The family of a record member (its record read and checked whole), None for a named one."""
     if not isinstance(item, str) or not item.strip():
         raise ConfigError(key, item, "must be 'published', 'defocus:R' or the path of a mask record")
     if item == "published":
-        return
+        return None
     if item.startswith("defocus:"):
         try:
             value = float(item.split(":", 1)[1])
@@ -66,21 +56,15 @@ def _check_item(key: str, item) -> None:
             value = float("nan")
         if not 0 < value <= 200:
             raise ConfigError(key, item, "a defocus member is 'defocus:R' with R a number of rad in (0, 200]")
-        return
-    path = Path(item).expanduser()
-    if not path.is_file():
+        return None
+    if not Path(item).expanduser().is_file():
         raise ConfigError(key, item, "is neither 'published', 'defocus:R' nor an existing mask record file")
-    try:
-        kind = json.loads(path.read_text()).get("kind")
-    except (OSError, ValueError, AttributeError):
-        kind = None
-    if kind not in FAMILIES:
-        raise ConfigError(key, item, f"is not a mask record (a JSON object whose 'kind' is one of "
-                          f"{', '.join(sorted(FAMILIES))})")
+    return load_record(item, key, "must be 'published', 'defocus:R' or the path of a mask record")["kind"]
 
 
-def _member_masks(item: str, cfg: DictConfig, grid, aperture_m: float, draws: int, jitter: float, rng) -> list:
-    """(name, frozen Mask) of the member ``item`` and its ``draws`` random draws."""
+def _member_masks(item: str, kind: str | None, cfg: DictConfig, grid, aperture_m: float, draws: int, jitter: float,
+                  rng) -> list:
+    """(name, frozen Mask) of the member ``item`` (``kind``: its record's family) and its ``draws`` random draws."""
     mask_cfg = OmegaConf.to_container(cfg.mask, resolve=True)
     if item == "published":
         mask = build_mask(published_mask_config(mask_cfg), grid, aperture_m, prefix="data.masks")
@@ -89,7 +73,6 @@ def _member_masks(item: str, cfg: DictConfig, grid, aperture_m: float, draws: in
                           prefix="data.masks")
         mask.set_vector(mask.defocus_vector(float(item.split(":", 1)[1])))
     else:
-        kind = json.loads(Path(item).expanduser().read_text())["kind"]
         mask = build_mask({**FAMILIES[kind].Spec.defaults(), "kind": kind, "init": str(Path(item).expanduser())},
                           grid, aperture_m, prefix="data.masks")
     out = [(item, mask.freeze())]
@@ -139,13 +122,14 @@ def build_mask_pool(cfg: DictConfig, base: Camera, seed: int) -> MaskPool | None
     if settings is None:
         return None
     if base.measured is not None:
-        raise ConfigError("data.masks", settings["masks"], "trains over computed masks: a measured PSF "
+        raise ConfigError("data.masks", [m for m, _ in settings["masks"]], "trains over computed masks: a measured PSF "
                           "(optics.psf_file) fixes the optics (leave one of them null)")
     system, aperture = base.system, base.system.spec.aperture_diameter_m
     rng = np.random.default_rng(seed + 424243)
     names, cameras = [], []
-    for item in settings["masks"]:
-        for name, mask in _member_masks(item, cfg, system.grid, aperture, settings["draws"], settings["jitter"], rng):
+    for item, kind in settings["masks"]:
+        for name, mask in _member_masks(item, kind, cfg, system.grid, aperture, settings["draws"], settings["jitter"],
+                                        rng):
             sim = SensorSimulator(base.simulator.sensor, base.simulator.optics, base.simulator.skip_unneeded)
             cameras.append(Camera(system, mask, sim, base.device, None, base.laser_line, base.scene_spectrum))
             names.append(name)
