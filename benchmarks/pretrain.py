@@ -30,13 +30,12 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import keep_weights
+from benchmarks.common import HELDOUT_MASK, keep_weights
 
 ROOT = Path(__file__).resolve().parents[1]
 MASKS = "codesign/models/pretrained/masks"  # relative to the checkout, where the runs start
 POOL = ["published", f"{MASKS}/spline_half.json", f"{MASKS}/spline_eighth.json", "defocus:20", "defocus:35",
         "defocus:55"]
-HELDOUT_MASK = ROOT / "benchmarks" / "results" / "pretrained" / "heldout_mask.json"
 RUNS = ("pool_seed0", "pool_seed1", "single")
 
 

@@ -23,10 +23,10 @@ import tempfile
 import time
 from pathlib import Path
 
+from benchmarks.common import HELDOUT_MASK
 from codesign.train.summary import paired_difference
 
 ROOT = Path(__file__).resolve().parents[1]
-HELDOUT_MASK = ROOT / "benchmarks" / "results" / "pretrained" / "heldout_mask.json"
 SCENES = ROOT.parent / "shared" / "data" / "scenes"
 ALPHAS = ("0", "1e3", "1e5", "1e6")
 METHODS = ("sgan", "wiener", "sensor")
