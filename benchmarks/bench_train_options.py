@@ -50,6 +50,52 @@ def joint_step(dev: torch.device, options: dict, steps: int) -> dict:
             "batch": int(cfg.data.batch_size), "size": str(cfg.model.size), "padded": int(cfg.data.padded_size)}
 
 
+def restorer_trainer(overrides: list[str], dev: torch.device, run_dir: Path):
+    """The main job's restorer stage (``+experiment=joint``'s network, sizes and schedule) as a plain trainer: the
+    published mask frozen, seed 0, no validation, checkpoints or images."""
+    from codesign.config.runtime import to_container
+    from codesign.train.data import SimulatedData
+    from codesign.train.model_setup import build_model
+    from codesign.train.optim import init_weights
+    from codesign.train.spec import TrainerSpec
+    from codesign.train.trainer import Trainer
+
+    cfg = compose(["+experiment=baseline", "model=sgan_b_gated", "preset=joint_cpu", "trainer=joint_cpu",
+                   f"device={dev.type}", *overrides])
+    torch.manual_seed(0)
+    model = build_model(cfg)
+    init_weights(model)
+    spec = TrainerSpec.from_config(to_container(cfg.trainer)).replace(steps=10**6, val_every=0, checkpoint_every=0,
+                                                                       image_every=0)
+    return Trainer(model=model, data=SimulatedData(cfg, dev, 0), spec=spec, run_dir=run_dir, device=dev, config={},
+                   seed=0)
+
+
+def step_parts(dev: torch.device, steps: int) -> dict:
+    """Where a restorer step's time goes (the main job's network, mask frozen), each part timed alone on the same
+    batch (median of ``steps``): the batch's simulation, the generators' forward pass with its graph, one critic
+    update (on that pass's outputs), one generator update (forward, losses, backward, guarded Adam step, EMA), and
+    the whole step."""
+    with tempfile.TemporaryDirectory() as tmp:
+        tr = restorer_trainer(GPU_SIZE if dev.type == "cuda" else [], dev, Path(tmp))
+        u, sync = tr.update, cuda_sync(dev)
+        batch = tr.data.train_batch(0)
+        tr.model.train()
+
+        def critic():
+            out = u.generate(batch)
+            u.critic_update(batch, {k: [t.detach() for t in v] if isinstance(v, list) else v.detach()
+                                    for k, v in out.items()})
+
+        parts = {"simulation": lambda: tr.data.train_batch(1), "generators forward": lambda: u.generate(batch),
+                 "critic update + forward": critic, "generator update": lambda: u.generator_update(batch),
+                 "whole step": tr.train_step}
+        times = {k: timeit(fn, steps, warmup=2, sync=sync) for k, fn in parts.items()}
+    times["critic update"] = times.pop("critic update + forward") - times["generators forward"]
+    return {k: times[k] for k in ("simulation", "generators forward", "critic update", "generator update",
+                                  "whole step")}
+
+
 def inference_fps(dev: torch.device, amp: bool, compiled: bool, repeats: int) -> dict:
     from codesign.train.model_setup import build_model
 
@@ -84,6 +130,8 @@ def measure(scale: str) -> dict:
         joint[n] = joint_step(dev, OPTIONS[n], p["steps"])
         print(f"  joint step {n}: {joint[n]['step_s'] * 1e3:.0f} ms (first step {joint[n]['first_step_s']:.1f} s)",
               flush=True)
+    parts = step_parts(dev, p["steps"])
+    print("  restorer step: " + ", ".join(f"{k} {v * 1e3:.0f} ms" for k, v in parts.items()), flush=True)
     infer = {}
     for amp in (False, True):
         for compiled in ((False, True) if p["compile"] else (False,)):
@@ -91,7 +139,7 @@ def measure(scale: str) -> dict:
             infer[key] = inference_fps(dev, amp, compiled, p["repeats"])
             print(f"  SGAN-F inference {key}: {infer[key]['fps']:.2f} FPS", flush=True)
     return {"device": str(dev), "steps": p["steps"], "repeats": p["repeats"], "joint_step": joint,
-            "sgan_f_inference_256": infer}
+            "restorer_step_parts": parts, "sgan_f_inference_256": infer}
 
 
 def report(data: dict) -> Report:
@@ -102,6 +150,11 @@ def report(data: dict) -> Report:
     t_joint = markdown_table(["option", "width", "batch", "padded", "ms/step", "speed-up", "first step s",
                               "peak MiB"], rows,
                              {"ms/step": ".0f", "speed-up": ".2f", "first step s": ".1f", "peak MiB": ".0f"})
+    parts = data.get("restorer_step_parts", {})
+    whole = parts.get("whole step")
+    t_parts = markdown_table(["restorer step (main job's network, mask frozen)", "ms", "share of the step"],
+                             [[k, v * 1e3, v / whole if k != "whole step" else 1.0] for k, v in parts.items()],
+                             {"ms": ".0f", "share of the step": ".0%"}) if parts else ""
     fbase = infer["float32"]["fps"]
     rows = [[k, r["size"], r["fps"], r["fps"] / fbase, r["first_call_s"], r["peak_mib"] if r["peak_mib"] is not None
              else "-"] for k, r in infer.items()]
@@ -117,7 +170,12 @@ def report(data: dict) -> Report:
         + (" and torch.compile." if any("compile" in k for k in infer) else
            "; the torch.compile rows are measured at full scale only (compiling takes minutes on a CPU)."),
     ]
-    return Report("train_options", "Training options: bf16, channels-last, torch.compile", [t_joint, t_infer], [],
+    notes.append("Restorer step: the parts timed one by one on one batch (median of the same step count): the "
+                 "simulation of the next batch, the generators' forward pass with its graph, one critic update "
+                 "(WGAN terms and gradient penalty of D1 and both D2 scales), one generator update (forward, losses "
+                 "with the frozen critics, backward, guarded Adam step, EMA); the whole step holds one of each.")
+    tables = [t_joint] + ([t_parts] if t_parts else []) + [t_infer]
+    return Report("train_options", "Training options: bf16, channels-last, torch.compile", tables, [],
                   notes)
 
 

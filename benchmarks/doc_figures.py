@@ -161,6 +161,8 @@ QUOTES: list[Quote] = [
     _pool_row("pool of 12 masks (shipped)", "pool_seed0"),
     _pool_row("this mask alone", "single_heldout"),
     _pool_row("pool of 10 spline masks, no half rings", "spline_pool"),
+    _pool_row("pool of 12 masks, G1 with the halo channel", "pool_halo"),
+    _pool_row("this mask alone, G1 with the halo channel", "single_halo"),
     # docs/codesign.md Sec. 7: the mask gradient's signal against its noise, two seeds
     Quote("docs/codesign.md", "is **{}** (seed 0) and **{}** (seed 1)", GRADIENT.format(0),
           lambda d: (fixed(d["snr_one_batch"]), fixed(read_metrics(REPO / GRADIENT.format(1))["snr_one_batch"]))),

@@ -46,6 +46,7 @@ def run_overrides(name: str, a, work: Path) -> list[str]:
               f"trainer.checkpoint_every={a.checkpoint_every}", "evaluate.laser_strengths=[0,1e6]",
               "evaluate.stages=[]",
               "evaluate.max_scenes=2", f"hydra.run.dir={work / name}"]
+    common += a.set
     if a.budget_s:
         common.append(f"trainer.time_budget_s={a.budget_s}")
     if name.startswith("pool"):
@@ -79,6 +80,8 @@ def main(argv=None) -> int:
     p.add_argument("--checkpoint-every", type=int, default=100)
     p.add_argument("--runs", default=",".join(RUNS))
     p.add_argument("--pool", default=",".join(POOL), help="the pool runs' data.masks (comma-separated)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a further override of every run (repeatable), e.g. --set model.g1_halo=true")
     p.add_argument("--dry-run", action="store_true", help="a CPU rehearsal: 2 steps, batch 2, one draw")
     a = p.parse_args(argv)
     if a.dry_run:

@@ -18,7 +18,7 @@ import torch.nn.functional as F
 from codesign.config.store import register, spec_node
 from codesign.models import losses
 from codesign.models.discriminators import PatchDiscriminator
-from codesign.models.fill import push_pull_fill, saturated_fraction, valid_pixels
+from codesign.models.fill import SATURATED, push_pull_fill, saturated_fraction, valid_pixels
 from codesign.models.losses import LossWeights
 from codesign.models.restorer import Restorer, TrainContext
 from codesign.models.spec import ModelSpec
@@ -46,12 +46,31 @@ def pyramid(x: torch.Tensor) -> list[torch.Tensor]:
     return [downsample2(x), x]
 
 
+HALO_DECADES = 6.0  # the halo channel's range: 1 at the laser's centre down to 0 at 1e-6 of it
+
+
+def halo_map(sensor: torch.Tensor, otf: torch.Tensor) -> torch.Tensor:
+    """(B, 1, P, P) where the laser's light lies, from the system PSF (``otf``, its kernel at the origin) spread over
+    the saturated pixels: log10 of (PSF * saturated) relative to its maximum, mapped from [-HALO_DECADES, 0] to
+    [0, 1]; 0 everywhere in an image without saturated pixels (model.g1_halo). The shape of the halo around the
+    footprint is the mask's: this is what tells one G1 which halo to remove whatever mask it is given."""
+    p = sensor.shape[-1]
+    # in float64: float32 FFT round-off (~1e-7 of the peak) would sit near the channel's floor
+    sat = (sensor.detach() >= SATURATED).double()
+    spread = torch.fft.irfft2(torch.fft.rfft2(sat) * otf.to(torch.complex128), s=(p, p)).clamp_min(0)
+    peak = spread.amax(dim=(-2, -1), keepdim=True)
+    rel = spread / peak.clamp_min(torch.finfo(spread.dtype).tiny)
+    level = (1 + torch.log10(rel.clamp_min(10 ** -HALO_DECADES)) / HALO_DECADES).clamp(0, 1)
+    return torch.where(peak > 0, level, torch.zeros_like(level)).to(sensor.dtype)
+
+
 def pre_restore(g1: nn.Module, sensor: torch.Tensor, residual: bool, base: str = "sensor",
-                gate: torch.Tensor | None = None) -> torch.Tensor:
-    """I_b^ = G1(s, x, y), or with ``residual`` a correction added to the sensor image (``base`` "sensor") or to
-    the sensor image with its saturated and padded pixels filled from their surroundings ("filled"); ``gate``
-    (B,): scales the correction per image (model.laser_gate)."""
-    out = g1(torch.cat([sensor, coordinates(sensor)], 1))
+                gate: torch.Tensor | None = None, halo: torch.Tensor | None = None) -> torch.Tensor:
+    """I_b^ = G1(s, x, y[, halo]), or with ``residual`` a correction added to the sensor image (``base`` "sensor")
+    or to the sensor image with its saturated and padded pixels filled from their surroundings ("filled"); ``gate``
+    (B,): scales the correction per image (model.laser_gate); ``halo``: halo_map's channel (model.g1_halo)."""
+    inputs = [sensor, coordinates(sensor)] + ([halo] if halo is not None else [])
+    out = g1(torch.cat(inputs, 1))
     if not residual:
         return out
     if gate is not None:
@@ -80,7 +99,8 @@ def sandwich(generators, sensor: torch.Tensor, otf: torch.Tensor, spec: ModelSpe
                          f"{tuple(sensor.shape)} and OTF {tuple(otf.shape)}")
     g1, gv, g2 = generators
     presence = laser_presence(g2, sensor, spec)
-    i_b = pre_restore(g1, sensor, spec.g1_residual, spec.g1_base, presence)
+    halo = halo_map(sensor, otf) if spec.g1_halo else None
+    i_b = pre_restore(g1, sensor, spec.g1_residual, spec.g1_base, presence, halo)
     features = gv(i_b, otf)
     base = _plain_module(g2).base(i_b, otf, presence) if spec.g2_residual else None
     b = g2(features, base, presence if spec.g2_gate else None)
@@ -166,7 +186,8 @@ class SGAN(Restorer):
         self.spec = spec
         self.weights = weights if weights is not None else LossWeights()
         g, d = spec.generator_block, spec.critic_block
-        self.g1 = ResUNet(3, 1, spec.stem_width, spec.widths, g, spec.attention, key_channels=spec.key_channels)
+        self.g1 = ResUNet(3 + int(spec.g1_halo), 1, spec.stem_width, spec.widths, g, spec.attention,
+                          key_channels=spec.key_channels)
         self.gv = DeconvModule(spec.fe_features, spec.fe_kernel, spec.gamma_init)
         self.g2 = Refiner(spec)
         self.d1 = PatchDiscriminator(4, spec.d_widths, d, spec.attention, key_channels=spec.key_channels)
@@ -210,11 +231,6 @@ class SGAN(Restorer):
         """sensor (B, 1, P, P); otf (P, P // 2 + 1) of the system PSF kernel at the network pitch. Returns i_b
         (B,1,P,P), features (B,N,P,P) after deconvolution, b = [b^0 (B,1,P/2,P/2), b^1 (B,1,P,P)], restored = b^1."""
         return sandwich(generators, sensor, otf, self.spec)
-
-    def pre_restore(self, sensor: torch.Tensor) -> torch.Tensor:
-        """G1: (B, 1, P, P) normalized sensor image -> I_b^ (B, 1, P, P)."""
-        return pre_restore(self.g1, sensor, self.spec.g1_residual, self.spec.g1_base,
-                           laser_presence(self.g2, sensor, self.spec))
 
     def critic1(self, sensor: torch.Tensor, i_b: torch.Tensor):
         """D1(s, x, y, I_b) -> (patch scores, level features)."""

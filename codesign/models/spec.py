@@ -72,6 +72,9 @@ class ModelSpec(SpecMixin):
     parameter) to the value of the evaluation's Wiener grid whose restorations of training-split crops without a
     laser score best after the gain/offset match, as the classical floor is tuned (codesign/train/base_tuning.py):
     the right nsr depends on the mask, and 0.03 is the published mask's (the +experiment=joint main job sets it).
+    g1_halo: G1 takes a fourth channel, where the laser's light lies: the system PSF spread over the saturated pixels,
+    in decades below its peak (codesign/models/sgan.py halo_map). Without it G1 sees the mask only through the image,
+    and a G1 trained over many masks (data.masks) learns their average halo (docs/models.md Sec. 11).
     """
 
     name: str | None = None
@@ -98,6 +101,7 @@ class ModelSpec(SpecMixin):
     g2_base_nsr_lasered: float = 3e-2
     g2_gate: bool = False
     g2_base_nsr_tuned: bool = False
+    g1_halo: bool = False
     prefix: str = field(default="model", compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -135,7 +139,7 @@ class ModelSpec(SpecMixin):
                               "correction)")
         require_number(f"{p}.g2_head_layers", self.g2_head_layers, lo=1, hi=8, integer=True)
         for key in ("attention", "coarse_to_fine", "g1_residual", "g2_linear_skip", "g2_residual", "laser_gate",
-                    "g2_gate", "g2_base_nsr_tuned"):
+                    "g2_gate", "g2_base_nsr_tuned", "g1_halo"):
             if not isinstance(getattr(self, key), bool):
                 raise ConfigError(f"{p}.{key}", getattr(self, key), "must be true or false")
         if self.g2_base_nsr_tuned and self.g2_base != "wiener":
