@@ -163,6 +163,7 @@ QUOTES: list[Quote] = [
     _pool_row("pool of 10 spline masks, no half rings", "spline_pool"),
     _pool_row("pool of 12 masks, G1 with the halo channel", "pool_halo"),
     _pool_row("this mask alone, G1 with the halo channel", "single_halo"),
+    _pool_row("pool of 12 masks, 1,600 steps", "pool_1600"),
     # docs/codesign.md Sec. 7: the mask gradient's signal against its noise, two seeds
     Quote("docs/codesign.md", "is **{}** (seed 0) and **{}** (seed 1)", GRADIENT.format(0),
           lambda d: (fixed(d["snr_one_batch"]), fixed(read_metrics(REPO / GRADIENT.format(1))["snr_one_batch"]))),
