@@ -21,8 +21,8 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import (Report, compose, cuda_sync, device, joint_trainer, machine, markdown_table,
-                               peak_cuda_mib, timeit, write_json)
+from benchmarks.common import (Report, bench_trainer, compose, cuda_sync, device, joint_trainer, machine,
+                               markdown_table, peak_cuda_mib, timeit, write_json)
 
 OPTIONS = {  # name -> trainer overrides
     "float32": {}, "bf16": {"amp": "bf16"}, "channels_last": {"channels_last": True},
@@ -52,23 +52,10 @@ def joint_step(dev: torch.device, options: dict, steps: int) -> dict:
 
 def restorer_trainer(overrides: list[str], dev: torch.device, run_dir: Path):
     """The main job's restorer stage (``+experiment=joint``'s network, sizes and schedule) as a plain trainer: the
-    published mask frozen, seed 0, no validation, checkpoints or images."""
-    from codesign.config.runtime import to_container
-    from codesign.train.data import SimulatedData
-    from codesign.train.model_setup import build_model
-    from codesign.train.optim import init_weights
-    from codesign.train.spec import TrainerSpec
-    from codesign.train.trainer import Trainer
-
+    published mask frozen (bench_trainer)."""
     cfg = compose(["+experiment=baseline", "model=sgan_b_gated", "preset=joint_cpu", "trainer=joint_cpu",
                    f"device={dev.type}", *overrides])
-    torch.manual_seed(0)
-    model = build_model(cfg)
-    init_weights(model)
-    spec = TrainerSpec.from_config(to_container(cfg.trainer)).replace(steps=10**6, val_every=0, checkpoint_every=0,
-                                                                       image_every=0)
-    return Trainer(model=model, data=SimulatedData(cfg, dev, 0), spec=spec, run_dir=run_dir, device=dev, config={},
-                   seed=0)
+    return bench_trainer(cfg, dev, run_dir)
 
 
 def step_parts(dev: torch.device, steps: int) -> dict:
@@ -82,14 +69,10 @@ def step_parts(dev: torch.device, steps: int) -> dict:
         batch = tr.data.train_batch(0)
         tr.model.train()
 
-        def critic():
-            out = u.generate(batch)
-            u.critic_update(batch, {k: [t.detach() for t in v] if isinstance(v, list) else v.detach()
-                                    for k, v in out.items()})
-
         parts = {"simulation": lambda: tr.data.train_batch(1), "generators forward": lambda: u.generate(batch),
-                 "critic update + forward": critic, "generator update": lambda: u.generator_update(batch),
-                 "whole step": tr.train_step}
+                 # the critic terms detach the outputs they are given
+                 "critic update + forward": lambda: u.critic_update(batch, u.generate(batch)),
+                 "generator update": lambda: u.generator_update(batch), "whole step": tr.train_step}
         times = {k: timeit(fn, steps, warmup=2, sync=sync) for k, fn in parts.items()}
     times["critic update"] = times.pop("critic update + forward") - times["generators forward"]
     return {k: times[k] for k in ("simulation", "generators forward", "critic update", "generator update",
@@ -151,9 +134,8 @@ def report(data: dict) -> Report:
                               "peak MiB"], rows,
                              {"ms/step": ".0f", "speed-up": ".2f", "first step s": ".1f", "peak MiB": ".0f"})
     parts = data.get("restorer_step_parts", {})
-    whole = parts.get("whole step")
     t_parts = markdown_table(["restorer step (main job's network, mask frozen)", "ms", "share of the step"],
-                             [[k, v * 1e3, v / whole if k != "whole step" else 1.0] for k, v in parts.items()],
+                             [[k, v * 1e3, v / parts["whole step"]] for k, v in parts.items()],
                              {"ms": ".0f", "share of the step": ".0%"}) if parts else ""
     fbase = infer["float32"]["fps"]
     rows = [[k, r["size"], r["fps"], r["fps"] / fbase, r["first_call_s"], r["peak_mib"] if r["peak_mib"] is not None

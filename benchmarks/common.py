@@ -240,31 +240,40 @@ def builtin_scenes(batch: int, size: int, names: list[str] | None = None) -> tor
     return src.fixed_batch([names[i % len(names)] for i in range(batch)], size)
 
 
-def joint_trainer(overrides: list[str], dev: torch.device, run_dir: Path, **options):
-    """A co-design trainer of ``+experiment=joint`` plus ``overrides``, the mask trainable from the first step
-    (codesign.warmup_fraction 0), no LSR bound in force (lsr_max 1), no validation, checkpoints or images;
-    ``options``: further TrainerSpec fields (amp, channels_last, compile). Seed 0, weights initialised as in a run."""
+def bench_trainer(cfg, dev: torch.device, run_dir: Path, codesign=None, **options):
+    """A Trainer of ``cfg`` as a run builds it (seed 0, weights initialised as in a run), no validation,
+    checkpoints or images; ``codesign``: called with the data and the trainer spec, it returns the MaskCodesign (None:
+    the mask stays frozen); ``options``: further TrainerSpec fields (amp, channels_last, compile)."""
     from codesign.config.runtime import to_container
-    from codesign.train.lsr_constraint import CodesignSpec
     from codesign.train.data import SimulatedData
-    from codesign.design.merit import metrics_spec
-    from codesign.train.mask_codesign import MaskCodesign
     from codesign.train.model_setup import build_model
     from codesign.train.optim import init_weights
     from codesign.train.spec import TrainerSpec
     from codesign.train.trainer import Trainer
 
-    cfg = compose(["+experiment=joint", *overrides])
     torch.manual_seed(0)
     model = build_model(cfg)
     init_weights(model)
     data = SimulatedData(cfg, dev, 0)
     spec = TrainerSpec.from_config(to_container(cfg.trainer)).replace(
         steps=10**6, val_every=0, checkpoint_every=0, image_every=0, **options)
+    return Trainer(model=model, data=data, spec=spec, run_dir=run_dir, device=dev, config={}, seed=0,
+                   codesign=codesign(data, spec) if codesign is not None else None)
+
+
+def joint_trainer(overrides: list[str], dev: torch.device, run_dir: Path, **options):
+    """A co-design trainer of ``+experiment=joint`` plus ``overrides``, the mask trainable from the first step
+    (codesign.warmup_fraction 0), no LSR bound in force (lsr_max 1); see bench_trainer."""
+    from codesign.config.runtime import to_container
+    from codesign.design.merit import metrics_spec
+    from codesign.train.lsr_constraint import CodesignSpec
+    from codesign.train.mask_codesign import MaskCodesign
+
+    cfg = compose(["+experiment=joint", *overrides])
     cs = CodesignSpec.from_config({**(to_container(cfg.get("codesign")) or {}), "warmup_fraction": 0.0})
-    mask = MaskCodesign(camera=data.camera, spec=cs, lsr_max=1.0, lsr_p=metrics_spec(cfg).lsr_p, steps=spec.steps,
-                        device=dev)
-    return Trainer(model=model, data=data, spec=spec, run_dir=run_dir, device=dev, config={}, seed=0, codesign=mask)
+    return bench_trainer(cfg, dev, run_dir, lambda data, spec: MaskCodesign(
+        camera=data.camera, spec=cs, lsr_max=1.0, lsr_p=metrics_spec(cfg).lsr_p, steps=spec.steps, device=dev),
+        **options)
 
 
 def keep_weights(src: Path, dst: Path) -> dict:

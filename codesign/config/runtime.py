@@ -65,6 +65,14 @@ def mask_typed(typed: frozenset[str]) -> bool:
     return any(k == "mask" or k.startswith("mask.") for k in typed)
 
 
+def with_typed_mask(ckpt_cfg: DictConfig, cfg: DictConfig, typed: frozenset[str]) -> DictConfig:
+    """A checkpoint's configuration with this run's mask block when the command line gives one (mask_typed), in
+    place; as it was otherwise."""
+    if mask_typed(typed):
+        ckpt_cfg.mask = OmegaConf.create(OmegaConf.to_container(cfg.mask, resolve=True))
+    return ckpt_cfg
+
+
 def to_container(node) -> dict:
     """A config node as plain Python containers, interpolations resolved ({} for None)."""
     return OmegaConf.to_container(node, resolve=True) if node is not None else {}

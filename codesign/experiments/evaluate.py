@@ -9,7 +9,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from codesign.camera import with_measured_psf
-from codesign.config.runtime import check_seed, explicit_keys, mask_typed
+from codesign.config.runtime import check_seed, explicit_keys, mask_typed, with_typed_mask
 from codesign.design.check import camera_sampling_report
 from codesign.design.measured_merit import measured_psf_report
 from codesign.errors import ConfigError
@@ -41,8 +41,7 @@ def merged_eval_config(cfg: DictConfig, ckpt_cfg: DictConfig, typed: frozenset[s
     masks, data.masks, restores through any). Untyped data keys keep the checkpoint's values, so the test split is
     the one held out during training."""
     merged = with_measured_psf(OmegaConf.create(OmegaConf.to_container(ckpt_cfg, resolve=True)), cfg, typed)
-    if mask_typed(typed):
-        merged.mask = OmegaConf.create(OmegaConf.to_container(cfg.mask, resolve=True))
+    merged = with_typed_mask(merged, cfg, typed)
     for key in data_keys_of_this_run(typed):
         merged.data[key] = cfg.data.get(key)
     merged.evaluate = cfg.get("evaluate")

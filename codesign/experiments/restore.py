@@ -14,10 +14,9 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from omegaconf import OmegaConf
 
 from codesign.camera import build_camera, field_of_view, with_measured_psf
-from codesign.config.runtime import explicit_keys, mask_typed
+from codesign.config.runtime import explicit_keys, mask_typed, with_typed_mask
 from codesign.design.check import camera_sampling_report
 from codesign.design.measured_merit import measured_psf_report
 from codesign.errors import ConfigError
@@ -98,8 +97,7 @@ def run(cfg, run_dir: Path, device: torch.device) -> float:
     model, generators, ckpt_cfg, state = load_trained(cfg.checkpoint, device)
     typed = explicit_keys()
     ckpt_cfg = with_measured_psf(ckpt_cfg, cfg, typed)  # the Wiener stage's OTF then is the measured PSF's
-    if mask_typed(typed):  # the captures came through this mask (a restorer trained for many: data.masks)
-        ckpt_cfg.mask = OmegaConf.create(OmegaConf.to_container(cfg.mask, resolve=True))
+    ckpt_cfg = with_typed_mask(ckpt_cfg, cfg, typed)  # the captures came through this mask (a pool-trained restorer)
     try:
         camera = build_camera(ckpt_cfg, device, torch.float32)
     except ConfigError as err:  # the checkpoint's own settings: say so, not just the key
