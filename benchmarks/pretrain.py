@@ -14,6 +14,8 @@ Each run is ``+experiment=baseline`` (its own evaluation on the built-in test sp
 benchmarks/pretrained_eval.py's, on the 12 photographs of ../shared/data/scenes, on a CPU). Into ``--out``:
 pretrain.json (commands, steps, seconds, device and versions), pretrain.log (every run's log) and each run's
 weights-only checkpoint (<run>.pt, about 10 MiB). ``--dry-run`` rehearses it on a CPU at tiny sizes.
+``--fit-level CKPT`` trains nothing: it turns model.level_head on in a trained checkpoint and fits the head on its
+own training data (SGAN.calibrate), into ``--out``/<name of CKPT> (how the shipped weights got theirs).
 
     python -m benchmarks.pretrain --out DIR --device cuda --steps 500 --budget-s 400
 """
@@ -55,6 +57,36 @@ def run_overrides(name: str, a, work: Path) -> list[str]:
     return common + ["seed=0", "mask=spline", f"mask.init={HELDOUT_MASK}"]
 
 
+def fit_level(src: Path, out: Path, device: str, crops: int) -> dict:
+    """The checkpoint ``src`` with model.level_head on and fitted (its network unchanged), written to out/src.name."""
+    from codesign.models.level import N_FEATURES
+    from codesign.train.checkpoint import load_checkpoint, save_checkpoint
+    from codesign.train.data import SimulatedData
+    from codesign.train.resume import load_trained
+
+    state = load_checkpoint(src)
+    state["config"]["model"]["level_head"] = True
+    if state.get("model_spec"):
+        state["model_spec"]["level_head"] = True
+    unfitted = torch.zeros(N_FEATURES, dtype=torch.float64)  # the head's weight before its fit: gain 1
+    state["model"]["g2.level.weight"] = unfitted
+    if state.get("ema"):
+        state["ema"][2]["level.weight"] = unfitted
+    out.mkdir(parents=True, exist_ok=True)
+    dst, staged = out / src.name, out / (src.stem + ".staged.pt")
+    save_checkpoint(staged, state)
+    model, generators, cfg, _ = load_trained(staged, torch.device(device))
+    staged.unlink()
+    facts = model.calibrate(generators, SimulatedData(cfg, torch.device(device), int(cfg.seed)), crops=crops,
+                            refit=True)
+    state["model"] = model.state_dict()
+    if state.get("ema"):
+        state["ema"] = [g.state_dict() for g in generators]
+    state["record"] = {**(state.get("record") or {}), **facts}
+    save_checkpoint(dst, state)
+    return {"source": str(src), "written": str(dst), **facts}
+
+
 def device_facts(device: str) -> dict:
     facts = {"torch": torch.__version__, "python": platform.python_version(), "machine": platform.processor() or
              platform.machine(), "date": time.strftime("%Y-%m-%d")}
@@ -83,7 +115,14 @@ def main(argv=None) -> int:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="a further override of every run (repeatable), e.g. --set model.g1_halo=true")
     p.add_argument("--dry-run", action="store_true", help="a CPU rehearsal: 2 steps, batch 2, one draw")
+    p.add_argument("--fit-level", type=Path, metavar="CKPT", help="fit model.level_head into this checkpoint only")
+    p.add_argument("--level-crops", type=int, default=1024, help="--fit-level: training crops of the fit")
     a = p.parse_args(argv)
+    if a.fit_level is not None:
+        if not a.fit_level.is_file():
+            p.error(f"--fit-level: no file {a.fit_level}")
+        print(json.dumps(fit_level(a.fit_level, a.out, a.device, a.level_crops), indent=2))
+        return 0
     if a.dry_run:
         a.device, a.steps, a.batch, a.draws, a.budget_s, a.threads = "cpu", 2, 2, 0, None, 1
     runs = [r.strip() for r in a.runs.split(",") if r.strip()]

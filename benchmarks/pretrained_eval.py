@@ -24,12 +24,13 @@ import time
 from pathlib import Path
 
 from benchmarks.common import HELDOUT_MASK
+from codesign.train.evaluation import BASELINES
 from codesign.train.summary import paired_difference
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENES = ROOT.parent / "shared" / "data" / "scenes"
 ALPHAS = ("0", "1e3", "1e5", "1e6")
-METHODS = ("sgan", "wiener", "sensor")
+FLOORS = ("wiener", "sensor")
 
 
 def mask_overrides(mask: str) -> list[str]:
@@ -55,9 +56,12 @@ def evaluate(checkpoint: str, mask: str, scenes: Path, threads: int, work: Path)
     for a in ALPHAS:
         cond = f"laser_{a}"
         table, per = m["evaluation"][cond], m["evaluation_per_scene_psnr_matched"][cond]
-        row = {meth: {q: round(table[meth][q], 3) for q in ("psnr_matched", "psnr", "ssim")} for meth in METHODS}
-        for floor in ("wiener", "sensor"):
-            mean, half = paired_difference(per["sgan"], per[floor])
+        # the restorer's column: its method name (sgan, wiener_unet), the one that is no baseline; stored as "sgan"
+        net = next(k for k in table if k not in BASELINES)
+        row = {meth: {q: round(table[src][q], 3) for q in ("psnr_matched", "psnr", "ssim")}
+               for meth, src in (("sgan", net), *((f, f) for f in FLOORS))}
+        for floor in FLOORS:
+            mean, half = paired_difference(per[net], per[floor])
             row[f"gain_over_{floor}"] = {"mean": round(mean, 3), "interval": None if half is None else round(half, 3)}
         out["alpha"][a] = row
     return out
@@ -70,7 +74,7 @@ def table(result: dict) -> str:
                      f"/ SSIM, and the network's gain over Wiener and over the sensor image (matched PSNR, 95 %)")
         for a, row in r["alpha"].items():
             cells = "  ".join(f"{m} {row[m]['psnr_matched']:.2f}/{row[m]['psnr']:.2f}/{row[m]['ssim']:.3f}"
-                              for m in METHODS)
+                              for m in ("sgan", *FLOORS))
             gw, gs = row["gain_over_wiener"], row["gain_over_sensor"]
             lines.append(f"  alpha_l={a:>4}: {cells}  | vs wiener {gw['mean']:+.2f} +- {gw['interval']:.2f}  "
                          f"vs sensor {gs['mean']:+.2f} +- {gs['interval']:.2f}")

@@ -35,13 +35,13 @@ def test_benchmarks_holds_the_suite_and_its_helpers_only():
     run experiments, not timings: the co-design study (codesign_study.py) and the network's first training steps
     (early_steps.py), the re-measurement of the stored designs' peaks (design_peaks.py) and the mask gradient's
     signal against its batch noise (mask_gradient.py), the shipped restorer's training and its evaluation mask by
-    mask (pretrain.py, pretrained_eval.py); and two tools of the
+    mask (pretrain.py, pretrained_eval.py), every restorer side by side (restorer_table.py), the bound on knowing the scene's level (level_bound.py); and two tools of the
     results: the check of the docs' quoted figures against them (doc_figures.py) and the record of how the held-out
     photographs were made (heldout_scenes.py)."""
     modules = {p.name for p in BENCH_DIR.glob("*.py")}
     allowed = {"__init__.py", "__main__.py", "common.py", "gpu.py", "codesign_study.py", "early_steps.py",
                "design_peaks.py", "doc_figures.py", "heldout_scenes.py", "mask_gradient.py", "pretrain.py",
-               "pretrained_eval.py"} | \
+               "pretrained_eval.py", "restorer_table.py", "level_bound.py"} | \
         {f"bench_{n}.py" for n in BENCHMARKS}
     assert modules <= allowed, f"not part of the suite: {sorted(modules - allowed)}"
     assert not [p for p in BENCH_DIR.iterdir() if p.is_dir() and p.name not in ("results", "__pycache__")]
@@ -154,3 +154,23 @@ def test_early_steps_refuses_unknown_conditions_before_any_work(capsys):
     # each condition keeps its noise stream whichever others are scored (0 and 1: the default pair, as before)
     assert [early_steps.noise_offset(p) for p in ("laser_0", "laser_1e6")] == [0, 1]
     assert len({early_steps.noise_offset(p) for p in ("laser_0", "laser_1e3", "laser_1e5", "laser_1e6", "H1")}) == 5
+
+
+def test_the_restorer_table_refuses_unknown_restorers_and_renders_gains_and_step_times(tmp_path, capsys):
+    from benchmarks import restorer_table as rt
+
+    with pytest.raises(SystemExit):
+        rt.main(["--out", str(tmp_path), "--restorers", "sgan_b,unet9"])
+    assert f"--restorers: unknown ['unet9']; allowed: {', '.join(rt.RESTORERS)}" in capsys.readouterr().err
+
+    def cell(psnr, plain, ssim):
+        return {"psnr_matched": psnr, "psnr": plain, "ssim": ssim}
+
+    alpha = {a: {"sgan": cell(25.0 + i, 20.0, 0.5), "wiener": cell(24.0, 23.0, 0.6), "sensor": cell(22.0, 21.0, 0.4),
+                 "gain_over_wiener": {"mean": 1.0 + i, "interval": 0.25}} for i, a in enumerate(rt.ALPHAS)}
+    rows = {"sgan_b": {"steps": 10, "seconds": 30.0, "eval": {"alpha": alpha}}}
+    lines = rt.table(rows, times={"sgan_b": 1.5}).splitlines()
+    assert lines[2] == "| sensor |  |  | 22.00 | 22.00 | 22.00 | 22.00 | 21.00 / 0.400 | 21.00 / 0.400 |"
+    assert lines[4] == ("| sgan_b | 10 | 1.50 | 25.00 (+1.00 +- 0.25) | 26.00 (+2.00 +- 0.25) | 27.00 (+3.00 +- 0.25) "
+                        "| 28.00 (+4.00 +- 0.25) | 20.00 / 0.500 | 20.00 / 0.500 |")
+    assert rt.table({"sgan_b": {"steps": 10, "seconds": 30.0}}).splitlines()[2] == "| sgan_b | 10 | 3.00 |"

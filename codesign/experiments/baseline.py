@@ -67,6 +67,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
              common["parameters_critics"] / 1e6, spec.steps, int(cfg.data.batch_size), data.image_size,
              data.padded_size, model.loss_status)
     history = trainer.fit(log_every)
+    fitted = trainer.calibrate()  # before the final scores and the evaluation, into the checkpoint (level_head)
     seconds = trainer.train_seconds  # the whole run's, across resumes
     if not ctx.is_main:  # rank 0 evaluates and writes
         return None
@@ -75,7 +76,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
                "seconds": seconds,
                "skipped_updates": trainer.skipped, "undone_updates": trainer.rollbacks, **trainer.divergence(),
                "vgg_loss": model.loss_status,
-               "loss_first": first, "loss_last": last, **trainer.last_val,
+               "loss_first": first, "loss_last": last, **trainer.last_val, **fitted,
                "checkpoint": str(run_dir / CHECKPOINT_NAME)}
     if data.pool is not None:
         metrics["mask_pool"] = data.pool.report()

@@ -62,7 +62,7 @@ PUBLISHED_DIR = "published"
 COMPARED = "laser_1e6"  # the condition whose restorations the comparison figure shows side by side
 
 
-def _train(trainer, cfg, run_dir: Path, log_every: int, label: str) -> dict:
+def _train(trainer, cfg, run_dir: Path, log_every: int, label: str, calibrate: bool = True) -> dict:
     resume_if_possible(trainer, cfg, run_dir, extra_keys=("codesign",))
     main = trainer.dist.is_main  # rank 0 alone writes events and validates
     trainer.writer = open_writer(run_dir, tensorboard_enabled(cfg) and main, purge_step=trainer.step)
@@ -71,9 +71,12 @@ def _train(trainer, cfg, run_dir: Path, log_every: int, label: str) -> dict:
                                    for k, v in trainer.validate(images=True).items()}
     log.info("%s: training from step %d to %d", label, trainer.step, trainer.spec.steps)
     trainer.fit(log_every)
+    # the fitted parts (model.level_head) of a network that will be evaluated, before its final scores
+    fitted = trainer.calibrate() if calibrate else {}
     end = {f"{k.replace('/', '_')}_end": v for k, v in trainer.last_val.items()}
     # a resumed run's record is the whole run's: its start scores and seconds come from the checkpoint
-    return {"seconds": trainer.train_seconds, **trainer.record.get("start", {}), **end, **trainer.divergence()}
+    return {"seconds": trainer.train_seconds, **trainer.record.get("start", {}), **end, **trainer.divergence(),
+            **fitted}
 
 
 def _mask_outputs(monitor: MaskMonitor, system, mask, run_dir: Path, prefix: str, psf0: np.ndarray) -> dict:
@@ -170,7 +173,7 @@ def run_single(cfg: DictConfig, run_dir: Path, device: torch.device, evaluate: b
              sum(p.numel() for p in camera.mask.parameters()), cs.mask_lr, cs.warmup_steps(spec.steps), lsr_max,
              lsr_max_from, spec.steps, int(cfg.data.batch_size), data.image_size, data.padded_size)
     trainer.steps_after = spec.steps if cs.compare_published else 0  # the ETA covers the published training too
-    timing = _train(trainer, cfg, run_dir, log_every, "joint")
+    timing = _train(trainer, cfg, run_dir, log_every, "joint", calibrate=evaluate)
     camera.set_trainable(False)
     camera.invalidate()
     steps = trainer.step

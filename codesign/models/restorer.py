@@ -14,6 +14,8 @@ Interface (see SGAN and WienerUNet for the two implementations):
   generator_losses(batch, out, ctx) -> dict of loss terms with "generator_total"
   critic_losses(batch, out, ctx)   -> dict of loss terms with "critic_total" (only when critics() is not empty)
   prepare_training(device)         build training-only parts (e.g. a VGG loss from a weights file)
+  calibrate(generators, data)      fit what is fitted rather than trained, at the end of a training (default:
+                                   nothing; SGAN's model.level_head)
 """
 from __future__ import annotations
 
@@ -77,6 +79,11 @@ class Restorer(nn.Module):
 
     def prepare_training(self, device: torch.device) -> None:
         """Build what only training needs (loaded weights of a perceptual loss, ...)."""
+
+    def calibrate(self, generators: list[nn.Module], data) -> dict:
+        """Fit the parts that are fitted, not trained, on training-split crops of ``data`` (a SimulatedData),
+        into the model and into ``generators`` (its restoring copies, e.g. EMA); what metrics.json records."""
+        return {}
 
     @property
     def loss_status(self) -> str:

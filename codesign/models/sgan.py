@@ -8,6 +8,7 @@
 """
 from __future__ import annotations
 
+import logging
 import math
 from typing import Mapping
 
@@ -19,11 +20,16 @@ from codesign.config.store import register, spec_node
 from codesign.models import losses
 from codesign.models.discriminators import PatchDiscriminator
 from codesign.models.fill import SATURATED, push_pull_fill, saturated_fraction, valid_pixels
+from codesign.models.level import LevelHead, best_log_gain, fit_weight, level_features
 from codesign.models.losses import LossWeights
 from codesign.models.restorer import Restorer, TrainContext
 from codesign.models.spec import ModelSpec
 from codesign.models.unet import ResUNet, UNetBody, make_head, zero_conv
 from codesign.models.wiener import DeconvModule, wiener_filter
+
+log = logging.getLogger("codesign.train")
+LEVEL_FIT_CROPS = 128  # training-split crops the level head is fitted on (SGAN.calibrate), restored in chunks of
+LEVEL_FIT_CHUNK = 8
 
 
 def coordinates(like: torch.Tensor) -> torch.Tensor:
@@ -104,6 +110,9 @@ def sandwich(generators, sensor: torch.Tensor, otf: torch.Tensor, spec: ModelSpe
     features = gv(i_b, otf)
     base = _plain_module(g2).base(i_b, otf, presence) if spec.g2_residual else None
     b = g2(features, base, presence if spec.g2_gate else None)
+    if spec.level_head:  # both scales brought to the scene's level by one gain per image (no gradient through it)
+        gain = _plain_module(g2).level.gain(b[1], sensor, presence)[:, None, None, None]
+        b = [gain * x for x in b]
     out = {"i_b": i_b, "features": features, "b": b, "restored": b[1]}
     if base is not None:  # what G2's learned correction is added to (the network without that correction)
         out["base"] = base
@@ -126,6 +135,7 @@ class Refiner(nn.Module):
         self.log_nsr = nn.Parameter(torch.tensor(math.log(spec.g2_base_nsr))) if spec.g2_base == "wiener" else None
         # model.laser_gate: the saturated fraction at which presence is 1/2, and the lasered images' log nsr
         self.log_f0 = nn.Parameter(torch.tensor(math.log(spec.laser_gate_f0))) if spec.laser_gate else None
+        self.level = LevelHead() if spec.level_head else None  # model.level_head
         self.log_nsr_lasered = (nn.Parameter(torch.tensor(math.log(spec.g2_base_nsr_lasered)))
                                 if spec.laser_gate and spec.g2_base == "wiener" else None)
 
@@ -225,6 +235,45 @@ class SGAN(Restorer):
     @property
     def loss_status(self) -> str:
         return self._vgg_status
+
+    @torch.no_grad()
+    def calibrate(self, generators, data, crops: int = LEVEL_FIT_CROPS, refit: bool = False) -> dict:
+        """model.level_head: fit the gain head on training-split crops drawn as in training, ``crops`` / 2 scenes
+        each imaged without a laser and with the laser drawn for it (the validation batch's scenes and parameters,
+        every alpha_b of the training distribution), restored by ``generators`` with the head off. The fit is of
+        the head as it is applied: the log gain times 1 - p (the laser's presence, model.laser_gate), so a dazzled
+        image G2 restores weighs by how much of the gain it gets. The weight goes into the model and into
+        ``generators``' G2. A head already fitted (a warm start's: the shipped network's was fitted on 1,024
+        crops) is kept unless ``refit``: the unlasered output it scales is the unit-DC Wiener base, whose level a
+        fine-tuning does not move."""
+        if not self.spec.level_head:
+            return {}
+        heads = [_plain_module(generators[2]).level, self.g2.level]
+        if heads[0].fitted and not refit:
+            return {"level_head": "kept (fitted before this training)"}
+        for h in heads:
+            h.set_weight(torch.zeros_like(h.weight))
+        rows, logs = [], []
+        half = crops // 2
+        for batch in (data.unlasered_batch(half), data.validation_batch(half)):
+            for k in range(0, half, LEVEL_FIT_CHUNK):
+                sensor, scene = batch["sensor"][k:k + LEVEL_FIT_CHUNK], batch["scene"][k:k + LEVEL_FIT_CHUNK]
+                out = self.restore(sensor, data.otf, generators)["restored"]
+                presence = laser_presence(generators[2], sensor, self.spec)
+                keep = 1.0 if presence is None else (1 - presence.double())[:, None]
+                rows.append(level_features(out, sensor) * keep)
+                logs.append(best_log_gain(out, scene, sensor > 0))
+        f, t = torch.cat(rows), torch.cat(logs)
+        weight = fit_weight(f, t)
+        for h in heads:
+            h.set_weight(weight.to(h.weight))
+        ok = torch.isfinite(t)
+        pred = (f @ weight.to(f))[ok]
+        r2 = 1 - float((t[ok] - pred).var() / t[ok].var())
+        log.info("model.level_head fitted on %d training crops (half without a laser): gain %.3g to %.3g, R^2 %.2f "
+                 "of the best log gains", int(ok.sum()), float(pred.exp().min()), float(pred.exp().max()), r2)
+        return {"level_head": {"crops": int(ok.sum()), "r2": round(r2, 4), "gain_min": float(pred.exp().min()),
+                               "gain_max": float(pred.exp().max())}}
 
     # ---- restoring ----------------------------------------------------------------------------------------------
     def forward_with(self, generators, sensor: torch.Tensor, otf: torch.Tensor) -> dict:
@@ -331,8 +380,10 @@ for _variant, _loss in VARIANT_LOSSES.items():  # the config options model=sgan_
 # keep it above the sensor image and ahead of Wiener from the first steps (docs/models.md Sec. 10); and tuned to the
 # mask it restores: the base's nsr set per mask before a run from fresh weights, as the classical floor is, and a
 # laser's presence counted from 1 % of saturated pixels, so that a weak laser's few saturated pixels (alpha_l = 1e3)
-# leave the image to that tuned base (the main job's measurements: docs/codesign.md Sec. 7)
+# leave the image to that tuned base (the main job's measurements: docs/codesign.md Sec. 7); and brought to the
+# scene's level by a gain per image fitted at the end of training (model.level_head, docs/models.md Sec. 12)
 GATED = {"g2_residual": True, "g1_base": "filled", "g2_base": "wiener", "laser_gate": True,
-         "g2_base_nsr_lasered": 100.0, "g2_gate": True, "laser_gate_f0": 1e-2, "g2_base_nsr_tuned": True}
+         "g2_base_nsr_lasered": 100.0, "g2_gate": True, "laser_gate_f0": 1e-2, "g2_base_nsr_tuned": True,
+         "level_head": True}
 _GATED_NODE = spec_node(ModelSpec, name="sgan_b_gated", variant="sgan_b", **GATED)
 register("model", "sgan_b_gated", {"kind": SGAN.kind, **_GATED_NODE, "loss": spec_node(LossWeights)})

@@ -75,6 +75,9 @@ class ModelSpec(SpecMixin):
     g1_halo: G1 takes a fourth channel, where the laser's light lies: the system PSF spread over the saturated pixels,
     in decades below its peak (codesign/models/sgan.py halo_map). Without it G1 sees the mask only through the image,
     and a G1 trained over many masks (data.masks) learns their average halo (docs/models.md Sec. 11).
+    level_head: the output is multiplied by a gain per image that brings it to the scene's level, estimated from
+    the output's histogram by a head fitted at the end of training on training-split crops (codesign/models/level.py;
+    the background strength alpha_b scales what the sensor sees and is known to no method: docs/models.md Sec. 12).
     """
 
     name: str | None = None
@@ -102,6 +105,7 @@ class ModelSpec(SpecMixin):
     g2_gate: bool = False
     g2_base_nsr_tuned: bool = False
     g1_halo: bool = False
+    level_head: bool = False
     prefix: str = field(default="model", compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -139,7 +143,7 @@ class ModelSpec(SpecMixin):
                               "correction)")
         require_number(f"{p}.g2_head_layers", self.g2_head_layers, lo=1, hi=8, integer=True)
         for key in ("attention", "coarse_to_fine", "g1_residual", "g2_linear_skip", "g2_residual", "laser_gate",
-                    "g2_gate", "g2_base_nsr_tuned", "g1_halo"):
+                    "g2_gate", "g2_base_nsr_tuned", "g1_halo", "level_head"):
             if not isinstance(getattr(self, key), bool):
                 raise ConfigError(f"{p}.{key}", getattr(self, key), "must be true or false")
         if self.g2_base_nsr_tuned and self.g2_base != "wiener":

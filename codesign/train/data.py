@@ -132,6 +132,15 @@ class SimulatedData:
         with torch.no_grad():
             return self.simulate(*self._val_inputs, seed=self.validation_noise_seed)
 
+    def unlasered_batch(self, size: int) -> dict:
+        """The validation batch's ``size`` scenes and parameters without the laser (alpha_l = 0; every other
+        parameter as drawn from the training distribution, alpha_b among them), same noise seed: what a restorer
+        fits its unlasered behaviour on (model.level_head)."""
+        self.validation_scenes(size)
+        scenes, params = self._val_inputs
+        with torch.no_grad():
+            return self.simulate(scenes, params.replace(alpha_l=0.0), seed=self.validation_noise_seed)
+
     @property
     def validation_noise_seed(self) -> int:
         """The noise seed of the validation batch (and of the evaluation's baseline tuning on its scenes)."""

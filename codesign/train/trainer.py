@@ -308,6 +308,19 @@ class Trainer(TrainContext):
             **(self.codesign.state_dict() if self.codesign is not None else {}),
         }
 
+    def calibrate(self) -> dict:
+        """The restorer's fitted parts (Restorer.calibrate, e.g. model.level_head) on this training's data, into the
+        model and the restoring modules; then (rank 0) the validation scores taken again and the checkpoint written
+        again with them, so that its final scores are those of the network it holds. What metrics.json records ({}
+        when the restorer fits nothing). Every rank fits the same (the same batch, the same weights)."""
+        facts = self.model.calibrate(self.restoring_modules(), self.data)
+        if facts:
+            self.record.update(facts)
+            if self.dist.is_main:
+                self.validate(images=False)
+                self.save()
+        return facts
+
     def save(self, path: Path | None = None) -> Path:
         return save_checkpoint(path or self.run_dir / CHECKPOINT_NAME, self.state_dict())
 

@@ -129,7 +129,7 @@ def _weights_finite(modules) -> bool:
     return all(bool(torch.isfinite(p).all()) for m in modules for p in m.parameters())
 
 
-@pytest.mark.parametrize("steps", [pytest.param(100, id="ci"), pytest.param(600, marks=pytest.mark.slow, id="long")])
+@pytest.mark.parametrize("steps", [pytest.param(60, id="ci"), pytest.param(600, marks=pytest.mark.slow, id="long")])
 def test_long_wgan_gp_run_under_strong_lasers_stays_finite_bounded_and_learns(tmp_path, steps):
     tr = tiny_trainer(tmp_path, *STRONG_LASER, steps=steps, **NO_IO)
     assert tr.model.weights.adv > 0 and tr.model.weights.gp > 0  # SGAN-B: WGAN-GP critics D1 and D2 (two scales)
@@ -143,7 +143,7 @@ def test_long_wgan_gp_run_under_strong_lasers_stays_finite_bounded_and_learns(tm
     assert _weights_finite([tr.model])
 
 
-@pytest.mark.parametrize("steps", [pytest.param(40, id="ci"), pytest.param(300, marks=pytest.mark.slow, id="long")])
+@pytest.mark.parametrize("steps", [pytest.param(24, id="ci"), pytest.param(300, marks=pytest.mark.slow, id="long")])
 def test_bf16_autocast_run_under_strong_lasers_stays_finite_and_bounded(tmp_path, steps):
     """trainer.amp=bf16: the networks in bfloat16, the optics, the simulation, the Wiener layer and the losses in
     float32 (docs/scaling.md): the same bounds as the float32 run, every batch saturated by the laser."""
