@@ -27,6 +27,7 @@ MAIN_JOB = "benchmarks/results/main_job/metrics.json"
 MAIN_JOB_SEED1 = "benchmarks/results/main_job/seed1/metrics.json"
 GRADIENT = "benchmarks/results/mask_gradient/published_seed{}.json"
 PRETRAINED = "benchmarks/results/pretrained/eval_{}.json"
+RESTORERS = "benchmarks/results/restorers/restorer_table.json"
 
 
 def sci(v: float, digits: int = 3) -> str:
@@ -105,6 +106,18 @@ def _pool_row(label: str, run: str) -> Quote:
     return Quote("docs/models.md", f"| {label} | " + " | ".join(["{}"] * 4) + " |", PRETRAINED.format(run), values)
 
 
+def _restorer_row(name: str) -> Quote:
+    """A row of docs/models.md Sec. 8 after its step time: matched PSNR (gain over Wiener) per alpha_l, then plain
+    PSNR / SSIM at alpha_l = 0 and 1e6."""
+    def values(d):
+        rows = d["rows"][name]["eval"]["alpha"]
+        gains = [f"{fixed(rows[a]['sgan']['psnr_matched'])} ({signed(rows[a]['gain_over_wiener']['mean'])} +- "
+                 f"{fixed(rows[a]['gain_over_wiener']['interval'])})" for a in ("0", "1e3", "1e5", "1e6")]
+        plain = [f"{fixed(rows[a]['sgan']['psnr'])} / {fixed(rows[a]['sgan']['ssim'], 3)}" for a in ("0", "1e6")]
+        return (*gains, *plain)
+    return Quote("docs/models.md", " " + " | ".join(["{}"] * 6) + " |", RESTORERS, values)
+
+
 def _total_gains(m: dict) -> tuple[str, ...]:
     """The main job's total gain per alpha_l as the page writes it: +4.20 +- 1.45."""
     from codesign.train.protocol_summary import GAINS
@@ -164,6 +177,8 @@ QUOTES: list[Quote] = [
     _pool_row("pool of 12 masks, G1 with the halo channel", "pool_halo"),
     _pool_row("this mask alone, G1 with the halo channel", "single_halo"),
     _pool_row("pool of 12 masks, 1,600 steps", "pool_1600"),
+    # docs/models.md Sec. 8: every restorer at 400 steps on the published mask
+    *(_restorer_row(n) for n in ("sgan_b", "sgan_e", "sgan_f", "sgan_b_gated", "wiener_unet")),
     # docs/codesign.md Sec. 7: the mask gradient's signal against its noise, two seeds
     Quote("docs/codesign.md", "is **{}** (seed 0) and **{}** (seed 1)", GRADIENT.format(0),
           lambda d: (fixed(d["snr_one_batch"]), fixed(read_metrics(REPO / GRADIENT.format(1))["snr_one_batch"]))),

@@ -127,6 +127,8 @@ class Trainer(TrainContext):
                     break
         if self.dist.is_main:
             self.losses.warn_if_diverged()
+        # the training's seconds stop here: what follows (calibrate, evaluation) is not training time
+        self.seconds_before, self._fit_t0 = self.train_seconds, None
         return [t for t in (self.losses.first, self.losses.last) if t]
 
     def train_step(self) -> dict:
