@@ -213,7 +213,8 @@ def report(res: dict, out: Path) -> Report:
         f"PSNR matched on a log grid; chosen: {res['calibration']['nsr']['wiener']:.3g}), then a global gain/offset; "
         "sensor: the raw image with its black level removed and a global gain/offset, the floor."
         + (" The tuned nsr is the top of the grid: at this noise and MTF the Wiener filter degenerates to a matched "
-           "filter (docs/results_log.md, restorers after 15 minutes of CPU, item 3)." if res["calibration"]["nsr"]["wiener"] >= max(NSR_GRID) else ""),
+           "filter (docs/results_log.md, restorers after 15 minutes of CPU, item 3)."
+           if res["calibration"]["nsr"]["wiener"] >= max(NSR_GRID) else ""),
         f"ms/image: median of repeats at batch 1 on {res['device']}, eval mode, no gradient, the whole network "
         f"(SGAN: the sandwich G2(G_v(G1(s)))) on the {p['padded']}-px input; threads {res['machine']['threads']}. "
         "Framework default: "

@@ -35,9 +35,9 @@ def test_benchmarks_holds_the_suite_and_its_helpers_only():
     run experiments, not timings: the co-design study (codesign_study.py) and the network's first training steps
     (early_steps.py), the re-measurement of the stored designs' peaks (design_peaks.py) and the mask gradient's
     signal against its batch noise (mask_gradient.py), the shipped restorer's training and its evaluation mask by
-    mask (pretrain.py, pretrained_eval.py), every restorer side by side (restorer_table.py), the bound on knowing the scene's level (level_bound.py); and two tools of the
-    results: the check of the docs' quoted figures against them (doc_figures.py) and the record of how the held-out
-    photographs were made (heldout_scenes.py)."""
+    mask (pretrain.py, pretrained_eval.py), every restorer side by side (restorer_table.py), the bound on knowing
+    the scene's level (level_bound.py); and two tools of the results: the check of the docs' quoted figures against
+    them (doc_figures.py) and the record of how the held-out photographs were made (heldout_scenes.py)."""
     modules = {p.name for p in BENCH_DIR.glob("*.py")}
     allowed = {"__init__.py", "__main__.py", "common.py", "gpu.py", "codesign_study.py", "early_steps.py",
                "design_peaks.py", "doc_figures.py", "heldout_scenes.py", "mask_gradient.py", "pretrain.py",
