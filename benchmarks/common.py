@@ -26,6 +26,15 @@ RESULTS = REPO / "benchmarks" / "results"
 CONF = REPO / "conf"
 
 
+def mask_overrides(mask: str) -> list[str]:
+    """The config overrides that image through ``mask``: ``published`` (the five half rings), ``heldout``
+    (HELDOUT_MASK) or the path of a mask record."""
+    if mask == "published":
+        return ["mask=halfring"]
+    path = HELDOUT_MASK if mask == "heldout" else Path(mask).resolve()
+    return ["mask=" + json.loads(path.read_text())["kind"], f"mask.init={path}"]
+
+
 def machine() -> dict:
     cpu = platform.processor() or platform.machine()
     try:

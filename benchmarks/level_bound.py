@@ -24,6 +24,7 @@ import torch
 from benchmarks.common import machine, write_json
 from codesign.data.builtin import available_skimage_scenes
 from codesign.data.images import find_image_files, load_image
+from codesign.models.quality import psnr
 from codesign.models.level import LevelHead, best_log_gain, fit_weight, level_features
 
 SCENES = Path(__file__).resolve().parents[2] / "shared" / "data" / "scenes"
@@ -50,11 +51,6 @@ def centre(img: torch.Tensor, size: int) -> torch.Tensor:
     return img[(h - size) // 2:(h - size) // 2 + size, (w - size) // 2:(w - size) // 2 + size]
 
 
-def psnr(x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    mse = (x.clamp(0, 1) - target).square().flatten(1).mean(1)
-    return 10 * torch.log10(1 / mse)
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, required=True)
@@ -79,9 +75,9 @@ def main(argv=None) -> int:
         target = torch.stack([centre(ph, size) for ph in photos])[:, None]
         out = EVAL_ALPHA_B * target
         gain = head.gain(out, out)[:, None, None, None]
-        row = {"sensor level": float(psnr(out, target).mean()),
-               "best constant": float(psnr(constant * out, target).mean()),
-               "level head": float(psnr(gain * out, target).mean()),
+        row = {"sensor level": float(psnr(out.clamp(0, 1), target).mean()),
+               "best constant": float(psnr((constant * out).clamp(0, 1), target).mean()),
+               "level head": float(psnr((gain * out).clamp(0, 1), target).mean()),
                "head gain x alpha_b (1 = right)": [round(float(g) * EVAL_ALPHA_B, 3) for g in gain.flatten()]}
         result["plain_psnr"][f"{size} px"] = row
         print(f"{len(photos)} photographs, centre {size} px, alpha_b {EVAL_ALPHA_B}, a perfect restoration: plain "

@@ -74,9 +74,11 @@ def fit_level(src: Path, out: Path, device: str, crops: int) -> dict:
         state["ema"][2]["level.weight"] = unfitted
     out.mkdir(parents=True, exist_ok=True)
     dst, staged = out / src.name, out / (src.stem + ".staged.pt")
-    save_checkpoint(staged, state)
-    model, generators, cfg, _ = load_trained(staged, torch.device(device))
-    staged.unlink()
+    save_checkpoint(staged, state)  # load_trained reads a file: the checkpoint as it will be, with an unfitted head
+    try:
+        model, generators, cfg, _ = load_trained(staged, torch.device(device))
+    finally:
+        staged.unlink()
     facts = model.calibrate(generators, SimulatedData(cfg, torch.device(device), int(cfg.seed)), crops=crops,
                             refit=True)
     state["model"] = model.state_dict()

@@ -23,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from benchmarks.common import HELDOUT_MASK
+from benchmarks.common import mask_overrides
 from codesign.train.evaluation import BASELINES
 from codesign.train.summary import paired_difference
 
@@ -31,13 +31,6 @@ ROOT = Path(__file__).resolve().parents[1]
 SCENES = ROOT.parent / "shared" / "data" / "scenes"
 ALPHAS = ("0", "1e3", "1e5", "1e6")
 FLOORS = ("wiener", "sensor")
-
-
-def mask_overrides(mask: str) -> list[str]:
-    if mask == "published":
-        return ["mask=halfring"]
-    path = HELDOUT_MASK if mask == "heldout" else Path(mask).resolve()
-    return ["mask=" + json.loads(path.read_text())["kind"], f"mask.init={path}"]
 
 
 def evaluate(checkpoint: str, mask: str, scenes: Path, threads: int, work: Path) -> dict:

@@ -25,7 +25,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from benchmarks.common import keep_weights, machine, markdown_table, write_json, write_text
+from benchmarks.common import keep_weights, machine, mask_overrides, markdown_table, write_json, write_text
 
 ROOT = Path(__file__).resolve().parents[1]
 RESTORERS = ("sgan_b", "sgan_e", "sgan_f", "sgan_b_gated", "wiener_unet")
@@ -33,13 +33,11 @@ ALPHAS = ("0", "1e3", "1e5", "1e6")
 
 
 def train_command(model: str, a, run: Path) -> list[str]:
-    mask = ["mask=halfring"] if a.mask == "published" else ["mask=" + json.loads(Path(a.mask).read_text())["kind"],
-                                                             f"mask.init={Path(a.mask).resolve()}"]
     return [sys.executable, "-m", "codesign", "+experiment=baseline", f"model={model}", "preset=joint_cpu",
             "trainer=joint_cpu", f"trainer.steps={a.steps}", f"data.batch_size={a.batch}", f"seed={a.seed}",
-            f"threads={a.threads}", "device=cpu", *mask, f"trainer.val_every={a.steps}", "trainer.image_every=0",
-            f"trainer.checkpoint_every={a.steps}", "evaluate.laser_strengths=[0]", "evaluate.stages=[]",
-            "evaluate.max_scenes=1", "logging.tensorboard=false", f"hydra.run.dir={run}"]
+            f"threads={a.threads}", "device=cpu", *mask_overrides(a.mask), f"trainer.val_every={a.steps}",
+            "trainer.image_every=0", f"trainer.checkpoint_every={a.steps}", "evaluate.laser_strengths=[0]",
+            "evaluate.stages=[]", "evaluate.max_scenes=1", "logging.tensorboard=false", f"hydra.run.dir={run}"]
 
 
 def run(cmd: list[str], log: Path) -> None:

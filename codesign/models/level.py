@@ -46,9 +46,9 @@ def field_quantiles(x: torch.Tensor, field: torch.Tensor) -> torch.Tensor:
 
 
 def level_features(x: torch.Tensor, sensor: torch.Tensor) -> torch.Tensor:
-    """(B, N_FEATURES) float64 features of the head: 1, log q, (log q)^2, log q * log q_top, log f and log f * log q,
-    with q the quantiles of ``x`` over the pixels the sensor measured below saturation (the laser's footprint tells
-    nothing of the scene's level) and f the saturated share of the field (how much of the image a laser holds)."""
+    """(B, N_FEATURES) float64 features of the head: 1, log q, (log q)^2 and log q * log q_top, with q the
+    quantiles of ``x`` over the pixels the sensor measured below saturation (the laser's footprint tells nothing of
+    the scene's level)."""
     lq = field_quantiles(x.detach().double(), valid_pixels(sensor)).clamp_min(FLOOR).log()
     return torch.cat([torch.ones_like(lq[:, :1]), lq, lq * lq, lq * lq[:, -1:]], 1)
 

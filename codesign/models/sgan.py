@@ -270,10 +270,11 @@ class SGAN(Restorer):
         ok = torch.isfinite(t)
         pred = (f @ weight.to(f))[ok]
         r2 = 1 - float((t[ok] - pred).var() / t[ok].var())
+        fact = {"crops": int(ok.sum()), "r2": round(r2, 4), "gain_min": float(pred.exp().min()),
+                "gain_max": float(pred.exp().max())}
         log.info("model.level_head fitted on %d training crops (half without a laser): gain %.3g to %.3g, R^2 %.2f "
-                 "of the best log gains", int(ok.sum()), float(pred.exp().min()), float(pred.exp().max()), r2)
-        return {"level_head": {"crops": int(ok.sum()), "r2": round(r2, 4), "gain_min": float(pred.exp().min()),
-                               "gain_max": float(pred.exp().max())}}
+                 "of the best log gains", fact["crops"], fact["gain_min"], fact["gain_max"], r2)
+        return {"level_head": fact}
 
     # ---- restoring ----------------------------------------------------------------------------------------------
     def forward_with(self, generators, sensor: torch.Tensor, otf: torch.Tensor) -> dict:
