@@ -28,6 +28,19 @@ MAIN_JOB_SEED1 = "benchmarks/results/main_job/seed1/metrics.json"
 GRADIENT = "benchmarks/results/mask_gradient/published_seed{}.json"
 PRETRAINED = "benchmarks/results/pretrained/eval_{}.json"
 RESTORERS = "benchmarks/results/restorers/restorer_table.json"
+TARGET_LEVEL = "benchmarks/results/restorers/target_level/target_level.json"
+
+
+TARGET_LEVEL_ROWS = (
+    "the main job's recipe (gated, scene target, linear alpha_l), seed 0",
+    "the main job's recipe, seed 1",
+    "ungated G2, log alpha_l, seed 0",
+    "ungated, exposure target, log alpha_l, seed 0",
+    "ungated, exposure target, log alpha_l, seed 1",
+    "the same, L1 only (adv = mdf = 0), seed 0",
+    "the same, L1 only, seed 1",
+    "the same, L1 only, 800 steps, seed 0",
+)
 
 
 def sci(v: float, digits: int = 3) -> str:
@@ -106,16 +119,16 @@ def _pool_row(label: str, run: str) -> Quote:
     return Quote("docs/models.md", f"| {label} | " + " | ".join(["{}"] * 4) + " |", PRETRAINED.format(run), values)
 
 
-def _restorer_row(name: str) -> Quote:
-    """A row of docs/models.md Sec. 8 after its step time: matched PSNR (gain over Wiener) per alpha_l, then plain
-    PSNR / SSIM at alpha_l = 0 and 1e6."""
+def _restorer_row(name: str, source: str = RESTORERS) -> Quote:
+    """A row of docs/models.md Sec. 8 (or of Sec. 13: ``source`` TARGET_LEVEL) after its step time: matched PSNR
+    (gain over Wiener) per alpha_l, then plain PSNR / SSIM at alpha_l = 0 and 1e6."""
     def values(d):
         rows = d["rows"][name]["eval"]["alpha"]
         gains = [f"{fixed(rows[a]['sgan']['psnr_matched'])} ({signed(rows[a]['gain_over_wiener']['mean'])} +- "
                  f"{fixed(rows[a]['gain_over_wiener']['interval'])})" for a in ("0", "1e3", "1e5", "1e6")]
         plain = [f"{fixed(rows[a]['sgan']['psnr'])} / {fixed(rows[a]['sgan']['ssim'], 3)}" for a in ("0", "1e6")]
         return (*gains, *plain)
-    return Quote("docs/models.md", " " + " | ".join(["{}"] * 6) + " |", RESTORERS, values)
+    return Quote("docs/models.md", " " + " | ".join(["{}"] * 6) + " |", source, values)
 
 
 def _total_gains(m: dict) -> tuple[str, ...]:
@@ -179,6 +192,7 @@ QUOTES: list[Quote] = [
     _pool_row("pool of 12 masks, 1,600 steps", "pool_1600"),
     # docs/models.md Sec. 8: every restorer at 400 steps on the published mask
     *(_restorer_row(n) for n in ("sgan_b", "sgan_e", "sgan_f", "sgan_b_gated", "wiener_unet")),
+    *(_restorer_row(n, TARGET_LEVEL) for n in TARGET_LEVEL_ROWS),
     # docs/codesign.md Sec. 7: the mask gradient's signal against its noise, two seeds
     Quote("docs/codesign.md", "is **{}** (seed 0) and **{}** (seed 1)", GRADIENT.format(0),
           lambda d: (fixed(d["snr_one_batch"]), fixed(read_metrics(REPO / GRADIENT.format(1))["snr_one_batch"]))),

@@ -37,7 +37,8 @@ def train_command(model: str, a, run: Path) -> list[str]:
             "trainer=joint_cpu", f"trainer.steps={a.steps}", f"data.batch_size={a.batch}", f"seed={a.seed}",
             f"threads={a.threads}", "device=cpu", *mask_overrides(a.mask), f"trainer.val_every={a.steps}",
             "trainer.image_every=0", f"trainer.checkpoint_every={a.steps}", "evaluate.laser_strengths=[0]",
-            "evaluate.stages=[]", "evaluate.max_scenes=1", "logging.tensorboard=false", f"hydra.run.dir={run}"]
+            "evaluate.stages=[]", "evaluate.max_scenes=1", "logging.tensorboard=false", f"hydra.run.dir={run}",
+            *a.set]
 
 
 def run(cmd: list[str], log: Path) -> None:
@@ -73,7 +74,7 @@ def table(rows: dict, times: dict | None = None) -> str:
         al = r["eval"]["alpha"]
         gains = [f"{al[x]['sgan']['psnr_matched']:.2f} ({al[x]['gain_over_wiener']['mean']:+.2f} +- "
                  f"{al[x]['gain_over_wiener']['interval']:.2f})" for x in ALPHAS]
-        step = times.get(name, r["seconds"] / r["steps"] if r.get("steps") else None)
+        step = times.get(name, r["seconds"] / r["steps"] if r.get("steps") and r.get("seconds") else None)
         step = "n/a" if step is None else f"{step:.2f}"
         body.append([name, r.get("steps", "n/a"), step, *gains,
                      *(f"{al[x]['sgan']['psnr']:.2f} / {al[x]['sgan']['ssim']:.3f}" for x in ("0", "1e6"))])
@@ -98,6 +99,8 @@ def main(argv=None) -> int:
     p.add_argument("--mask", default="published", help="published, or the path of a mask record")
     p.add_argument("--restorers", default=",".join(RESTORERS))
     p.add_argument("--with-pretrained", action="store_true", help="add the shipped restorer as a reference row")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a further override of every training (repeatable), e.g. --set model.target_level=exposure")
     p.add_argument("--no-eval", action="store_true", help="train and time only (a clean step-time run)")
     p.add_argument("--times", type=Path, help="a --no-eval run's restorer_table.json: the step-time column from it")
     p.add_argument("--render", type=Path, help="train nothing: write the table of this restorer_table.json again "

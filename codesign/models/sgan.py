@@ -111,7 +111,9 @@ def sandwich(generators, sensor: torch.Tensor, otf: torch.Tensor, spec: ModelSpe
     base = _plain_module(g2).base(i_b, otf, presence) if spec.g2_residual else None
     b = g2(features, base, presence if spec.g2_gate else None)
     if spec.level_head:  # both scales brought to the scene's level by one gain per image (no gradient through it)
-        gain = _plain_module(g2).level.gain(b[1], sensor, presence)[:, None, None, None]
+        # held to the exposure, every output sits at the sensor's level, lasered or not: the gain applies in full
+        gated = presence if spec.target_level == "scene" else None
+        gain = _plain_module(g2).level.gain(b[1], sensor, gated)[:, None, None, None]
         b = [gain * x for x in b]
     out = {"i_b": i_b, "features": features, "b": b, "restored": b[1]}
     if base is not None:  # what G2's learned correction is added to (the network without that correction)
@@ -260,7 +262,8 @@ class SGAN(Restorer):
                 sensor, scene = batch["sensor"][k:k + LEVEL_FIT_CHUNK], batch["scene"][k:k + LEVEL_FIT_CHUNK]
                 out = self.restore(sensor, data.otf, generators)["restored"]
                 presence = laser_presence(generators[2], sensor, self.spec)
-                keep = 1.0 if presence is None else (1 - presence.double())[:, None]
+                gated = presence is not None and self.spec.target_level == "scene"
+                keep = (1 - presence.double())[:, None] if gated else 1.0
                 rows.append(level_features(out, sensor) * keep)
                 logs.append(best_log_gain(out, scene, sensor > 0))
         f, t = torch.cat(rows), torch.cat(logs)
@@ -297,7 +300,7 @@ class SGAN(Restorer):
         update must neither consume nor write gradients into."""
         w = self.weights
         s, i_b = batch["sensor"].detach(), batch["irradiance"].detach()
-        targets = _targets(batch)
+        targets = _targets(batch, self.spec.target_level)
         fake_i, fake_b = out["i_b"].detach(), [b.detach() for b in out["b"]]
         d1n, d2n = ctx.critics[0], ctx.critics[1:]
         critic1 = lambda x: ctx.run(d1n, torch.cat([s, coordinates(s), x], 1))[0]  # noqa: E731
@@ -318,7 +321,7 @@ class SGAN(Restorer):
         weights. The critics run as plain modules (frozen by the trainer: they take no update here)."""
         w, eps = self.weights, self.weights.charbonnier_eps
         s, i_b = batch["sensor"], batch["irradiance"]
-        targets = _targets(batch)
+        targets = _targets(batch, self.spec.target_level)
         terms = {"rec1": losses.charbonnier(out["i_b"], i_b, eps),
                  "rec2": sum(losses.charbonnier(out["b"][k], targets[k], eps) for k in range(2))}
         total = w.l1_stage1 * terms["rec1"] + w.l1_stage2 * terms["rec2"]
@@ -355,10 +358,17 @@ class SGAN(Restorer):
         self.spec.check_input_size(padded_size, key)
 
 
-def _targets(batch: dict) -> list[torch.Tensor]:
-    """[coarse, fine] scene targets of G2, computed once per batch and kept in it."""
+def _targets(batch: dict, level: str = "scene") -> list[torch.Tensor]:
+    """[coarse, fine] targets of G2, computed once per batch and kept in it: the scene, or with ``level``
+    "exposure" the scene at the exposure the sensor saw, alpha_b * b (model.target_level)."""
     if batch.get("targets") is None:
-        batch["targets"] = pyramid(batch["scene"])
+        scene = batch["scene"]
+        if level == "exposure":
+            if batch.get("alpha_b") is None:
+                raise ValueError("model.target_level=exposure needs the batch's alpha_b (B,), which "
+                                 "SimulatedData.simulate provides; this batch has none")
+            scene = scene * batch["alpha_b"].to(scene)[:, None, None, None]
+        batch["targets"] = pyramid(scene)
     return batch["targets"]
 
 

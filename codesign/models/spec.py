@@ -14,6 +14,7 @@ from codesign.spec_base import SpecMixin
 VARIANTS = ("sgan_b", "sgan_e", "sgan_f")
 G1_BASES = ("sensor", "filled")
 G2_BASES = ("i_b", "wiener")
+TARGET_LEVELS = ("scene", "exposure")
 SIZES: dict[str, dict] = {
     "paper": {"stem_width": 64, "widths": (64, 128, 256, 512, 512, 512, 512), "d_widths": (64, 128, 256, 512)},
     "cpu": {"stem_width": 16, "widths": (16, 32, 64, 64), "d_widths": (16, 32, 64, 64)},
@@ -78,6 +79,12 @@ class ModelSpec(SpecMixin):
     level_head: the output is multiplied by a gain per image that brings it to the scene's level, estimated from
     the output's histogram by a head fitted at the end of training on training-split crops (codesign/models/level.py;
     the background strength alpha_b scales what the sensor sees and is known to no method: docs/models.md Sec. 12).
+    target_level: what G2's reconstruction and adversarial terms compare its output with: the scene b (scene, the
+    paper's) or the scene at the exposure the sensor saw, alpha_b * b (exposure). alpha_b is drawn independently
+    of the scene, so an output held to b must guess a gain the image does not carry, and that guess dominates
+    the L1 gradient wherever the image has no laser to remove; held to alpha_b * b, G2 learns only the
+    restoration, and the level head (applied to every image, lasered or not) brings the output to the scene's
+    level (docs/models.md Sec. 13).
     """
 
     name: str | None = None
@@ -106,6 +113,7 @@ class ModelSpec(SpecMixin):
     g2_base_nsr_tuned: bool = False
     g1_halo: bool = False
     level_head: bool = False
+    target_level: str = "scene"
     prefix: str = field(default="model", compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -129,6 +137,7 @@ class ModelSpec(SpecMixin):
         require_number(f"{p}.gamma_init", self.gamma_init, lo=1e-7, hi=1e6)
         require_choice(f"{p}.g1_base", self.g1_base, G1_BASES)
         require_choice(f"{p}.g2_base", self.g2_base, G2_BASES)
+        require_choice(f"{p}.target_level", self.target_level, TARGET_LEVELS)
         require_number(f"{p}.g2_base_nsr", self.g2_base_nsr, lo=1e-8, hi=1e4)
         if self.g2_base != "i_b" and not self.g2_residual:
             raise ConfigError(f"{p}.g2_base", self.g2_base, "needs model.g2_residual=true (it is what G2's residual "

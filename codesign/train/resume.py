@@ -135,7 +135,7 @@ def load_ema_weights(generators: list, state: dict, key: str, path, what: str) -
 # SGAN keys added after checkpoints were written, at the values those checkpoints were trained with
 SGAN_ADDED = {"g2_residual": False, "g1_base": "sensor", "g2_base": "i_b", "g2_base_nsr": 3e-2, "laser_gate": False,
               "laser_gate_f0": 1e-3, "g2_base_nsr_lasered": 3e-2, "g2_gate": False, "g2_base_nsr_tuned": False,
-              "g1_halo": False, "level_head": False}
+              "g1_halo": False, "level_head": False, "target_level": "scene"}
 
 
 # keys added with the laser lines, at the values every earlier checkpoint was trained with: the design wavelength

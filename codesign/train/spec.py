@@ -25,6 +25,8 @@ class TrainerSpec(SpecMixin):
     channels_last: networks and their inputs in NHWC memory (faster convolutions on tensor-core GPUs).
     compile: torch.compile the generators G1 and G2 (not G_v's FFTs; not the critics, whose gradient penalty
     needs a double backward that compiled graphs do not support).
+    calibrate_crops: training-split crops the restorer's fitted parts are fitted on at the end of a training
+    (Restorer.calibrate, e.g. model.level_head; half of them without a laser).
     """
 
     steps: int = 300
@@ -47,6 +49,7 @@ class TrainerSpec(SpecMixin):
     amp: str | None = None
     channels_last: bool = False
     compile: bool = False
+    calibrate_crops: int = 128
     prefix: str = field(default="trainer", compare=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -70,6 +73,7 @@ class TrainerSpec(SpecMixin):
         for k in ("checkpoint_every", "val_every", "image_every"):
             require_number(f"{p}.{k}", getattr(self, k), lo=0, integer=True)
         require_number(f"{p}.val_size", self.val_size, lo=1, hi=256, integer=True)
+        require_number(f"{p}.calibrate_crops", self.calibrate_crops, lo=4, hi=65536, integer=True)
         if self.time_budget_s is not None:
             require_number(f"{p}.time_budget_s", self.time_budget_s, lo=0, lo_open=True)
         if self.amp not in (None, "bf16"):

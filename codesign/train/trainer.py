@@ -315,7 +315,7 @@ class Trainer(TrainContext):
         model and the restoring modules; then (rank 0) the validation scores taken again and the checkpoint written
         again with them, so that its final scores are those of the network it holds. What metrics.json records ({}
         when the restorer fits nothing). Every rank fits the same (the same batch, the same weights)."""
-        facts = self.model.calibrate(self.restoring_modules(), self.data)
+        facts = self.model.calibrate(self.restoring_modules(), self.data, crops=self.spec.calibrate_crops)
         if facts:
             self.record.update(facts)
             if self.dist.is_main:

@@ -67,7 +67,7 @@ def test_an_unfitted_head_is_exactly_one_and_a_fit_needs_two_images():
 
 def test_a_training_fits_the_head_into_the_model_its_ema_and_the_checkpoint(tmp_path):
     tr = tiny_trainer(tmp_path, "model=sgan_b_gated", steps=2, ema=0.9, val_every=0, checkpoint_every=0,
-                      image_every=0)
+                      image_every=0, calibrate_crops=64)
     assert tr.model.spec.level_head and not tr.model.g2.level.fitted
     tr.fit()
     unlasered = tr.data.unlasered_batch(8)
@@ -79,7 +79,7 @@ def test_a_training_fits_the_head_into_the_model_its_ema_and_the_checkpoint(tmp_
 
     before = level_error()
     facts = tr.calibrate()
-    assert facts["level_head"]["crops"] > N_FEATURES
+    assert N_FEATURES < facts["level_head"]["crops"] <= 64  # trainer.calibrate_crops (rows with no gain left out)
     shadow = tr.restoring_modules()[2].level
     assert tr.model.g2.level.fitted and shadow.fitted
     assert torch.equal(tr.model.g2.level.weight, shadow.weight)
@@ -88,3 +88,47 @@ def test_a_training_fits_the_head_into_the_model_its_ema_and_the_checkpoint(tmp_
     assert saved["record"]["level_head"] == facts["level_head"]
     # the sensor sees alpha_b in [0.3, 0.7] of the scene: the fitted gain brings the output towards its level
     assert level_error() < 0.5 * before, (before, level_error())
+
+
+def test_an_exposure_target_is_the_scene_at_the_exposure_the_sensor_saw(tmp_path):
+    from codesign.models.sgan import _targets, pyramid
+    tr = tiny_trainer(tmp_path, "model=sgan_b_gated", "model.target_level=exposure", steps=1, val_every=0,
+                      checkpoint_every=0, image_every=0)
+    batch = tr.data.train_batch(0)
+    a = batch["alpha_b"]
+    assert a.shape == (batch["scene"].shape[0],) and bool(((a >= 0.3) & (a <= 0.7)).all())
+    scene = pyramid(batch["scene"])
+    for t, s in zip(_targets(dict(batch), "exposure"), scene):
+        assert torch.allclose(t, a[:, None, None, None] * s, rtol=1e-6, atol=1e-7)
+    for t, s in zip(_targets(dict(batch), "scene"), scene):
+        assert torch.equal(t, s)
+    with pytest.raises(ValueError, match="model.target_level=exposure needs the batch's alpha_b"):
+        _targets({"scene": batch["scene"]}, "exposure")
+
+
+@pytest.mark.parametrize("level", ["scene", "exposure"])
+def test_held_to_the_exposure_a_lasered_output_gets_the_whole_gain(tmp_path, level):
+    """A head fitted to a constant gain of 2 (its constant feature): held to the scene, a lasered output gets
+    2 ** (1 - p); held to the exposure, every output gets 2."""
+    tr = tiny_trainer(tmp_path, "model=sgan_b_gated", f"model.target_level={level}", steps=1, val_every=0,
+                      checkpoint_every=0, image_every=0)
+    model, gens = tr.model, tr.restoring_modules()
+    batch = tr.data.validation_batch(4).copy()
+    sensor = batch["sensor"].clone()
+    sensor[..., 20:24, 20:24] = 1.0  # a laser's saturated footprint in every image: presence > 0
+    plain = model.restore(sensor, tr.data.otf, gens)["restored"]
+    weight = torch.zeros(N_FEATURES, dtype=F64)
+    weight[0] = torch.log(torch.tensor(2.0, dtype=F64))
+    gens[2].level.set_weight(weight)
+    ratio = (model.restore(sensor, tr.data.otf, gens)["restored"] / plain).flatten(1)
+    p = gens[2].laser_presence(sensor).detach().double()
+    assert bool((p > 0.01).all())
+    want = torch.full_like(p, 2.0) if level == "exposure" else 2.0 ** (1 - p)
+    assert torch.allclose(ratio.double().median(1).values, want, rtol=1e-5)
+
+
+def test_the_calibration_crops_are_checked():
+    from codesign.errors import ConfigError
+    from codesign.train.spec import TrainerSpec
+    with pytest.raises(ConfigError, match=r"trainer.calibrate_crops = 2: must be an integer >= 4 and <= 65536"):
+        TrainerSpec(calibrate_crops=2)
