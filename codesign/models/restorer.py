@@ -80,7 +80,7 @@ class Restorer(nn.Module):
     def prepare_training(self, device: torch.device) -> None:
         """Build what only training needs (loaded weights of a perceptual loss, ...)."""
 
-    def calibrate(self, generators: list[nn.Module], data, crops: int = 128) -> dict:
+    def calibrate(self, generators: list[nn.Module], data, crops: int) -> dict:
         """Fit the parts that are fitted, not trained, on ``crops`` training-split crops of ``data`` (a
         SimulatedData; trainer.calibrate_crops), into the model and into ``generators`` (its restoring copies, e.g.
         EMA); what metrics.json records."""

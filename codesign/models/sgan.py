@@ -28,8 +28,7 @@ from codesign.models.unet import ResUNet, UNetBody, make_head, zero_conv
 from codesign.models.wiener import DeconvModule, wiener_filter
 
 log = logging.getLogger("codesign.train")
-LEVEL_FIT_CROPS = 128  # training-split crops the level head is fitted on (SGAN.calibrate), restored in chunks of
-LEVEL_FIT_CHUNK = 8
+LEVEL_FIT_CHUNK = 8  # the level head's fit crops (trainer.calibrate_crops) are restored in chunks of this many
 
 
 def coordinates(like: torch.Tensor) -> torch.Tensor:
@@ -89,6 +88,13 @@ def laser_presence(g2: nn.Module, sensor: torch.Tensor, spec: ModelSpec) -> torc
     return _plain_module(g2).laser_presence(sensor) if spec.laser_gate else None
 
 
+def level_presence(presence: torch.Tensor | None, spec: ModelSpec) -> torch.Tensor | None:
+    """The presence that scales the level head's log gain by 1 - p (in use and in its fit), or None: held to the
+    scene, a lasered output is G2's, which training brought to the scene's level; held to the exposure
+    (model.target_level), every output sits at the sensor's level and gets the whole gain."""
+    return presence if spec.target_level == "scene" else None
+
+
 def _plain_module(m: nn.Module) -> nn.Module:
     """The module under a DistributedDataParallel wrapper (which forwards only ``forward``): G2's presence and base
     use its scalars outside its forward; their gradients still reach DDP's per-parameter hooks and are averaged."""
@@ -111,9 +117,7 @@ def sandwich(generators, sensor: torch.Tensor, otf: torch.Tensor, spec: ModelSpe
     base = _plain_module(g2).base(i_b, otf, presence) if spec.g2_residual else None
     b = g2(features, base, presence if spec.g2_gate else None)
     if spec.level_head:  # both scales brought to the scene's level by one gain per image (no gradient through it)
-        # held to the exposure, every output sits at the sensor's level, lasered or not: the gain applies in full
-        gated = presence if spec.target_level == "scene" else None
-        gain = _plain_module(g2).level.gain(b[1], sensor, gated)[:, None, None, None]
+        gain = _plain_module(g2).level.gain(b[1], sensor, level_presence(presence, spec))[:, None, None, None]
         b = [gain * x for x in b]
     out = {"i_b": i_b, "features": features, "b": b, "restored": b[1]}
     if base is not None:  # what G2's learned correction is added to (the network without that correction)
@@ -239,15 +243,15 @@ class SGAN(Restorer):
         return self._vgg_status
 
     @torch.no_grad()
-    def calibrate(self, generators, data, crops: int = LEVEL_FIT_CROPS, refit: bool = False) -> dict:
+    def calibrate(self, generators, data, crops: int, refit: bool = False) -> dict:
         """model.level_head: fit the gain head on training-split crops drawn as in training, ``crops`` / 2 scenes
         each imaged without a laser and with the laser drawn for it (the validation batch's scenes and parameters,
         every alpha_b of the training distribution), restored by ``generators`` with the head off. The fit is of
-        the head as it is applied: the log gain times 1 - p (the laser's presence, model.laser_gate), so a dazzled
-        image G2 restores weighs by how much of the gain it gets. The weight goes into the model and into
-        ``generators``' G2. A head already fitted (a warm start's: the shipped network's was fitted on 1,024
-        crops) is kept unless ``refit``: the unlasered output it scales is the unit-DC Wiener base, whose level a
-        fine-tuning does not move."""
+        the head as it is applied: held to the scene, the log gain times 1 - p (the laser's presence,
+        model.laser_gate; level_presence), so a dazzled image G2 restores weighs by how much of the gain it gets.
+        The weight goes into the model and into ``generators``' G2. A head already fitted (a warm start's: the
+        shipped network's was fitted on 1,024 crops) is kept unless ``refit``: the unlasered output it scales is the
+        unit-DC Wiener base, whose level a fine-tuning does not move."""
         if not self.spec.level_head:
             return {}
         heads = [_plain_module(generators[2]).level, self.g2.level]
@@ -261,9 +265,8 @@ class SGAN(Restorer):
             for k in range(0, half, LEVEL_FIT_CHUNK):
                 sensor, scene = batch["sensor"][k:k + LEVEL_FIT_CHUNK], batch["scene"][k:k + LEVEL_FIT_CHUNK]
                 out = self.restore(sensor, data.otf, generators)["restored"]
-                presence = laser_presence(generators[2], sensor, self.spec)
-                gated = presence is not None and self.spec.target_level == "scene"
-                keep = (1 - presence.double())[:, None] if gated else 1.0
+                presence = level_presence(laser_presence(generators[2], sensor, self.spec), self.spec)
+                keep = 1.0 if presence is None else (1 - presence.double())[:, None]
                 rows.append(level_features(out, sensor) * keep)
                 logs.append(best_log_gain(out, scene, sensor > 0))
         f, t = torch.cat(rows), torch.cat(logs)

@@ -89,7 +89,7 @@ class SimulatedData:
         scenes = _to_device(scenes, self.device)
         out = (camera if camera is not None else self.camera)(scenes, params, seed, optics)
         out["read_noise_mean_e"] = params.read_noise_mean_e  # the black level a classical pipeline subtracts
-        out["alpha_b"] = params.alpha_b.to(self.device)  # the exposure of each scene (model.target_level=exposure)
+        out["alpha_b"] = params.alpha_b  # each scene's exposure (model.target_level=exposure moves it when used)
         return out
 
     def _params(self, batch: int, generator: torch.Generator):
