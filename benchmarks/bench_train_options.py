@@ -29,7 +29,8 @@ OPTIONS = {  # name -> trainer overrides
     "bf16 + channels_last": {"amp": "bf16", "channels_last": True}, "compile": {"compile": True},
     "bf16 + compile": {"amp": "bf16", "compile": True},
 }
-PLAN = {"quick": dict(compile=False, steps=3, repeats=3), "full": dict(compile=True, steps=10, repeats=20)}
+PLAN = {"quick": dict(compile=False, steps=3, repeats=3, recipe_steps=12),
+        "full": dict(compile=True, steps=10, repeats=20, recipe_steps=40)}
 # the paper's sizes on a GPU; on a CPU the joint_cpu preset of +experiment=joint (cpu width, 96 px padded to 128)
 GPU_SIZE = ["model.size=paper", "data.image_size=256", "data.padded_size=384", "data.batch_size=8"]
 
@@ -79,6 +80,47 @@ def step_parts(dev: torch.device, steps: int) -> dict:
                                   "whole step")}
 
 
+# docs/models.md Sec. 13's recipe: G2 ungated, held to the exposure, log-spaced lasers, its L1 terms only
+L1_RECIPE = ["model.g2_gate=false", "model.target_level=exposure", "data.params.alpha_l_spacing=log",
+             "model.loss.adv=0", "model.loss.mdf=0"]
+
+
+def recipe_steps(dev: torch.device, steps: int) -> dict:
+    """Whole restorer steps of the main job's recipe and of the L1 recipe, the latter also with G1 run on every image
+    (its skip of the images without a saturated pixel off): the mean of ``steps`` consecutive steps after 2 warm-up
+    steps (each step its own batch, so the share of unlasered images varies as in training; every variant sees the
+    same batches), and that share."""
+    from codesign.models import sgan
+    from codesign.models.fill import saturated_fraction
+
+    def run(overrides: list[str]) -> dict:
+        with tempfile.TemporaryDirectory() as tmp:
+            tr = restorer_trainer(overrides + (GPU_SIZE if dev.type == "cuda" else []), dev, Path(tmp))
+            for _ in range(2):
+                tr.train_step()
+            skipped = sum(int((saturated_fraction(tr.data.train_batch(tr.step + k)["sensor"]) == 0).sum())
+                          for k in range(steps))
+            sync = cuda_sync(dev)
+            if sync:
+                sync()
+            t0 = time.perf_counter()
+            for _ in range(steps):
+                tr.train_step()
+            if sync:
+                sync()
+            return {"step_s": (time.perf_counter() - t0) / steps,
+                    "unlasered_share": skipped / (steps * tr.data.sampler.batch_size)}
+
+    out = {"main job's recipe": run([]), "L1 recipe": run(L1_RECIPE)}
+    skip = sgan.gated_correction
+    sgan.gated_correction = lambda g1, inputs, gate: g1(inputs) * gate[:, None, None, None]
+    try:
+        out["L1 recipe, G1 on every image"] = run(L1_RECIPE)
+    finally:
+        sgan.gated_correction = skip
+    return out
+
+
 def inference_fps(dev: torch.device, amp: bool, compiled: bool, repeats: int) -> dict:
     from codesign.train.model_setup import build_model
 
@@ -115,6 +157,9 @@ def measure(scale: str) -> dict:
               flush=True)
     parts = step_parts(dev, p["steps"])
     print("  restorer step: " + ", ".join(f"{k} {v * 1e3:.0f} ms" for k, v in parts.items()), flush=True)
+    recipes = recipe_steps(dev, p["recipe_steps"])
+    print("  restorer step by recipe: " + ", ".join(f"{k} {v['step_s'] * 1e3:.0f} ms" for k, v in recipes.items()),
+          flush=True)
     infer = {}
     for amp in (False, True):
         for compiled in ((False, True) if p["compile"] else (False,)):
@@ -122,7 +167,8 @@ def measure(scale: str) -> dict:
             infer[key] = inference_fps(dev, amp, compiled, p["repeats"])
             print(f"  SGAN-F inference {key}: {infer[key]['fps']:.2f} FPS", flush=True)
     return {"device": str(dev), "steps": p["steps"], "repeats": p["repeats"], "joint_step": joint,
-            "restorer_step_parts": parts, "sgan_f_inference_256": infer}
+            "restorer_step_parts": parts, "restorer_step_recipes": recipes, "recipe_steps": p["recipe_steps"],
+            "sgan_f_inference_256": infer}
 
 
 def report(data: dict) -> Report:
@@ -137,6 +183,13 @@ def report(data: dict) -> Report:
     t_parts = markdown_table(["restorer step (main job's network, mask frozen)", "ms", "share of the step"],
                              [[k, v * 1e3, v / parts["whole step"]] for k, v in parts.items()],
                              {"ms": ".0f", "share of the step": ".0%"}) if parts else ""
+    recipes = data.get("restorer_step_recipes", {})
+    first = next(iter(recipes.values()), None)
+    t_recipes = markdown_table(["restorer step by recipe", "ms/step", "speed-up", "images without a laser"],
+                               [[k, r["step_s"] * 1e3, first["step_s"] / r["step_s"], r["unlasered_share"]]
+                                for k, r in recipes.items()],
+                               {"ms/step": ".0f", "speed-up": ".2f", "images without a laser": ".0%"}) \
+        if recipes else ""
     fbase = infer["float32"]["fps"]
     rows = [[k, r["size"], r["fps"], r["fps"] / fbase, r["first_call_s"], r["peak_mib"] if r["peak_mib"] is not None
              else "-"] for k, r in infer.items()]
@@ -156,7 +209,12 @@ def report(data: dict) -> Report:
                  "simulation of the next batch, the generators' forward pass with its graph, one critic update "
                  "(WGAN terms and gradient penalty of D1 and both D2 scales), one generator update (forward, losses "
                  "with the frozen critics, backward, guarded Adam step, EMA); the whole step holds one of each.")
-    tables = [t_joint] + ([t_parts] if t_parts else []) + [t_infer]
+    if recipes:
+        notes.append(f"Restorer step by recipe: the whole step of the main job's network, the mean of "
+                     f"{data['recipe_steps']} consecutive steps (their own batches) after 2 warm-up steps; the L1 "
+                     "recipe is docs/models.md Sec. 13's (no critic update); 'G1 on every image' turns off its skip "
+                     "of the images without a saturated pixel (their G1 correction is exactly 0).")
+    tables = [t_joint] + [t for t in (t_parts, t_recipes) if t] + [t_infer]
     return Report("train_options", "Training options: bf16, channels-last, torch.compile", tables, [],
                   notes)
 

@@ -40,6 +40,8 @@ TARGET_LEVEL_ROWS = (
     "the same, L1 only (adv = mdf = 0), seed 0",
     "the same, L1 only, seed 1",
     "the same, L1 only, 800 steps, seed 0",
+    "the same, L1 only, learning rates x3 (6e-4 / 1.2e-3), seed 0",
+    "the same, L1 only, 3,200 steps, seed 0",
 )
 
 

@@ -74,13 +74,31 @@ def pre_restore(g1: nn.Module, sensor: torch.Tensor, residual: bool, base: str =
     """I_b^ = G1(s, x, y[, halo]), or with ``residual`` a correction added to the sensor image (``base`` "sensor")
     or to the sensor image with its saturated and padded pixels filled from their surroundings ("filled"); ``gate``
     (B,): scales the correction per image (model.laser_gate); ``halo``: halo_map's channel (model.g1_halo)."""
-    inputs = [sensor, coordinates(sensor)] + ([halo] if halo is not None else [])
-    out = g1(torch.cat(inputs, 1))
+    inputs = torch.cat([sensor, coordinates(sensor)] + ([halo] if halo is not None else []), 1)
     if not residual:
-        return out
-    if gate is not None:
-        out = out * gate[:, None, None, None]
+        return g1(inputs)
+    out = g1(inputs) if gate is None else gated_correction(g1, inputs, gate)
     return (sensor if base == "sensor" else push_pull_fill(sensor, valid_pixels(sensor))) + out
+
+
+def gated_correction(g1: nn.Module, inputs: torch.Tensor, gate: torch.Tensor) -> torch.Tensor:
+    """g1(inputs) * gate per image, G1 run only on the images whose gate is open. A closed gate (no saturated pixel:
+    p = 0 exactly, and so is its derivative) makes the image's correction and every gradient through it exactly 0,
+    and G1 holds only per-image layers (instance norms), so the open images' outputs do not depend on the others:
+    the result is the whole batch's. An image without a laser then costs no G1 work, in training and in use.
+    On the CPU only, with G1 a plain module: on a GPU the data-dependent batch would synchronize the stream and
+    break graph capture, under DistributedDataParallel a rank whose images all skip would leave G1 without a
+    gradient, and a compiled G1 would be recompiled for every batch size."""
+    g = gate[:, None, None, None]
+    if inputs.device.type != "cpu" or hasattr(g1, "module") or hasattr(g1, "_orig_mod"):
+        return g1(inputs) * g
+    live = (gate > 0).nonzero().squeeze(1)
+    if len(live) == len(gate):
+        return g1(inputs) * g
+    out = inputs.new_zeros((inputs.shape[0], 1, *inputs.shape[2:]))
+    if len(live) == 0:
+        return out
+    return out.index_copy(0, live, g1(inputs[live]) * g[live])
 
 
 def laser_presence(g2: nn.Module, sensor: torch.Tensor, spec: ModelSpec) -> torch.Tensor | None:

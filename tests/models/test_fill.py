@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from codesign.models import SGAN, ModelSpec, otf_from_kernel
+from codesign.models import sgan
 from codesign.models.sgan import downsample2
 from codesign.models.fill import push_pull_fill, valid_pixels
 from codesign.models.wiener import classical_wiener
@@ -186,3 +187,39 @@ def test_laser_gate_passes_an_unlasered_image_and_moves_the_nsr_with_the_saturat
         assert float(getattr(model.g2, name).grad.abs()) > 0, name
     with pytest.raises(Exception, match="model.laser_gate"):
         ModelSpec(laser_gate=True, g1_residual=False)
+
+
+def test_g1_runs_only_on_lasered_images_and_gives_the_whole_batchs_result():
+    """An image without saturated pixels (p = 0) gets no G1 work: G1 sees only the lasered images of a batch, and
+    the outputs and every gradient are those of G1 run on the whole batch in float64 (G1's layers are per image)."""
+    model, s, otf, _ = _gated_pair({}, "g1")
+    model = model.double()
+    s, otf = s.double(), otf.to(torch.complex128)
+    batch = torch.cat([s, s.flip(0), s[:1]])  # clean, lasered, lasered, clean, clean
+    seen = []
+    hook = model.g1.register_forward_hook(lambda m, i, o: seen.append(i[0].shape[0]))
+    out = model(batch, otf)
+    out["restored"].square().mean().backward()
+    grads = [p.grad.clone() for p in model.parameters() if p.grad is not None]
+    hook.remove()
+    assert seen == [2]
+    model.zero_grad()
+    # the reference: the same chain with G1 run on every image (as on a GPU), its correction times p
+    presence = model.g2.laser_presence(batch)
+    assert presence.tolist()[0] == 0.0 and presence.tolist()[3:] == [0.0, 0.0] and min(presence[1:3]) > 0.5
+    x = torch.cat([batch, sgan.coordinates(batch)], 1)
+    i_b = push_pull_fill(batch, valid_pixels(batch)) + model.g1(x) * presence[:, None, None, None]
+    torch.testing.assert_close(out["i_b"], i_b, rtol=1e-12, atol=1e-12)
+    ref = model.g2(model.gv(i_b, otf), model.g2.base(i_b, otf, presence))
+    ref[1].square().mean().backward()
+    torch.testing.assert_close(out["restored"], ref[1], rtol=1e-12, atol=1e-12)
+    ref_grads = [p.grad for p in model.parameters() if p.grad is not None]
+    assert len(grads) == len(ref_grads)
+    for g, r in zip(grads, ref_grads):
+        torch.testing.assert_close(g, r, rtol=1e-10, atol=1e-12)
+    seen.clear()
+    hook = model.g1.register_forward_hook(lambda m, i, o: seen.append(i[0].shape[0]))
+    with torch.no_grad():
+        clean = model(batch[[0, 3]], otf)
+    hook.remove()
+    assert seen == [] and torch.equal(clean["i_b"], push_pull_fill(batch[[0, 3]], valid_pixels(batch[[0, 3]])))
