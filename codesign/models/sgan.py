@@ -134,10 +134,13 @@ def sandwich(generators, sensor: torch.Tensor, otf: torch.Tensor, spec: ModelSpe
     features = gv(i_b, otf)
     base = _plain_module(g2).base(i_b, otf, presence) if spec.g2_residual else None
     b = g2(features, base, presence if spec.g2_gate else None)
+    exposure = b  # G2's own output, at the sensor's exposure when held to it (model.target_level)
     if spec.level_head:  # both scales brought to the scene's level by one gain per image (no gradient through it)
         gain = _plain_module(g2).level.gain(b[1], sensor, level_presence(presence, spec))[:, None, None, None]
         b = [gain * x for x in b]
     out = {"i_b": i_b, "features": features, "b": b, "restored": b[1]}
+    if spec.target_level == "exposure":
+        out["b_exposure"] = exposure
     if base is not None:  # what G2's learned correction is added to (the network without that correction)
         out["base"] = base
     return out
@@ -322,7 +325,7 @@ class SGAN(Restorer):
         w = self.weights
         s, i_b = batch["sensor"].detach(), batch["irradiance"].detach()
         targets = _targets(batch, self.spec.target_level)
-        fake_i, fake_b = out["i_b"].detach(), [b.detach() for b in out["b"]]
+        fake_i, fake_b = out["i_b"].detach(), [b.detach() for b in _held(out, self.spec)]
         d1n, d2n = ctx.critics[0], ctx.critics[1:]
         critic1 = lambda x: ctx.run(d1n, torch.cat([s, coordinates(s), x], 1))[0]  # noqa: E731
         d1 = losses.critic_loss(critic1(i_b), critic1(fake_i))
@@ -342,12 +345,12 @@ class SGAN(Restorer):
         weights. The critics run as plain modules (frozen by the trainer: they take no update here)."""
         w, eps = self.weights, self.weights.charbonnier_eps
         s, i_b = batch["sensor"], batch["irradiance"]
-        targets = _targets(batch, self.spec.target_level)
+        targets, b = _targets(batch, self.spec.target_level), _held(out, self.spec)
         terms = {"rec1": losses.charbonnier(out["i_b"], i_b, eps),
-                 "rec2": sum(losses.charbonnier(out["b"][k], targets[k], eps) for k in range(2))}
+                 "rec2": sum(losses.charbonnier(b[k], targets[k], eps) for k in range(2))}
         total = w.l1_stage1 * terms["rec1"] + w.l1_stage2 * terms["rec2"]
         if w.adv > 0 or w.mdf > 0:
-            fake2 = [ctx.run(self.d2[k], out["b"][k]) for k in range(2)]
+            fake2 = [ctx.run(self.d2[k], b[k]) for k in range(2)]
             if w.adv > 0:
                 terms["adv"] = losses.generator_adv_loss(ctx.run(self.critic1, s, out["i_b"])[0]) + \
                     losses.generator_adv_loss([f[0] for f in fake2])
@@ -358,10 +361,10 @@ class SGAN(Restorer):
                 terms["mdf"] = losses.feature_matching_loss(real_feats, [f[1] for f in fake2])
                 total = total + w.mdf * terms["mdf"]
         if w.vgg > 0 and self.vgg is not None:
-            terms["vgg"] = sum(self.vgg(out["b"][k], targets[k]) for k in range(2))
+            terms["vgg"] = sum(self.vgg(b[k], targets[k]) for k in range(2))
             total = total + w.vgg * terms["vgg"]
         if w.fft > 0:
-            terms["fft"] = sum(losses.fft_loss(out["b"][k], targets[k]) for k in range(2))
+            terms["fft"] = sum(losses.fft_loss(b[k], targets[k]) for k in range(2))
             total = total + w.fft * terms["fft"]
         terms["generator_total"] = total
         return terms
@@ -377,6 +380,14 @@ class SGAN(Restorer):
 
     def check_input_size(self, padded_size: int, key: str = "data.padded_size") -> None:
         self.spec.check_input_size(padded_size, key)
+
+
+def _held(out: dict, spec: ModelSpec) -> list[torch.Tensor]:
+    """The two scales the objective holds to _targets: held to the exposure (model.target_level), G2's output before
+    the level head's gain, which is fitted apart and brings it to the scene's level only in use (a head fitted
+    before or during training, a warm start's or a resumed finished run's, would otherwise scale every output away
+    from its target); held to the scene, the output the head has already scaled (1 - p of its gain per image)."""
+    return out.get("b_exposure", out["b"]) if spec.target_level == "exposure" else out["b"]
 
 
 def _targets(batch: dict, level: str = "scene") -> list[torch.Tensor]:

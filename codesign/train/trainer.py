@@ -139,7 +139,7 @@ class Trainer(TrainContext):
             self.codesign.begin_step(self.codesign.active(self.step, self.spec.lr_factor))
         terms = self.update(self.data.train_batch(self.step))
         self.sched_g.step()
-        if self.sched_d is not None:
+        if self.sched_d is not None and self.model.adversarial:  # critics without adversarial weight take no step
             self.sched_d.step()
         self.step += 1
         return terms

@@ -127,6 +127,34 @@ def test_held_to_the_exposure_a_lasered_output_gets_the_whole_gain(tmp_path, lev
     assert torch.allclose(ratio.double().median(1).values, want, rtol=1e-5)
 
 
+@pytest.mark.parametrize("level", ["scene", "exposure"])
+def test_held_to_the_exposure_the_objective_compares_g2s_output_before_the_gain(tmp_path, level):
+    """A fitted head (a warm start's, a resumed finished run's) in training: held to the exposure, the L1 term
+    compares G2's output before the gain with alpha_b * b, so fitting the head (constant gain 2) leaves every
+    generator term as it was; held to the scene it compares the scaled output, so the term changes."""
+    from codesign.models.restorer import TrainContext
+    tr = tiny_trainer(tmp_path, "model=sgan_b_gated", f"model.target_level={level}", steps=1, val_every=0,
+                      checkpoint_every=0, image_every=0)
+    model, gens = tr.model, list(tr.model.generators())
+    batch = tr.data.train_batch(0)
+    ctx = TrainContext(critics=list(model.critics()))
+
+    def rec2() -> float:
+        with torch.no_grad():
+            return float(model.generator_losses(batch, model.forward_with(gens, batch["sensor"], tr.data.otf),
+                                                ctx)["rec2"])
+
+    before = rec2()
+    weight = torch.zeros(N_FEATURES, dtype=F64)
+    weight[0] = torch.log(torch.tensor(2.0, dtype=F64))
+    model.g2.level.set_weight(weight)
+    after = rec2()
+    if level == "exposure":
+        assert after == before
+    else:
+        assert abs(after - before) > 1e-3 * before
+
+
 def test_the_calibration_crops_are_checked():
     from codesign.errors import ConfigError
     from codesign.train.spec import TrainerSpec
