@@ -8,3 +8,8 @@ python -m codesign +experiment=baseline model=sgan_b_gated preset=joint_cpu trai
   model.target_level=exposure model.loss.adv=0 model.loss.mdf=0
 # after each checkpoint (N = 400, 800, ..., 3200), a copy of RUN/checkpoint.pt as ckpt_N.pt, then
 python -m benchmarks.pretrained_eval --checkpoint ckpt_N.pt --masks published --threads 2 --out eval_stepN.json
+# then resumed from the 3,200-step checkpoint in a new run folder (after the fix of the objective under a fitted level
+# head, commit 2ae30c2): the schedule of a 4,800-step run (rate 2e-4 from 3,200 to 3,600, then halved)
+python -m codesign ... (the same overrides) trainer.steps=4800 trainer.resume=ckpt_3200.pt trainer.val_every=4800 \
+  hydra.run.dir=RUN2
+python -m benchmarks.pretrained_eval --checkpoint ckpt_N.pt --masks published --threads 2 --out eval_stepN.json  # N = 4000, 4800
