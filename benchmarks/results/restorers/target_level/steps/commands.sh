@@ -13,3 +13,5 @@ python -m benchmarks.pretrained_eval --checkpoint ckpt_N.pt --masks published --
 python -m codesign ... (the same overrides) trainer.steps=4800 trainer.resume=ckpt_3200.pt trainer.val_every=4800 \
   hydra.run.dir=RUN2
 python -m benchmarks.pretrained_eval --checkpoint ckpt_N.pt --masks published --threads 2 --out eval_stepN.json  # N = 4000, 4800
+# then resumed again in RUN2 (its own checkpoint) with trainer.steps=6400 (the rate stays halved from 4,800), and
+python -m benchmarks.pretrained_eval --checkpoint ckpt_6400.pt --masks published --threads 2 --out eval_step6400.json
