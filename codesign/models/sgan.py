@@ -90,7 +90,7 @@ def gated_correction(g1: nn.Module, inputs: torch.Tensor, gate: torch.Tensor) ->
     break graph capture, under DistributedDataParallel a rank whose images all skip would leave G1 without a
     gradient, and a compiled G1 would be recompiled for every batch size."""
     g = gate[:, None, None, None]
-    if inputs.device.type != "cpu" or hasattr(g1, "module") or hasattr(g1, "_orig_mod"):
+    if inputs.device.type != "cpu" or _plain_module(g1) is not g1 or hasattr(g1, "_orig_mod"):
         return g1(inputs) * g
     live = (gate > 0).nonzero().squeeze(1)
     if len(live) == len(gate):
@@ -325,7 +325,7 @@ class SGAN(Restorer):
         w = self.weights
         s, i_b = batch["sensor"].detach(), batch["irradiance"].detach()
         targets = _targets(batch, self.spec.target_level)
-        fake_i, fake_b = out["i_b"].detach(), [b.detach() for b in _held(out, self.spec)]
+        fake_i, fake_b = out["i_b"].detach(), [b.detach() for b in _held(out)]
         d1n, d2n = ctx.critics[0], ctx.critics[1:]
         critic1 = lambda x: ctx.run(d1n, torch.cat([s, coordinates(s), x], 1))[0]  # noqa: E731
         d1 = losses.critic_loss(critic1(i_b), critic1(fake_i))
@@ -345,7 +345,7 @@ class SGAN(Restorer):
         weights. The critics run as plain modules (frozen by the trainer: they take no update here)."""
         w, eps = self.weights, self.weights.charbonnier_eps
         s, i_b = batch["sensor"], batch["irradiance"]
-        targets, b = _targets(batch, self.spec.target_level), _held(out, self.spec)
+        targets, b = _targets(batch, self.spec.target_level), _held(out)
         terms = {"rec1": losses.charbonnier(out["i_b"], i_b, eps),
                  "rec2": sum(losses.charbonnier(b[k], targets[k], eps) for k in range(2))}
         total = w.l1_stage1 * terms["rec1"] + w.l1_stage2 * terms["rec2"]
@@ -382,12 +382,13 @@ class SGAN(Restorer):
         self.spec.check_input_size(padded_size, key)
 
 
-def _held(out: dict, spec: ModelSpec) -> list[torch.Tensor]:
-    """The two scales the objective holds to _targets: held to the exposure (model.target_level), G2's output before
-    the level head's gain, which is fitted apart and brings it to the scene's level only in use (a head fitted
-    before or during training, a warm start's or a resumed finished run's, would otherwise scale every output away
-    from its target); held to the scene, the output the head has already scaled (1 - p of its gain per image)."""
-    return out.get("b_exposure", out["b"]) if spec.target_level == "exposure" else out["b"]
+def _held(out: dict) -> list[torch.Tensor]:
+    """The two scales the objective holds to _targets: held to the exposure (model.target_level: the sandwich keeps
+    "b_exposure"), G2's output before the level head's gain, which is fitted apart and brings it to the scene's level
+    only in use (a head fitted before or during training, a warm start's or a resumed finished run's, would otherwise
+    scale every output away from its target); held to the scene, the output the head has already scaled (1 - p of
+    its gain per image)."""
+    return out.get("b_exposure", out["b"])
 
 
 def _targets(batch: dict, level: str = "scene") -> list[torch.Tensor]:
