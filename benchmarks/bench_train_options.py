@@ -90,7 +90,7 @@ def recipe_steps(dev: torch.device, steps: int) -> dict:
     (its skip of the images without a saturated pixel off): the mean of ``steps`` consecutive steps after 2 warm-up
     steps (each step its own batch, so the share of unlasered images varies as in training; every variant sees the
     same batches), and that share."""
-    from codesign.models import sgan
+    from codesign.models import sandwich
     from codesign.models.fill import saturated_fraction
 
     def run(overrides: list[str]) -> dict:
@@ -112,12 +112,12 @@ def recipe_steps(dev: torch.device, steps: int) -> dict:
                     "unlasered_share": skipped / (steps * tr.data.sampler.batch_size)}
 
     out = {"main job's recipe": run([]), "L1 recipe": run(L1_RECIPE)}
-    skip = sgan.gated_correction
-    sgan.gated_correction = lambda g1, inputs, gate: g1(inputs) * gate[:, None, None, None]
+    skip = sandwich.gated_correction
+    sandwich.gated_correction = lambda g1, inputs, gate: g1(inputs) * gate[:, None, None, None]
     try:
         out["L1 recipe, G1 on every image"] = run(L1_RECIPE)
     finally:
-        sgan.gated_correction = skip
+        sandwich.gated_correction = skip
     return out
 
 

@@ -7,7 +7,8 @@ from codesign.models.restorer import (
     parameter_count,
     restorer_kinds,
 )
-from codesign.models.sgan import SGAN, coordinates, downsample2, pyramid
+from codesign.models.sandwich import coordinates, downsample2, pyramid
+from codesign.models.sgan import SGAN
 from codesign.models.spec import SIZES, VARIANTS, ModelSpec
 from codesign.models.wiener import classical_wiener, wiener_filter
 from codesign.sensor.kernels import otf_from_kernel

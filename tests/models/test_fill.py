@@ -8,9 +8,8 @@ import pytest
 import torch
 
 from codesign.models import SGAN, ModelSpec, otf_from_kernel
-from codesign.models import sgan
-from codesign.models.sgan import downsample2
 from codesign.models.fill import push_pull_fill, valid_pixels
+from codesign.models.sandwich import coordinates, downsample2
 from codesign.models.wiener import classical_wiener
 from codesign.train.resume import _with_added_keys
 from codesign.train.optim import init_weights
@@ -207,7 +206,7 @@ def test_g1_runs_only_on_lasered_images_and_gives_the_whole_batchs_result():
     # the reference: the same chain with G1 run on every image (as on a GPU), its correction times p
     presence = model.g2.laser_presence(batch)
     assert presence.tolist()[0] == 0.0 and presence.tolist()[3:] == [0.0, 0.0] and min(presence[1:3]) > 0.5
-    x = torch.cat([batch, sgan.coordinates(batch)], 1)
+    x = torch.cat([batch, coordinates(batch)], 1)
     i_b = push_pull_fill(batch, valid_pixels(batch)) + model.g1(x) * presence[:, None, None, None]
     torch.testing.assert_close(out["i_b"], i_b, rtol=1e-12, atol=1e-12)
     ref = model.g2(model.gv(i_b, otf), model.g2.base(i_b, otf, presence))

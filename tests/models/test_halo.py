@@ -9,7 +9,7 @@ import torch
 
 from codesign.errors import ConfigError
 from codesign.models import SGAN, ModelSpec, otf_from_kernel
-from codesign.models.sgan import HALO_DECADES, halo_map
+from codesign.models.sandwich import HALO_DECADES, halo_map
 
 P = 32
 

@@ -91,7 +91,8 @@ def test_a_training_fits_the_head_into_the_model_its_ema_and_the_checkpoint(tmp_
 
 
 def test_an_exposure_target_is_the_scene_at_the_exposure_the_sensor_saw(tmp_path):
-    from codesign.models.sgan import _targets, pyramid
+    from codesign.models.sandwich import pyramid
+    from codesign.models.sgan import _targets
     tr = tiny_trainer(tmp_path, "model=sgan_b_gated", "model.target_level=exposure", steps=1, val_every=0,
                       checkpoint_every=0, image_every=0)
     batch = tr.data.train_batch(0)
