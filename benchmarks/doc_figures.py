@@ -24,7 +24,8 @@ WRAPPING = f"{DESIGN}/wrapping_spline_visible.json"
 STUDY = "benchmarks/results/codesign_study/study.json"
 GATED = "benchmarks/results/early_steps/unitdc_gate_g2gate_ema0.99{}.json"
 MAIN_JOB = "benchmarks/results/main_job/metrics.json"
-MAIN_JOB_SEED1 = "benchmarks/results/main_job/seed1/metrics.json"
+MAIN_JOB_SEED1 = "benchmarks/results/main_job/before_level_head/seed1/metrics.json"
+MAIN_JOB_GATED = "benchmarks/results/main_job/gated_recipe/metrics.json"
 GRADIENT = "benchmarks/results/mask_gradient/published_seed{}.json"
 PRETRAINED = "benchmarks/results/pretrained/eval_{}.json"
 RESTORERS = "benchmarks/results/restorers/restorer_table.json"
@@ -186,7 +187,8 @@ QUOTES: list[Quote] = [
     _gated_row("0", ""),
     _gated_row("1", "_seed1"),
     # docs/models.md Sec. 11: the shipped pool restorer and a one-mask network through the held-out mask
-    _pool_row("pool of 12 masks (shipped)", "pool_seed0"),
+    _pool_row("pool of 12 masks (shipped until the L1 weights)", "pool_seed0"),
+    _pool_row("pool of 12 masks, L1 recipe, 6,400 + 2,400 steps (shipped)", "pool_l1"),
     _pool_row("this mask alone", "single_heldout"),
     _pool_row("pool of 10 spline masks, no half rings", "spline_pool"),
     _pool_row("pool of 12 masks, G1 with the halo channel", "pool_halo"),
@@ -200,10 +202,13 @@ QUOTES: list[Quote] = [
           lambda d: (fixed(d["snr_one_batch"]), fixed(read_metrics(REPO / GRADIENT.format(1))["snr_one_batch"]))),
     # docs/codesign.md Sec. 7: the main job's summary as its run printed it (benchmarks/results/main_job/)
     Quote("docs/codesign.md", "{}", MAIN_JOB, _main_job_summary),
-    # ... its headline gains, and the second seed's (benchmarks/results/main_job/seed1/)
+    # ... its headline gains
     Quote("docs/codesign.md", "restores {} dB better at alpha_l = 0,\n{} at 1e3 and {} at 1e6", MAIN_JOB,
           lambda m: _total_gains(m)),
-    Quote("docs/codesign.md", "total gain {} dB at alpha_l = 0,\n  {} at 1e3, {} at 1e6", MAIN_JOB_SEED1,
+    # docs/results_log.md: the main job's runs with the gated recipe (benchmarks/results/main_job/gated_recipe/,
+    # before_level_head/seed1/)
+    Quote("docs/results_log.md", "{}", MAIN_JOB_GATED, _main_job_summary),
+    Quote("docs/results_log.md", "total gain {} dB at alpha_l = 0,\n  {} at 1e3, {} at 1e6", MAIN_JOB_SEED1,
           lambda m: _total_gains(m)),
 ]
 
