@@ -122,16 +122,19 @@ def _pool_row(label: str, run: str) -> Quote:
     return Quote("docs/models.md", f"| {label} | " + " | ".join(["{}"] * 4) + " |", PRETRAINED.format(run), values)
 
 
+def _row_cells(rows: dict) -> tuple:
+    """Matched PSNR (gain over Wiener) per alpha_l, then plain PSNR / SSIM at alpha_l = 0 and 1e6, from an evaluation's
+    per-alpha_l rows (benchmarks/pretrained_eval.py's ``alpha``)."""
+    gains = [f"{fixed(rows[a]['sgan']['psnr_matched'])} ({signed(rows[a]['gain_over_wiener']['mean'])} +- "
+             f"{fixed(rows[a]['gain_over_wiener']['interval'])})" for a in ("0", "1e3", "1e5", "1e6")]
+    plain = [f"{fixed(rows[a]['sgan']['psnr'])} / {fixed(rows[a]['sgan']['ssim'], 3)}" for a in ("0", "1e6")]
+    return (*gains, *plain)
+
+
 def _restorer_row(name: str, source: str = RESTORERS) -> Quote:
-    """A row of docs/models.md Sec. 8 (or of Sec. 13: ``source`` TARGET_LEVEL) after its step time: matched PSNR
-    (gain over Wiener) per alpha_l, then plain PSNR / SSIM at alpha_l = 0 and 1e6."""
-    def values(d):
-        rows = d["rows"][name]["eval"]["alpha"]
-        gains = [f"{fixed(rows[a]['sgan']['psnr_matched'])} ({signed(rows[a]['gain_over_wiener']['mean'])} +- "
-                 f"{fixed(rows[a]['gain_over_wiener']['interval'])})" for a in ("0", "1e3", "1e5", "1e6")]
-        plain = [f"{fixed(rows[a]['sgan']['psnr'])} / {fixed(rows[a]['sgan']['ssim'], 3)}" for a in ("0", "1e6")]
-        return (*gains, *plain)
-    return Quote("docs/models.md", " " + " | ".join(["{}"] * 6) + " |", source, values)
+    """A row of docs/models.md Sec. 8 (or of Sec. 13: ``source`` TARGET_LEVEL) after its step time."""
+    return Quote("docs/models.md", " " + " | ".join(["{}"] * 6) + " |", source,
+                 lambda d: _row_cells(d["rows"][name]["eval"]["alpha"]))
 
 
 def _total_gains(m: dict) -> tuple[str, ...]:
@@ -197,6 +200,8 @@ QUOTES: list[Quote] = [
     # docs/models.md Sec. 8: every restorer at 400 steps on the published mask
     *(_restorer_row(n) for n in ("sgan_b", "sgan_e", "sgan_f", "sgan_b_gated", "wiener_unet")),
     *(_restorer_row(n, TARGET_LEVEL) for n in TARGET_LEVEL_ROWS),
+    Quote("docs/models.md", "| shipped (L1 recipe, 6,400 + 2,400 pool steps) | n/a | n/a | " + " | ".join(["{}"] * 6)
+          + " |", PRETRAINED.format("pool_l1"), lambda d: _row_cells(d["masks"]["published"]["alpha"])),
     # docs/codesign.md Sec. 7: the mask gradient's signal against its noise, two seeds
     Quote("docs/codesign.md", "is **{}** (seed 0) and **{}** (seed 1)", GRADIENT.format(0),
           lambda d: (fixed(d["snr_one_batch"]), fixed(read_metrics(REPO / GRADIENT.format(1))["snr_one_batch"]))),

@@ -1,7 +1,8 @@
 """``python -m benchmarks.pretrain``: train the shipped restorer (codesign/models/pretrained/) and its controls.
 
-Three trainings of the main job's network (model=sgan_b_gated at the main job's sizes, preset=joint_cpu: 96 px
-padded to 128), run side by side on one device (a GPU step of this small network is launch-bound, so three
+Three trainings of the main job's network (model=sgan_b_l1 with the main job's log-spaced training lasers, at its
+sizes, preset=joint_cpu: 96 px padded to 128; the shipped weights also started from 6,400 steps on the published
+mask: ``--set init.checkpoint=PATH``, their model card), run side by side on one device (a GPU step of this small network is launch-bound, so three
 processes cost little more than one):
 
 - ``pool_seed0`` and ``pool_seed1``: over the mask pool POOL (data.masks: the published half rings, two searched
@@ -42,7 +43,8 @@ RUNS = ("pool_seed0", "pool_seed1", "single")
 
 
 def run_overrides(name: str, a, work: Path) -> list[str]:
-    common = ["+experiment=baseline", "model=sgan_b_gated", "preset=joint_cpu", "trainer=joint_cpu",
+    common = ["+experiment=baseline", "model=sgan_b_l1", "data.params.alpha_l_spacing=log", "preset=joint_cpu",
+              "trainer=joint_cpu",
               f"trainer.steps={a.steps}", f"trainer.ema={a.ema}", f"data.batch_size={a.batch}", f"device={a.device}",
               f"threads={a.threads}", "trainer.val_every=100", "trainer.image_every=0",
               f"trainer.checkpoint_every={a.checkpoint_every}", "evaluate.laser_strengths=[0,1e6]",

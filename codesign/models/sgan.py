@@ -306,7 +306,7 @@ for _variant, _loss in VARIANT_LOSSES.items():  # the config options model=sgan_
     register("model", _variant, {"kind": SGAN.kind, **spec_node(ModelSpec, name=_variant, variant=_variant),
                                  "loss": spec_node(LossWeights, **_loss)})
 
-# model=sgan_b_gated, the main job's network (+experiment=joint): SGAN-B whose untrained sandwich is the laser-aware
+# model=sgan_b_gated, the main job's network before sgan_b_l1 below: SGAN-B whose untrained sandwich is the laser-aware
 # classical pipeline (G1 corrects the filled sensor image, G2 the unit-DC Wiener deconvolution of I_b^ at an nsr
 # that follows the laser's presence) and whose learned corrections are gated by that presence: the options that
 # keep it above the sensor image and ahead of Wiener from the first steps (docs/models.md Sec. 10); and tuned to the
@@ -319,3 +319,12 @@ GATED = {"g2_residual": True, "g1_base": "filled", "g2_base": "wiener", "laser_g
          "level_head": True}
 _GATED_NODE = spec_node(ModelSpec, name="sgan_b_gated", variant="sgan_b", **GATED)
 register("model", "sgan_b_gated", {"kind": SGAN.kind, **_GATED_NODE, "loss": spec_node(LossWeights)})
+
+# model=sgan_b_l1, the main job's network (+experiment=joint, which also spaces the training lasers geometrically:
+# data.params.alpha_l_spacing=log) and the shipped one's: sgan_b_gated with G2's correction not gated by the laser's
+# presence, so that it can pass Wiener without a laser; G2 held to the sensor's exposure, which the level head then
+# scales to the scene's; and its reconstruction (L1) terms alone, which learned faster than with the adversarial
+# ones and take no critic work (docs/models.md Sec. 13)
+L1_RECIPE = {**GATED, "g2_gate": False, "target_level": "exposure"}
+_L1_NODE = spec_node(ModelSpec, name="sgan_b_l1", variant="sgan_b", **L1_RECIPE)
+register("model", "sgan_b_l1", {"kind": SGAN.kind, **_L1_NODE, "loss": spec_node(LossWeights, adv=0.0, mdf=0.0)})

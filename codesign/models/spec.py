@@ -74,8 +74,8 @@ class ModelSpec(SpecMixin):
     laser score best after the gain/offset match, as the classical floor is tuned (codesign/train/base_tuning.py):
     the right nsr depends on the mask, and 0.03 is the published mask's (the +experiment=joint main job sets it).
     g1_halo: G1 takes a fourth channel, where the laser's light lies: the system PSF spread over the saturated pixels,
-    in decades below its peak (codesign/models/sandwich.py halo_map). Without it G1 sees the mask only through the image,
-    and a G1 trained over many masks (data.masks) learns their average halo (docs/models.md Sec. 11).
+    in decades below its peak (codesign/models/sandwich.py halo_map). Without it G1 sees the mask only through the
+    image, and a G1 trained over many masks (data.masks) learns their average halo (docs/models.md Sec. 11).
     level_head: the output is multiplied by a gain per image that brings it to the scene's level, estimated from
     the output's histogram by a head fitted at the end of training on training-split crops (codesign/models/level.py;
     the background strength alpha_b scales what the sensor sees and is known to no method: docs/models.md Sec. 12).

@@ -71,7 +71,7 @@ def test_joint_ends_with_the_summary_and_its_verdict(joint_run):
     per = m["evaluation_per_scene_psnr_matched"]["laser_1e6"]["sgan"]
     assert len(per) == 2 and sum(per) / 2 == pytest.approx(m["evaluation"]["laser_1e6"]["sgan"]["psnr_matched"])
     assert "verdict: the learned mask lets" in summary and "(2 scenes; 95 % interval of the per-scene" in summary
-    assert m["network"] == "sgan_b_gated" and "learned mask + sgan_b_gated" in summary  # the configured name
+    assert m["network"] == "sgan_b_l1" and "learned mask + sgan_b_l1" in summary  # the configured name
     r = m["recheck"]
     assert r["learned"]["fine"]["pupil_n"] > r["learned"]["design"]["pupil_n"]
     assert r["published"]["whole"]["focal_n"] == 2 * r["published"]["design"]["focal_n"]

@@ -90,7 +90,7 @@ def test_the_summary_is_the_stages_evaluations(main_job):
     assert m["scenes"] == ["awning.png", "bridge_city.png"]
     text = (main_job / "summary.txt").read_text()
     assert text == protocol_summary(m) + "\n" and text.rstrip() in (main_job.parent / "console.txt").read_text()
-    assert "  co-designed + sgan_b_gated" in text and "goal (NOT met)" in text  # 4 steps meet no goal
+    assert "  co-designed + sgan_b_l1" in text and "goal (NOT met)" in text  # 4 steps meet no goal
 
 
 def test_a_second_run_on_the_folder_redoes_nothing(main_job, tmp_path):

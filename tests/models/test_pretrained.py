@@ -27,7 +27,7 @@ def test_shipped_weights_are_found_by_name_and_small():
     path = PRETRAINED_DIR / PRETRAINED["pretrained"]
     assert path.stat().st_size < 20 * 2**20  # the limit for weights in the repository
     state = load_checkpoint("pretrained")
-    assert state["config"]["model"]["name"] == "sgan_b_gated"
+    assert state["config"]["model"]["name"] == "sgan_b_l1"  # the main job's network
     assert len(state["config"]["data"]["masks"]) >= 3  # trained over a pool of masks
     assert (PRETRAINED_DIR / "README.md").is_file()
 
