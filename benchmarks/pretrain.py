@@ -2,8 +2,8 @@
 
 Three trainings of the main job's network (model=sgan_b_l1 with the main job's log-spaced training lasers, at its
 sizes, preset=joint_cpu: 96 px padded to 128; the shipped weights also started from 6,400 steps on the published
-mask: ``--set init.checkpoint=PATH``, their model card), run side by side on one device (a GPU step of this small network is launch-bound, so three
-processes cost little more than one):
+mask: ``--set init.checkpoint=PATH``, their model card), run side by side on one device (a GPU step of this small
+network is launch-bound, so three processes cost little more than one):
 
 - ``pool_seed0`` and ``pool_seed1``: over the mask pool POOL (data.masks: the published half rings, two searched
   spline designs at 1/2 and 1/8 of the published mask's certified peak, three defocus surfaces, and random draws
