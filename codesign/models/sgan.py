@@ -159,8 +159,9 @@ class SGAN(Restorer):
         the head as it is applied: held to the scene, the log gain times 1 - p (the laser's presence,
         model.laser_gate; level_presence), so a dazzled image G2 restores weighs by how much of the gain it gets.
         The weight goes into the model and into ``generators``' G2. A head already fitted (a warm start's: the
-        shipped network's was fitted on 1,024 crops) is kept unless ``refit``: the unlasered output it scales is the
-        unit-DC Wiener base, whose level a fine-tuning does not move."""
+        shipped network's was fitted on 1,024 crops) is kept unless ``refit``: what it scales keeps its level through
+        a fine-tuning, the unit-DC Wiener base of a gated G2 without a laser, or, held to the exposure
+        (target_level), G2's output, which training holds at the sensor's level."""
         if not self.spec.level_head:
             return {}
         heads = [plain_module(generators[2]).level, self.g2.level]
