@@ -21,7 +21,7 @@ class ParamConfig:
 
     alpha_l_range: tuple[float, float] = (0.0, 2.0e6)      # laser strength, uncoded peak / I_sat
     alpha_l_levels: int = 10_000                           # number of predetermined values, both ends among them
-    alpha_l_spacing: str = "linear"                        # linear (the paper's) or log: see sample_scene_params
+    alpha_l_spacing: str = "linear"                        # linear (the paper's), log or mixed: sample_scene_params
     angle_three_sigma_fraction: float = 0.36               # 3 sigma of the incidence = this * [W_s/f, H_s/f] rad
     dark_current_mean_e: float = 0.002                     # mu_c, e-; the sampled value is normal around it
     dark_current_std_fraction: float = 0.5                 # std of the dark current = this * mu_c
@@ -38,7 +38,7 @@ class ParamConfig:
 _RANGES = ("alpha_l_range", "read_noise_mean_range_e", "read_noise_std_range_e", "c1_range", "c2_range",
            "alpha_b_range")
 _FIELDS = tuple(f.name for f in dataclasses.fields(ParamConfig))
-SPACINGS = ("linear", "log")
+SPACINGS = ("linear", "log", "mixed")
 
 
 # The largest laser strength, as simulate.laser_strengths': beyond it the float32 simulation overflows (1e40 is inf).
@@ -89,12 +89,14 @@ def param_config(cfg: ParamConfig | Mapping | None) -> ParamConfig:
             out[name] = require_number(key, v, lo=0.0)
     pc = ParamConfig(**out)
     lo, hi = pc.alpha_l_range
-    if pc.alpha_l_spacing == "log" and lo == 0 < hi < 1:
+    if pc.alpha_l_spacing != "linear" and lo == 0 < hi < 1:
         raise ConfigError(f"{PREFIX}.alpha_l_range", list(pc.alpha_l_range),
-                          "with alpha_l_spacing=log and a lower end of 0 the upper end must be >= 1 (the log levels "
-                          "start at 1, the laser at the saturation level, with 0 as one more level)")
-    if pc.alpha_l_levels < 2 and lo < hi:  # one level cannot be both ends: the range would be ignored
+                          f"with alpha_l_spacing={pc.alpha_l_spacing} and a lower end of 0 the upper end must be >= 1 "
+                          "(the log levels start at 1, the laser at the saturation level, with 0 as one more level)")
+    # one level cannot be both ends (the range would be ignored); mixed splits its levels between two such grids
+    least = 4 if pc.alpha_l_spacing == "mixed" else 2
+    if pc.alpha_l_levels < least and lo < hi:
         raise ConfigError(f"{PREFIX}.alpha_l_levels", pc.alpha_l_levels,
-                          f"cannot span {PREFIX}.alpha_l_range = [{lo:g}, {hi:g}]: must be >= 2 (both ends are "
-                          f"levels), or give a range of one strength [a, a]")
+                          f"cannot span {PREFIX}.alpha_l_range = [{lo:g}, {hi:g}]: must be >= {least} (both ends are "
+                          f"levels{' of each half' if least == 4 else ''}), or give a range of one strength [a, a]")
     return pc

@@ -22,11 +22,19 @@ __all__ = ["SceneParams", "sample_scene_params", "fixed_scene_params", "preset_p
 
 
 def laser_strength_levels(pc: ParamConfig) -> torch.Tensor:
-    """The predetermined laser strengths the training draws from, float64 (see sample_scene_params). Both ends of
-    ``alpha_l_range`` are levels (param_config refuses a single level for a range of two values)."""
+    """The predetermined laser strengths the training draws from, float64, ascending (see sample_scene_params).
+    Both ends of ``alpha_l_range`` are levels (param_config refuses a single level for a range of two values)."""
     (lo, hi), n = pc.alpha_l_range, pc.alpha_l_levels
     if pc.alpha_l_spacing == "linear" or lo == hi:
         return torch.linspace(lo, hi, n, dtype=torch.float64)
+    if pc.alpha_l_spacing == "mixed":  # half the levels of each grid: a uniform draw is a 50/50 mixture of the two
+        half = [dataclasses.replace(pc, alpha_l_spacing=s, alpha_l_levels=k)
+                for s, k in (("linear", n - n // 2), ("log", n // 2))]
+        return torch.sort(torch.cat([laser_strength_levels(h) for h in half])).values
+    return _log_levels(lo, hi, n)
+
+
+def _log_levels(lo: float, hi: float, n: int) -> torch.Tensor:
     zero = lo == 0
     # geometric from lo (from 1 when lo = 0, with 0 as one more level); one geometric level is the upper end
     # (torch.logspace of one step gives its start: with lo = 0 and 2 levels the grid was {0, 1}, not {0, hi})
@@ -166,6 +174,8 @@ def sample_scene_params(batch: int, generator: torch.Generator, cfg: ParamConfig
       paper's) spaces the levels geometrically from lo to hi (from 1, with 0 as one of them, when lo = 0): the
       linear grid puts 0.5 % of its draws at alpha_l <= 1e4, where a mask that keeps the spot small saturates
       only a few pixels, so a network trained on it has hardly seen that regime (docs/codesign.md Sec. 7).
+      ``alpha_l_spacing=mixed``: half the levels linear, half log (both grids' draws, 50/50), so that the strong
+      laser keeps 42 % of the draws above 5e5 (linear 75 %, log 10 %) and 32 % fall at <= 1e4 (log 63 %).
     * laser_angle_rad: independent normals per axis, mean 0, 3 sigma = 0.36 * [W_s / f, H_s / f]. The paper
       prints 0.36 * [f / W_s, f / H_s], which for Table 1 (f = 0.11 m, W_s = 18.1 mm, or 13.7 mm for the
       2532-pixel crop) is 2.2-2.9 rad, not a usable incidence angle; with W_s / f the focal-plane footprint

@@ -129,11 +129,30 @@ def test_log_spacing_draws_from_zero_and_geometric_levels_up_to_the_range_end():
     assert share(_sample(batch=N, dtype=torch.float64).alpha_l) == pytest.approx(0.005, abs=0.002)
 
 
+def test_mixed_spacing_is_half_the_levels_of_each_grid():
+    from codesign.data.params import laser_strength_levels
+
+    mixed = laser_strength_levels(param_config({"alpha_l_range": [0, 1.0e6], "alpha_l_levels": 9,
+                                                "alpha_l_spacing": "mixed"}))
+    linear = torch.linspace(0, 1.0e6, 5, dtype=torch.float64)                    # the larger half: 5 levels
+    log = laser_strength_levels(param_config({"alpha_l_range": [0, 1.0e6], "alpha_l_levels": 4,
+                                              "alpha_l_spacing": "log"}))        # 0, 1, 1e3, 1e6
+    assert torch.equal(mixed, torch.sort(torch.cat([linear, log])).values)
+    # a uniform draw over the default grid: a 50/50 mixture of the two grids' shares
+    grid = laser_strength_levels(param_config({"alpha_l_spacing": "mixed"}))
+    assert len(grid) == 10_000 and torch.all(grid[1:] >= grid[:-1])
+    assert float((grid <= 1e4).double().mean()) == pytest.approx(0.5 * 0.005 + 0.5 * 4 / 6.30103, abs=0.002)
+    assert float((grid > 5e5).double().mean()) == pytest.approx(0.5 * 0.75 + 0.5 * 0.60103 / 6.30103, abs=0.002)
+
+
 def test_bad_alpha_l_spacing_names_the_allowed_values():
-    with pytest.raises(ConfigError, match=r"data\.params\.alpha_l_spacing.*must be one of linear, log"):
+    with pytest.raises(ConfigError, match=r"data\.params\.alpha_l_spacing.*must be one of linear, log, mixed"):
         param_config({"alpha_l_spacing": "geometric"})
     with pytest.raises(ConfigError, match=r"data\.params\.alpha_l_range.*upper end must be >= 1"):
         param_config({"alpha_l_spacing": "log", "alpha_l_range": [0, 0.5]})
+    with pytest.raises(ConfigError, match=r"data\.params\.alpha_l_levels = 3: .* must be >= 4 \(both ends are "
+                                          r"levels of each half\)"):
+        param_config({"alpha_l_spacing": "mixed", "alpha_l_levels": 3})
 
 
 @pytest.mark.parametrize("key, value", [
