@@ -27,6 +27,7 @@ MAIN_JOB = "benchmarks/results/main_job/metrics.json"
 MAIN_JOB_SEED1 = "benchmarks/results/main_job/before_level_head/seed1/metrics.json"
 MAIN_JOB_GATED = "benchmarks/results/main_job/gated_recipe/metrics.json"
 MAIN_JOB_L1_FIRST = "benchmarks/results/main_job/l1_first_weights/metrics.json"
+MAIN_JOB_240 = "benchmarks/results/main_job/steps240/{}/metrics.json"
 GRADIENT = "benchmarks/results/mask_gradient/published_seed{}.json"
 PRETRAINED = "benchmarks/results/pretrained/eval_{}.json"
 RESTORERS = "benchmarks/results/restorers/restorer_table.json"
@@ -147,6 +148,14 @@ def _total_gains(m: dict) -> tuple[str, ...]:
                  for c in ("laser_0", "laser_1e3", "laser_1e6"))
 
 
+def _seed_row(m: dict) -> tuple[str, ...]:
+    """A seed's row of the main job's seed table: the total gain per alpha_l, then the joint stage's at 1e6."""
+    from codesign.train.protocol_summary import GAINS
+
+    joint = m["gains"][next(label for label, *_ in GAINS if label.startswith("joint stage"))]["laser_1e6"]
+    return (*_total_gains(m), f"{signed(joint['mean'])} +- {fixed(joint['interval'])}")
+
+
 def _main_job_summary(m: dict) -> tuple[str]:
     """The printed end of the main job's run, rebuilt from its metrics.json exactly as the run prints it."""
     from codesign.train.protocol_summary import protocol_summary
@@ -213,6 +222,9 @@ QUOTES: list[Quote] = [
           lambda d: (fixed(d["snr_one_batch"]), fixed(read_metrics(REPO / GRADIENT.format(1))["snr_one_batch"]))),
     # docs/codesign.md Sec. 7: the main job's summary as its run printed it (benchmarks/results/main_job/)
     Quote("docs/codesign.md", "{}", MAIN_JOB, _main_job_summary),
+    # ... the three seeds at 240 restorer steps and the mixed laser strengths (benchmarks/results/main_job/steps240/)
+    *(Quote("docs/codesign.md", " | {} | {} | {} | {} |", MAIN_JOB_240.format(run), _seed_row)
+      for run in ("seed0", "seed1", "seed2", "mixed_lasers")),
     # ... its headline gains
     Quote("docs/codesign.md", "restores {} dB better at alpha_l = 0,\n{} at 1e3 and {} at 1e6", MAIN_JOB,
           lambda m: _total_gains(m)),
