@@ -211,12 +211,10 @@ QUOTES: list[Quote] = [
     # docs/models.md Sec. 8: every restorer at 400 steps on the published mask
     *(_restorer_row(n) for n in ("sgan_b", "sgan_e", "sgan_f", "sgan_b_gated", "wiener_unet")),
     *(_restorer_row(n, TARGET_LEVEL) for n in TARGET_LEVEL_ROWS),
-    Quote("docs/models.md", "| shipped until the second pool run (L1 recipe, 6,400 + 2,400 pool steps) | n/a | n/a | "
-          + " | ".join(["{}"] * 6) + " |", PRETRAINED.format("pool_l1"),
-          lambda d: _row_cells(d["masks"]["published"]["alpha"])),
-    Quote("docs/models.md", "| shipped (L1 recipe, 6,400 + 2,400 + 2,400 pool steps) | n/a | n/a | "
-          + " | ".join(["{}"] * 6) + " |", PRETRAINED.format("pool_l1b"),
-          lambda d: _row_cells(d["masks"]["published"]["alpha"])),
+    *(Quote("docs/models.md", f"| {label} | n/a | n/a | " + " | ".join(["{}"] * 6) + " |", PRETRAINED.format(run),
+            lambda d: _row_cells(d["masks"]["published"]["alpha"]))
+      for label, run in (("shipped until the second pool run (L1 recipe, 6,400 + 2,400 pool steps)", "pool_l1"),
+                         ("shipped (L1 recipe, 6,400 + 2,400 + 2,400 pool steps)", "pool_l1b"))),
     # docs/codesign.md Sec. 7: the mask gradient's signal against its noise, two seeds
     Quote("docs/codesign.md", "is **{}** (seed 0) and **{}** (seed 1)", GRADIENT.format(0),
           lambda d: (fixed(d["snr_one_batch"]), fixed(read_metrics(REPO / GRADIENT.format(1))["snr_one_batch"]))),
