@@ -19,6 +19,9 @@ Protocol (docs/codesign.md, Sec. 7):
     python -m benchmarks.codesign_study                                  # the CPU study, ~1 h on 2 cores
     python -m benchmarks.codesign_study --smoke --out /tmp/study         # every step at smoke size, ~3 min
 
+The main job's own protocol (design, restorer, its joint arm against its frozen designed arm) over seeds is
+benchmarks/main_job_seeds.py.
+
 Every run lives in OUT/runs/<arm>/seed<k>; a run whose metrics.json exists is not run again, so a killed study
 continues where it stopped (delete a run's folder to redo it).
 """

@@ -67,6 +67,14 @@ def pct(v: float, decimals: int = 1) -> str:
     return f"{100 * v:.{decimals}f} %"
 
 
+def _seeds_text(res: dict, start: str = "| seed") -> str:
+    """benchmarks.main_job_seeds' rendering of its seeds.json, from ``start`` (its table, or its verdicts) on."""
+    from benchmarks.main_job_seeds import render
+
+    text = render(res)
+    return text[text.index(start):].rstrip("\n")
+
+
 @dataclass(frozen=True)
 class Quote:
     page: str
@@ -225,7 +233,12 @@ QUOTES: list[Quote] = [
       for run in ("seed0", "seed1", "seed2", "mixed_lasers")),
     # ... and the moonshot at an eighth of the published LSR (benchmarks/results/main_job/eighth/)
     *(Quote("docs/codesign.md", f"| published/8, seed {k} | {{}} | {{}} | {{}} | {{}} |",
-            f"benchmarks/results/main_job/eighth/{sub}metrics.json", _seed_row) for k, sub in ((0, ""), (1, "seed1/"))),
+            f"benchmarks/results/main_job/eighth/{sub}metrics.json", _seed_row)
+      for k, sub in ((0, ""), (1, "seed1/"), (2, "seed2/"))),
+    # ... and the joint stage over the seeds (benchmarks.main_job_seeds): the moonshot's table, the quarter's verdict
+    Quote("docs/codesign.md", "{}", "benchmarks/results/main_job/eighth/seeds.json", lambda d: (_seeds_text(d),)),
+    Quote("docs/codesign.md", "{}", "benchmarks/results/main_job/steps240/seeds.json",
+          lambda d: (_seeds_text(d, "- main-job goal"),)),
     # ... its headline gains
     Quote("docs/codesign.md", "restores {} dB better at alpha_l = 0,\n{} at 1e3 and {} at 1e6", MAIN_JOB,
           lambda m: _total_gains(m)),
