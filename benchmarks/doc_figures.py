@@ -32,6 +32,7 @@ GRADIENT = "benchmarks/results/mask_gradient/published_seed{}.json"
 PRETRAINED = "benchmarks/results/pretrained/eval_{}.json"
 RESTORERS = "benchmarks/results/restorers/restorer_table.json"
 TARGET_LEVEL = "benchmarks/results/restorers/target_level/target_level.json"
+JOINT_STAGE = "joint stage (co-designed - designed + network)"
 
 
 TARGET_LEVEL_ROWS = (
@@ -239,6 +240,14 @@ QUOTES: list[Quote] = [
     Quote("docs/codesign.md", "{}", "benchmarks/results/main_job/eighth/seeds.json", lambda d: (_seeds_text(d),)),
     Quote("docs/codesign.md", "{}", "benchmarks/results/main_job/steps240/seeds.json",
           lambda d: (_seeds_text(d, "- main-job goal"),)),
+    # ... and the quarter with twice the arms' steps (benchmarks/results/main_job/quarter_ft240/)
+    Quote("docs/codesign.md", "| 240 | {} | {} | {} +- {} | {} |",
+          "benchmarks/results/main_job/quarter_ft240/metrics.json",
+          lambda m: (fixed(m["systems"]["designed_network"]["laser_1e6"]["psnr_matched"]),
+                     fixed(m["systems"]["codesigned_network"]["laser_1e6"]["psnr_matched"]),
+                     signed(m["gains"][JOINT_STAGE]["laser_1e6"]["mean"]),
+                     fixed(m["gains"][JOINT_STAGE]["laser_1e6"]["interval"]),
+                     fixed(m["masks"]["co-designed"]["lsr"] / m["lsr_published_peak"], 3))),
     # ... its headline gains
     Quote("docs/codesign.md", "restores {} dB better at alpha_l = 0,\n{} at 1e3 and {} at 1e6", MAIN_JOB,
           lambda m: _total_gains(m)),
