@@ -8,7 +8,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from codesign.models.fill import SATURATED, push_pull_fill, valid_pixels
+from codesign.models.fill import SATURATED, push_pull_fill, replicate_outside_field, valid_pixels
 from codesign.models.spec import ModelSpec
 
 
@@ -113,7 +113,10 @@ def sandwich(generators, sensor: torch.Tensor, otf: torch.Tensor, spec: ModelSpe
     halo = halo_map(sensor, otf) if spec.g1_halo else None
     i_b = pre_restore(g1, sensor, spec.g1_residual, spec.g1_base, presence, halo)
     features = gv(i_b, otf)
-    base = plain_module(g2).base(i_b, otf, presence) if spec.g2_residual else None
+    base = None
+    if spec.g2_residual:  # model.g2_base_pad: what lies outside the field when the base deconvolves I_b^
+        padded = replicate_outside_field(i_b, sensor) if spec.g2_base_pad == "replicate" else i_b
+        base = plain_module(g2).base(padded, otf, presence)
     b = g2(features, base, presence if spec.g2_gate else None)
     exposure = b  # G2's own output, at the sensor's exposure when held to it (model.target_level)
     if spec.level_head:  # both scales brought to the scene's level by one gain per image (no gradient through it)

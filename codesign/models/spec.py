@@ -14,6 +14,7 @@ from codesign.spec_base import SpecMixin
 VARIANTS = ("sgan_b", "sgan_e", "sgan_f")
 G1_BASES = ("sensor", "filled")
 G2_BASES = ("i_b", "wiener")
+G2_BASE_PADS = ("filled", "replicate")
 TARGET_LEVELS = ("scene", "exposure")
 SIZES: dict[str, dict] = {
     "paper": {"stem_width": 64, "widths": (64, 128, 256, 512, 512, 512, 512), "d_widths": (64, 128, 256, 512)},
@@ -69,6 +70,11 @@ class ModelSpec(SpecMixin):
     images nearly all carry a laser (alpha_l uniform on [0, 2e6]), so G2 learns corrections of lasered images only,
     and an image without saturated pixels gets the classical pipeline's image, which is what it scores best with
     at the CPU budget (docs/models.md Sec. 10; the arms measured: docs/results_log.md).
+    g2_base_pad: with g2_residual, what lies outside the sensor's field (the padding of the canvas) when G2's base
+    is computed from I_b^: filled (I_b^ as G1 leaves it, the push-pull fill of g1_base=filled plus G1's correction)
+    or replicate (the field's border replicated, as the evaluation's classical Wiener pads): the Wiener base of the
+    main job's designed spline without a laser scores 30.80 dB after the match on the filled padding and 31.78 on
+    the replicated one (docs/models.md Sec. 13).
     g2_base_nsr_tuned: with g2_base=wiener, a run from fresh weights first sets the unlasered nsr (g2_base_nsr's
     parameter) to the value of the evaluation's Wiener grid whose restorations of training-split crops without a
     laser score best after the gain/offset match, as the classical floor is tuned (codesign/train/base_tuning.py):
@@ -106,6 +112,7 @@ class ModelSpec(SpecMixin):
     g1_base: str = "sensor"
     g2_base: str = "i_b"
     g2_base_nsr: float = 3e-2
+    g2_base_pad: str = "filled"
     laser_gate: bool = False
     laser_gate_f0: float = 1e-3
     g2_base_nsr_lasered: float = 3e-2
@@ -137,6 +144,7 @@ class ModelSpec(SpecMixin):
         require_number(f"{p}.gamma_init", self.gamma_init, lo=1e-7, hi=1e6)
         require_choice(f"{p}.g1_base", self.g1_base, G1_BASES)
         require_choice(f"{p}.g2_base", self.g2_base, G2_BASES)
+        require_choice(f"{p}.g2_base_pad", self.g2_base_pad, G2_BASE_PADS)
         require_choice(f"{p}.target_level", self.target_level, TARGET_LEVELS)
         require_number(f"{p}.g2_base_nsr", self.g2_base_nsr, lo=1e-8, hi=1e4)
         if self.g2_base != "i_b" and not self.g2_residual:

@@ -71,8 +71,9 @@ INIT_MUST_MATCH = ("model", "optics", "sensor", "data.image_size", "data.padded_
 # a warm start keeps the network: the mask may change, and with it how its surface is made, the lines reported and
 # the scene's band (each only changes the blur the network is fine-tuned on, as another mask does); model.name is a
 # label
-# model.laser_gate_f0 and g2_base_nsr_tuned only start learned parameters, which a warm start loads
-INIT_MAY_DIFFER = ("model.loss", "model.name", "model.laser_gate_f0", "model.g2_base_nsr_tuned",
+# model.laser_gate_f0 and g2_base_nsr_tuned only start learned parameters, which a warm start loads;
+# g2_base_pad changes what G2's base deconvolves, no parameter, which the fine-tuning then adapts to
+INIT_MAY_DIFFER = ("model.loss", "model.name", "model.laser_gate_f0", "model.g2_base_nsr_tuned", "model.g2_base_pad",
                    "optics.laser_wavelengths_m", "optics.wrap_waves",
                    "optics.scene_spectrum") + tuple(f"optics.{k}" for k in MEASURED_DEFAULTS)
 
@@ -135,7 +136,7 @@ def load_ema_weights(generators: list, state: dict, key: str, path, what: str) -
 # SGAN keys added after checkpoints were written, at the values those checkpoints were trained with
 SGAN_ADDED = {"g2_residual": False, "g1_base": "sensor", "g2_base": "i_b", "g2_base_nsr": 3e-2, "laser_gate": False,
               "laser_gate_f0": 1e-3, "g2_base_nsr_lasered": 3e-2, "g2_gate": False, "g2_base_nsr_tuned": False,
-              "g1_halo": False, "level_head": False, "target_level": "scene"}
+              "g2_base_pad": "filled", "g1_halo": False, "level_head": False, "target_level": "scene"}
 
 
 # keys added with the laser lines, at the values every earlier checkpoint was trained with: the design wavelength

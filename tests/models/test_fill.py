@@ -7,8 +7,9 @@ import math
 import pytest
 import torch
 
+from codesign.errors import ConfigError
 from codesign.models import SGAN, ModelSpec, otf_from_kernel
-from codesign.models.fill import push_pull_fill, valid_pixels
+from codesign.models.fill import push_pull_fill, replicate_outside_field, valid_pixels
 from codesign.models.sandwich import coordinates, downsample2
 from codesign.models.wiener import classical_wiener
 from codesign.train.resume import _with_added_keys
@@ -79,6 +80,7 @@ def test_checkpoints_from_before_the_residual_options_read_as_trained():
     saved = {"model": {"kind": "sgan", "variant": "sgan_b"}, "optics": {"focal_n": 160}}
     model = _with_added_keys(saved)["model"]
     assert model["g2_residual"] is False and model["g1_base"] == "sensor" and model["g2_base"] == "i_b"
+    assert model["g2_base_pad"] == "filled"  # what every checkpoint before the option computed
     other = {"model": {"kind": "wiener_unet"}}
     assert _with_added_keys(other)["model"] == {"kind": "wiener_unet"}
 
@@ -117,6 +119,44 @@ def test_with_a_wiener_base_the_untrained_sandwich_returns_the_classical_pipelin
             torch.testing.assert_close(model.g2.base(flat, otf), flat, atol=1e-5, rtol=0)
     out["restored"].square().mean().backward()
     assert model.g2.log_nsr.grad is not None and float(model.g2.log_nsr.grad.abs()) > 0
+
+
+def test_replicate_outside_field_keeps_the_field_and_repeats_its_border():
+    s = _capture(p=12, n=6)  # field rows and columns 3..8
+    x = torch.randn(2, 1, 12, 12, dtype=torch.float64, requires_grad=True)
+    out = replicate_outside_field(x, s.expand(2, 1, 12, 12))
+    assert torch.equal(out[..., 3:9, 3:9], x[..., 3:9, 3:9])
+    assert torch.equal(out[..., 0, 5], x[..., 3, 5]) and torch.equal(out[..., 11, 11], x[..., 8, 8])
+    assert torch.equal(out[..., 5, :3], x[..., 5, 3:4].expand(2, 1, 3))
+    out.sum().backward()  # every canvas pixel's gradient lands on the field pixel it copies
+    assert float(x.grad.sum()) == 2 * 144 and float(x.grad[..., 0, 0].abs().sum()) == 0
+    assert float(x.grad[0, 0, 3, 3]) == 16  # the corner pixel fills its 4 x 4 corner block
+    full = torch.ones(1, 1, 12, 12, dtype=torch.float64)
+    assert torch.equal(replicate_outside_field(x, full), x)  # no padding: unchanged
+    assert torch.equal(replicate_outside_field(x, torch.zeros_like(full)), x)  # no field: unchanged
+
+
+def test_g2_base_pad_replicate_deconvolves_the_replicated_field():
+    """model.g2_base_pad=replicate: the untrained sandwich (its output is its base) returns the unit-DC Wiener
+    deconvolution of I_b^ with the field's border replicated into the padding; the default keeps the filled I_b^."""
+    torch.manual_seed(0)
+    common = dict(size="tiny", fe_features=4, g2_residual=True, g1_base="filled", g2_base="wiener", g2_base_nsr=0.05)
+    s = _capture().float()
+    k = torch.rand(5, 5)
+    otf = otf_from_kernel(k / k.sum(), s.shape[-1])
+    outs = {}
+    for pad in ("filled", "replicate"):
+        model = SGAN(ModelSpec(**common, g2_base_pad=pad))
+        init_weights(model)
+        outs[pad] = model(s, otf)
+    filled = push_pull_fill(s, valid_pixels(s))
+    assert torch.equal(outs["replicate"]["i_b"], filled)  # G1's output is the same; only the base's input differs
+    torch.testing.assert_close(outs["replicate"]["base"],
+                               _unit_dc_wiener(replicate_outside_field(filled, s), otf, 0.05), atol=1e-6, rtol=0)
+    torch.testing.assert_close(outs["filled"]["base"], _unit_dc_wiener(filled, otf, 0.05), atol=1e-6, rtol=0)
+    assert float((outs["replicate"]["base"] - outs["filled"]["base"]).detach().abs().max()) > 1e-3
+    with pytest.raises(ConfigError, match="model.g2_base_pad = 'zero': must be one of filled, replicate"):
+        ModelSpec(**common, g2_base_pad="zero")
 
 
 def _gated_pair(options: dict, randomized: str):
