@@ -90,7 +90,7 @@ def test_the_main_job_trains_sgan_b_l1_and_any_network_can_replace_it():
     gated_spec = build_restorer(OmegaConf.to_container(gated.model, resolve=True)).spec
     assert (gated_spec.g2_gate, gated_spec.target_level, gated.model.loss.adv) == (True, "scene", 1.0)
     assert joint.data.params.alpha_l_spacing == "log" and gated.data.params.alpha_l_spacing == "log"
-    assert (joint.trainer.ema, joint.trainer.steps, joint.codesign.finetune_steps) == (0.99, 220, 120)
+    assert (joint.trainer.ema, joint.trainer.steps, joint.codesign.finetune_steps) == (0.99, 200, 120)
     assert build_restorer(OmegaConf.to_container(other.model, resolve=True)).kind == "wiener_unet"
     assert paper_net.model.g2_residual is False and paper_net.model.laser_gate is False
 

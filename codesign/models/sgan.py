@@ -325,7 +325,9 @@ register("model", "sgan_b_gated", {"kind": SGAN.kind, **_GATED_NODE, "loss": spe
 # data.params.alpha_l_spacing=log) and the shipped one's: sgan_b_gated with G2's correction not gated by the laser's
 # presence, so that it can pass Wiener without a laser; G2 held to the sensor's exposure, which the level head then
 # scales to the scene's; and its reconstruction (L1) terms alone, which learned faster than with the adversarial
-# ones and take no critic work (docs/models.md Sec. 13)
-L1_RECIPE = {**GATED, "g2_gate": False, "target_level": "exposure"}
+# ones and take no critic work (docs/models.md Sec. 13); since 2026-11-29 its Wiener base deconvolves I_b^ with the
+# field's border replicated into the padding, as the classical floor does (model.g2_base_pad: +0.3 dB for the main
+# job's systems without a laser; the shipped weights, trained on the filled padding, keep theirs when loaded alone)
+L1_RECIPE = {**GATED, "g2_gate": False, "target_level": "exposure", "g2_base_pad": "replicate"}
 _L1_NODE = spec_node(ModelSpec, name="sgan_b_l1", variant="sgan_b", **L1_RECIPE)
 register("model", "sgan_b_l1", {"kind": SGAN.kind, **_L1_NODE, "loss": spec_node(LossWeights, adv=0.0, mdf=0.0)})
