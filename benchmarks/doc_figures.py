@@ -27,6 +27,7 @@ MAIN_JOB = "benchmarks/results/main_job/metrics.json"
 MAIN_JOB_SEED1 = "benchmarks/results/main_job/before_level_head/seed1/metrics.json"
 MAIN_JOB_GATED = "benchmarks/results/main_job/gated_recipe/metrics.json"
 MAIN_JOB_L1_FIRST = "benchmarks/results/main_job/l1_first_weights/metrics.json"
+MAIN_JOB_220 = "benchmarks/results/main_job/steps220_filled/metrics.json"
 MAIN_JOB_240 = "benchmarks/results/main_job/steps240/{}/metrics.json"
 GRADIENT = "benchmarks/results/mask_gradient/published_seed{}.json"
 PRETRAINED = "benchmarks/results/pretrained/eval_{}.json"
@@ -66,6 +67,14 @@ def signed(v: float, decimals: int = 2) -> str:
 def pct(v: float, decimals: int = 1) -> str:
     """0.204 -> 20.4 %."""
     return f"{100 * v:.{decimals}f} %"
+
+
+def _padding_row(filled: dict, key: str) -> tuple[str, ...]:
+    """One system's PSNR matched at alpha_l = 0 / 1e3 / 1e6 in the 220-step main job on the filled padding, then
+    in the same run with model.g2_base_pad=replicate (benchmarks/results/main_job/steps220_replicate/)."""
+    replicate = read_metrics(REPO / "benchmarks/results/main_job/steps220_replicate/metrics.json")
+    return tuple(fixed(m["systems"][key][f"laser_{a}"]["psnr_matched"]) for m in (filled, replicate)
+                 for a in ("0", "1e3", "1e6"))
 
 
 def _seeds_text(res: dict, start: str = "| seed") -> str:
@@ -224,6 +233,10 @@ QUOTES: list[Quote] = [
             lambda d: _row_cells(d["masks"]["published"]["alpha"]))
       for label, run in (("shipped until the second pool run (L1 recipe, 6,400 + 2,400 pool steps)", "pool_l1"),
                          ("shipped (L1 recipe, 6,400 + 2,400 + 2,400 pool steps)", "pool_l1b"))),
+    # docs/models.md Sec. 13: the base's padding, the 220-step main job filled against replicate
+    *(Quote("docs/models.md", f"| {label} + network | {{}} / {{}} / {{}} | {{}} / {{}} / {{}} |", MAIN_JOB_220,
+            lambda m, key=key: _padding_row(m, key)) for label, key in
+      (("published", "published_network"), ("designed", "designed_network"), ("co-designed", "codesigned_network"))),
     # docs/codesign.md Sec. 7: the mask gradient's signal against its noise, two seeds
     Quote("docs/codesign.md", "is **{}** (seed 0) and **{}** (seed 1)", GRADIENT.format(0),
           lambda d: (fixed(d["snr_one_batch"]), fixed(read_metrics(REPO / GRADIENT.format(1))["snr_one_batch"]))),
@@ -254,6 +267,10 @@ QUOTES: list[Quote] = [
     # docs/results_log.md: the main job's runs with the gated recipe (benchmarks/results/main_job/gated_recipe/,
     # before_level_head/seed1/)
     Quote("docs/results_log.md", "{}", MAIN_JOB_GATED, _main_job_summary),
+    # ... at 220 restorer steps with the filled base padding (benchmarks/results/main_job/steps220_filled/)
+    Quote("docs/results_log.md", "{}", MAIN_JOB_220, _main_job_summary),
+    Quote("docs/results_log.md", "restores {} dB better at alpha_l = 0,\n{} at 1e3 and {} at 1e6", MAIN_JOB_220,
+          lambda m: _total_gains(m)),
     # ... and with the first L1 pool weights (benchmarks/results/main_job/l1_first_weights/)
     Quote("docs/results_log.md", "{}", MAIN_JOB_L1_FIRST, _main_job_summary),
     Quote("docs/results_log.md", "total gain {} dB at alpha_l = 0,\n  {} at 1e3, {} at 1e6", MAIN_JOB_SEED1,
