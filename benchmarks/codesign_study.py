@@ -34,7 +34,8 @@ import sys
 import time
 from pathlib import Path
 
-from benchmarks.common import REPO, machine, markdown_table, run_logged, write_json, write_text
+from benchmarks.common import (JOINT_GOAL_DB, REPO, Runner, machine, markdown_table, paired_gain, write_json,
+                               write_text)
 
 RESULTS = REPO / "benchmarks" / "results" / "codesign_study"
 SCENES = REPO.parent / "shared" / "data" / "scenes"
@@ -115,45 +116,6 @@ def folder(arm: str) -> str:
     return arm.replace(" (frozen)", "_frozen").replace("joint from ", "joint_").replace(" ", "_")
 
 
-class Runner:
-    """Runs the study's commands one after another with their logs beside their outputs, skipping finished runs,
-    and prints a line per run with the time left (each kind of run, pretraining, fine-tuning or evaluation, at
-    its own mean duration so far)."""
-
-    def __init__(self, counts: dict[str, int]):
-        self.left = dict(counts)
-        self.total, self.done = sum(counts.values()), 0
-        self.seconds: dict[str, list[float]] = {k: [] for k in counts}
-        self.spent = 0.0  # wall seconds of every run, this invocation's and earlier ones' (their .seconds files)
-
-    def eta_minutes(self) -> float:
-        every = [x for v in self.seconds.values() for x in v]
-        mean = lambda k: statistics.mean(self.seconds[k] or every)  # noqa: E731
-        return sum(n * mean(k) for k, n in self.left.items() if n) / 60 if every else float("nan")
-
-    def __call__(self, kind: str, label: str, run_dir: Path, args: list[str], timeout: float = 7200) -> dict:
-        metrics = run_dir / "metrics.json"
-        self.done += 1
-        self.left[kind] -= 1
-        if not metrics.is_file():
-            print(f"[{self.done}/{self.total}] {label} ...", flush=True)
-            run_dir.mkdir(parents=True, exist_ok=True)
-            cmd = [sys.executable, "-m", "codesign", *args, f"hydra.run.dir={run_dir}"]
-            rc, sec = run_logged(cmd, run_dir.with_suffix(".log"), timeout)
-            if rc != 0:
-                raise SystemExit(f"codesign_study: {label} failed (exit {rc}); its log: {run_dir.with_suffix('.log')}"
-                                 f"\n  command: {' '.join(cmd)}")
-            self.seconds[kind].append(sec)
-            run_dir.with_suffix(".seconds").write_text(f"{sec:.1f}\n")
-            print(f"[{self.done}/{self.total}] {label}: {sec:.0f} s; about {self.eta_minutes():.0f} min left",
-                  flush=True)
-        else:
-            print(f"[{self.done}/{self.total}] {label}: done before ({metrics})", flush=True)
-        stamp = run_dir.with_suffix(".seconds")
-        self.spent += float(stamp.read_text()) if stamp.is_file() else 0.0
-        return json.loads(metrics.read_text())
-
-
 def network_column(metrics: dict) -> str:
     """The restorer's column of an evaluation table (the others are the floors)."""
     columns = set(next(iter(metrics["evaluation"].values()))) - {"sensor", "wiener", "g1_wiener"}
@@ -196,23 +158,6 @@ def recheck(record: Path) -> dict:
             "window_energy_whole": check["whole"]["window_energy"]}
 
 
-def _spread(values: list[float]) -> float:
-    return statistics.stdev(values) if len(values) > 1 else float("nan")
-
-
-def paired_gain(arm: dict[int, dict], against: dict[int, dict], key: str) -> dict:
-    """``arm`` minus ``against`` (seed -> figures) in ``key``, paired by seed: the mean gain and the standard
-    deviation of the paired gains; the seed spread, taken as the larger standard deviation of the two arms (stricter
-    than the paired one: it counts the seed-to-seed swing that both arms share; NaN below 2 seeds); significant when
-    |mean gain| > 2 x the spread; the number of seeds paired."""
-    common = sorted(set(arm) & set(against))
-    gains = [arm[s][key] - against[s][key] for s in common]
-    spread = max(_spread([arm[s][key] for s in sorted(arm)]), _spread([against[s][key] for s in sorted(against)]))
-    mean = statistics.mean(gains)
-    return {"gain": mean, "gain_std": statistics.stdev(gains) if len(gains) > 1 else 0.0, "spread": spread,
-            "significant": abs(mean) > 2 * spread, "seeds": len(common)}
-
-
 def summarize(per_run: dict[str, dict[int, dict]]) -> dict:
     """Per arm: mean and sample standard deviation over seeds of every figure, and (paired_gain) its gain over the
     frozen published arm."""
@@ -243,7 +188,6 @@ def goal_met(summary: dict) -> dict[str, bool]:
     return out
 
 
-JOINT_GOAL_DB = 0.5  # issue 36: the joint stage at least +0.5 dB over its frozen arm at alpha_l = 1e6
 
 
 def joint_vs_frozen(per_run: dict[str, dict]) -> dict[str, dict]:

@@ -78,10 +78,9 @@ def _padding_row(filled: dict, key: str) -> tuple[str, ...]:
 
 
 def _seeds_text(res: dict, start: str = "| seed") -> str:
-    """benchmarks.main_job_seeds' rendering of its seeds.json, from ``start`` (its table, or its verdicts) on."""
-    from benchmarks.main_job_seeds import render
-
-    text = render(res)
+    """benchmarks.main_job_seeds' rendering stored in its seeds.json, from ``start`` (its table, or its verdicts)
+    on."""
+    text = res["markdown"]
     return text[text.index(start):].rstrip("\n")
 
 

@@ -31,17 +31,18 @@ def test_every_registered_benchmark_is_a_module_with_a_run_function(name):
 
 def test_benchmarks_holds_the_suite_and_its_helpers_only():
     """No stand-alone studies beside the suite: __main__, common, one bench_<name>.py per registry entry, the GPU
-    campaign (gpu.py), which runs parts of entries on a GPU node as __main__ runs them all, and the two studies that
-    run experiments, not timings: the co-design study (codesign_study.py) and the network's first training steps
-    (early_steps.py), the re-measurement of the stored designs' peaks (design_peaks.py) and the mask gradient's
-    signal against its batch noise (mask_gradient.py), the shipped restorer's training and its evaluation mask by
-    mask (pretrain.py, pretrained_eval.py), every restorer side by side (restorer_table.py), the bound on knowing
-    the scene's level (level_bound.py); and two tools of the results: the check of the docs' quoted figures against
-    them (doc_figures.py) and the record of how the held-out photographs were made (heldout_scenes.py)."""
+    campaign (gpu.py), which runs parts of entries on a GPU node as __main__ runs them all, and the studies that
+    run experiments, not timings: the co-design study (codesign_study.py), the main job over seeds
+    (main_job_seeds.py), the network's first training steps (early_steps.py), the re-measurement of the stored
+    designs' peaks (design_peaks.py) and the mask gradient's signal against its batch noise (mask_gradient.py), the
+    shipped restorer's training and its evaluation mask by mask (pretrain.py, pretrained_eval.py), every restorer
+    side by side (restorer_table.py), the bound on knowing the scene's level (level_bound.py); and two tools of the
+    results: the check of the docs' quoted figures against them (doc_figures.py) and the record of how the held-out
+    photographs were made (heldout_scenes.py)."""
     modules = {p.name for p in BENCH_DIR.glob("*.py")}
     allowed = {"__init__.py", "__main__.py", "common.py", "gpu.py", "codesign_study.py", "early_steps.py",
                "design_peaks.py", "doc_figures.py", "heldout_scenes.py", "mask_gradient.py", "pretrain.py",
-               "pretrained_eval.py", "restorer_table.py", "level_bound.py"} | \
+               "pretrained_eval.py", "restorer_table.py", "level_bound.py", "main_job_seeds.py"} | \
         {f"bench_{n}.py" for n in BENCHMARKS}
     assert modules <= allowed, f"not part of the suite: {sorted(modules - allowed)}"
     assert not [p for p in BENCH_DIR.iterdir() if p.is_dir() and p.name not in ("results", "__pycache__")]
