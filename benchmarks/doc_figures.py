@@ -252,6 +252,7 @@ QUOTES: list[Quote] = [
     Quote("docs/codesign.md", "{}", "benchmarks/results/main_job/eighth/seeds.json", lambda d: (_seeds_text(d),)),
     Quote("docs/codesign.md", "{}", "benchmarks/results/main_job/steps240/seeds.json",
           lambda d: (_seeds_text(d, "- main-job goal"),)),
+    Quote("docs/codesign.md", "{}", "benchmarks/results/main_job/seeds.json", lambda d: (_seeds_text(d),)),
     # ... and the quarter with twice the arms' steps (benchmarks/results/main_job/quarter_ft240/)
     Quote("docs/codesign.md", "| 240 | {} | {} | {} +- {} | {} |",
           "benchmarks/results/main_job/quarter_ft240/metrics.json",
