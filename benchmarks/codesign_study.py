@@ -188,8 +188,6 @@ def goal_met(summary: dict) -> dict[str, bool]:
     return out
 
 
-
-
 def joint_vs_frozen(per_run: dict[str, dict]) -> dict[str, dict]:
     """Per start (published, every design): its joint arm against its frozen arm (paired_gain) in the network's PSNR
     matched at every alpha_l, and the joint stage's goal (>= +0.5 dB at alpha_l = 1e6 and significant)."""

@@ -10,8 +10,8 @@ Each seed runs in OUT/seed<k> (the main job's own folder: a killed seed continue
 its metrics.json written, is not run again). OUT/seeds.json and OUT/seeds.md: per seed the LSR against the
 published mask, the total gain and the joint stage's gain (PSNR after the gain/offset match, mean over the held-out
 photographs +- the 95 % interval of the per-scene differences); over the seeds their mean and standard deviation,
-and the joint stage's verdict read as the co-design study reads its arms (benchmarks/codesign_study.py,
-paired_gain: the seed spread is the larger standard deviation over seeds of the two systems compared).
+and the joint stage's verdict read as the co-design study reads its arms (paired_gain in benchmarks/common.py: the
+seed spread is the larger standard deviation over seeds of the two systems compared).
 """
 from __future__ import annotations
 
@@ -23,10 +23,11 @@ import time
 from pathlib import Path
 
 from benchmarks.common import JOINT_GOAL_DB, REPO, Runner, machine, markdown_table, paired_gain, write_json, write_text
+from codesign.train.protocol_summary import GAINS
 
 ALPHAS = ("0", "1e3", "1e6")
-TOTAL = "total (co-designed - published + network)"
-JOINT = "joint stage (co-designed - designed + network)"
+TOTAL = GAINS[-1][0]  # the summary's rows (codesign/train/protocol_summary.py): the total ...
+JOINT = next(label for label, *_ in GAINS if label.startswith("joint stage"))  # ... and the joint stage
 # the settings every run of one table must share (a spread over seeds of different settings is no spread)
 SHARED = ("lsr_max_from", "network", "trainer_steps", "finetune_steps", "scenes")
 
@@ -170,7 +171,7 @@ def main(argv=None) -> int:
     res["markdown"] = render(res)  # as seeds.md: what docs quote (benchmarks/doc_figures.py)
     write_json(out / "seeds.json", res)
     write_text(out / "seeds.md", res["markdown"])
-    print(render(res), end="")
+    print(res["markdown"], end="")
     print(f"wrote {out / 'seeds.md'} and seeds.json")
     return 0
 

@@ -46,15 +46,18 @@ def push_pull_fill(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     return torch.where(valid.flatten(-2).any(-1)[..., None, None], filled, x)
 
 
-def replicate_outside_field(x: torch.Tensor, sensor: torch.Tensor) -> torch.Tensor:
-    """``x`` (B, C, P, P) with everything outside the sensor's field (the centred square of non-zero pixels of
-    ``sensor``, the simulator's crop of the padded canvas) replaced by edge replication of the field's border, the
-    padding the evaluation's classical Wiener uses (codesign/train/evaluation.py replicate_pad); ``x`` unchanged when
-    the field fills the canvas or is empty. Differentiable in ``x``."""
+def replicate_pad(x: torch.Tensor, n: int) -> torch.Tensor:
+    """Central n x n of a padded (..., P, P) image (the sensor's field, (P - n) // 2 before it), padded back to P by
+    edge replication: the classical Wiener's padding (it rings less than zeros) and model.g2_base_pad=replicate's."""
     p = x.shape[-1]
-    n = int((sensor > 0).any(-1).flatten(1).sum(1).max()) if sensor.numel() else 0  # the field's rows
-    if n in (0, p):
-        return x
     m = (p - n) // 2
     return F.pad(x[..., m:m + n, m:m + n], (m, p - n - m, m, p - n - m), mode="replicate")
 
+
+def replicate_outside_field(x: torch.Tensor, sensor: torch.Tensor) -> torch.Tensor:
+    """``x`` (B, C, P, P) with everything outside the sensor's field (the centred square of non-zero pixels of
+    ``sensor``, the simulator's crop of the padded canvas) replaced by edge replication of the field's border
+    (replicate_pad, as the evaluation's classical Wiener pads); ``x`` unchanged when the field fills the canvas or is
+    empty. Differentiable in ``x``."""
+    n = int((sensor > 0).any(-1).flatten(1).sum(1).max()) if sensor.numel() else 0  # the field's rows
+    return x if n in (0, x.shape[-1]) else replicate_pad(x, n)

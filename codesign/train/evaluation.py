@@ -24,7 +24,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from codesign.camera import field_of_view as centre
 from codesign.config.store import register, spec_node
@@ -45,6 +44,7 @@ from codesign.errors import (
 )
 from codesign.io import files as io
 from codesign.models import quality
+from codesign.models.fill import replicate_pad
 from codesign.models.wiener import classical_wiener, classical_wiener_sweep
 from codesign.spec_base import SpecMixin
 
@@ -60,13 +60,6 @@ def remove_black_level(batch: dict, full_well_e: float) -> torch.Tensor:
     s = batch["sensor"]
     offset = batch["read_noise_mean_e"].to(s.device, s.dtype).view(-1, 1, 1, 1) / full_well_e
     return s - offset * (s != 0)
-
-
-def replicate_pad(x: torch.Tensor, n: int) -> torch.Tensor:
-    """Central n x n of a padded (B,1,P,P) image, padded back to P by edge replication (reduces Wiener ringing)."""
-    p = x.shape[-1]
-    m = (p - n) // 2
-    return F.pad(centre(x, n), (m, p - n - m, m, p - n - m), mode="replicate")
 
 
 def fit_affine(x: torch.Tensor, y: torch.Tensor) -> tuple[float, float]:
