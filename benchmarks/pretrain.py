@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import re
 import subprocess
 import sys
 import tempfile
@@ -54,8 +55,8 @@ def run_overrides(name: str, a, work: Path) -> list[str]:
     if a.budget_s:
         common.append(f"trainer.time_budget_s={a.budget_s}")
     if name.startswith("pool"):
-        return common + [f"seed={name[-1]}", "data.masks=[" + ",".join(a.pool) + "]", f"data.mask_draws={a.draws}",
-                         f"data.mask_every={a.mask_every}"]
+        return common + [f"seed={name.removeprefix('pool_seed')}", "data.masks=[" + ",".join(a.pool) + "]",
+                         f"data.mask_draws={a.draws}", f"data.mask_every={a.mask_every}"]
     return common + ["seed=0", "mask=spline", f"mask.init={HELDOUT_MASK}"]
 
 
@@ -131,9 +132,9 @@ def main(argv=None) -> int:
         a.device, a.steps, a.batch, a.draws, a.budget_s, a.threads = "cpu", 2, 2, 0, None, 1
     runs = [r.strip() for r in a.runs.split(",") if r.strip()]
     a.pool = [m.strip() for m in a.pool.split(",") if m.strip()]
-    unknown = sorted(set(runs) - set(RUNS))
+    unknown = sorted(r for r in runs if r not in RUNS and not re.fullmatch(r"pool_seed[0-9]+", r))
     if unknown:
-        p.error(f"--runs: unknown {unknown}; allowed: {', '.join(RUNS)}")
+        p.error(f"--runs: unknown {unknown}; allowed: {', '.join(RUNS)} or pool_seed<k> (the pool with seed k)")
     a.out.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix="codesign_pretrain_"))
     record = {"facts": device_facts(a.device), "args": {k: str(v) for k, v in vars(a).items()}, "pool": a.pool,

@@ -24,4 +24,5 @@ def test_pretrain_dry_run_writes_every_runs_weights(tmp_path):
 def test_unknown_run_is_refused(tmp_path, capsys):
     with pytest.raises(SystemExit):
         pretrain.main(["--out", str(tmp_path), "--runs", "pool_seed0,bogus"])
-    assert "--runs: unknown ['bogus']; allowed: pool_seed0, pool_seed1, single" in capsys.readouterr().err
+    assert ("--runs: unknown ['bogus']; allowed: pool_seed0, pool_seed1, single or pool_seed<k> (the pool with "
+            "seed k)") in capsys.readouterr().err

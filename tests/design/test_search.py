@@ -197,6 +197,24 @@ def test_step_constraint_counts_wrapped_neighbour_steps():
 
 
 
+@pytest.mark.parametrize("slope, held", [(0.85, False), (0.95, True), (1.05, True)])
+def test_step_cap_holds_the_optimizer_under_its_margin_and_judges_feasibility_at_the_cap(slope, held):
+    # a tilt of `slope` rad per pupil sample: every horizontal neighbour step is `slope`, every vertical one 0
+    problem, mask = _problem({"kind": "pixel", "init": "zero"}, Limits(step=1.0), torch.float64)
+    assert problem.limits.step_margin == 0.1
+    g = problem.system.grid
+    columns = torch.arange(g.n, dtype=torch.float64).expand(g.n, g.n).reshape(-1)[g.support]
+    ev, grads = problem.evaluate(slope * columns.numpy(), 16.0, True)
+    inside = g.aperture > 0
+    horizontal = int((inside[:, 1:] & inside[:, :-1]).sum())
+    pairs = horizontal + int((inside[1:, :] & inside[:-1, :]).sum())
+    # feasibility at the cap itself: the mean squared excess over 1.0 rad
+    assert ev.constraints["step"] == pytest.approx(max(slope - 1.0, 0.0) ** 2 * horizontal / pairs, rel=1e-9)
+    assert ev.feasible == (slope <= 1.0)
+    # the optimizer's term (its gradient) is the excess over 0.9 rad: pushed back already between 0.9 and 1.0
+    assert (np.abs(grads["step"]).max() > 0) == held
+
+
 def test_spline_steps_are_capped_so_the_grid_resolves_the_surface():
     from codesign.design.search_setup import start_vector
     from codesign.optics.masks.spline import SplineMask
