@@ -30,6 +30,7 @@ MAIN_JOB_GATED = "benchmarks/results/main_job/gated_recipe/metrics.json"
 MAIN_JOB_L1_FIRST = "benchmarks/results/main_job/l1_first_weights/metrics.json"
 MAIN_JOB_220 = "benchmarks/results/main_job/steps220_filled/metrics.json"
 MAIN_JOB_240 = "benchmarks/results/main_job/steps240/{}/metrics.json"
+MAIN_JOB_L1B = "benchmarks/results/main_job/pool_l1b/metrics.json"
 GRADIENT = "benchmarks/results/mask_gradient/published_seed{}.json"
 PRETRAINED = "benchmarks/results/pretrained/eval_{}.json"
 RESTORERS = "benchmarks/results/restorers/restorer_table.json"
@@ -216,7 +217,10 @@ QUOTES: list[Quote] = [
     # docs/models.md Sec. 11: the shipped pool restorer and a one-mask network through the held-out mask
     _pool_row("pool of 12 masks (shipped until the L1 weights)", "pool_seed0"),
     _pool_row("pool of 12 masks, L1 recipe, 6,400 + 2,400 steps (shipped until the second pool run)", "pool_l1"),
-    _pool_row("pool of 12 masks, L1 recipe, 6,400 + 2,400 + 2,400 steps (shipped)", "pool_l1b"),
+    _pool_row("pool of 12 masks, L1 recipe, 6,400 + 2,400 + 2,400 steps (shipped until the third pool run)",
+              "pool_l1b"),
+    _pool_row("pool of 12 masks, L1 recipe, 6,400 + 3 x 2,400 steps, the last with the replicated padding (shipped)",
+              "pool_l1c"),
     _pool_row("this mask alone", "single_heldout"),
     _pool_row("pool of 10 spline masks, no half rings", "spline_pool"),
     _pool_row("pool of 12 masks, G1 with the halo channel", "pool_halo"),
@@ -228,7 +232,10 @@ QUOTES: list[Quote] = [
     *(Quote("docs/models.md", f"| {label} | n/a | n/a | " + " | ".join(["{}"] * 6) + " |", PRETRAINED.format(run),
             lambda d: _row_cells(d["masks"]["published"]["alpha"]))
       for label, run in (("shipped until the second pool run (L1 recipe, 6,400 + 2,400 pool steps)", "pool_l1"),
-                         ("shipped (L1 recipe, 6,400 + 2,400 + 2,400 pool steps)", "pool_l1b"))),
+                         ("shipped until the third pool run (L1 recipe, 6,400 + 2,400 + 2,400 pool steps)",
+                          "pool_l1b"),
+                         ("shipped (L1 recipe, 6,400 + 2,400 + 2,400 + 2,400 pool steps, the last with the "
+                          "replicated padding)", "pool_l1c"))),
     # docs/models.md Sec. 13: the base's padding, the 220-step main job filled against replicate
     *(Quote("docs/models.md", f"| {label} + network | {{}} / {{}} / {{}} | {{}} / {{}} / {{}} |", MAIN_JOB_220,
             lambda m, key=key: _padding_row(m, key)) for label, key in
@@ -272,6 +279,11 @@ QUOTES: list[Quote] = [
     Quote("docs/results_log.md", "{}", MAIN_JOB_L1_FIRST, _main_job_summary),
     Quote("docs/results_log.md", "total gain {} dB at alpha_l = 0,\n  {} at 1e3, {} at 1e6", MAIN_JOB_SEED1,
           lambda m: _total_gains(m)),
+    # ... and with the second pool run's weights, its seeds (benchmarks/results/main_job/pool_l1b/)
+    Quote("docs/results_log.md", "{}", MAIN_JOB_L1B, _main_job_summary),
+    Quote("docs/results_log.md", "restores {} dB better at alpha_l = 0,\n{} at 1e3 and {} at 1e6", MAIN_JOB_L1B,
+          lambda m: _total_gains(m)),
+    Quote("docs/results_log.md", "{}", "benchmarks/results/main_job/pool_l1b/seeds.json", lambda d: (_seeds_text(d),)),
 ]
 
 
