@@ -56,7 +56,7 @@ class Limits:
     to (1 - step_margin) x the step cap, feasibility judged at the cap itself. The step constraint is a mean squared
     excess, whose gradient vanishes at the cap: held at the cap itself, the augmented Lagrangian ended the main
     job's design with 2,290 of 249,364 neighbour steps up to 6 % over it (mean squared excess 2.7e-6 against the
-    tolerance 1e-6), so every main job reported NO FEASIBLE POINT (docs/codesign.md Sec. 7)."""
+    tolerance 1e-6), so every main job reported NO FEASIBLE POINT (docs/codesign.md Sec. 5)."""
 
     mtf: float | None = None
     energy: float | None = None
