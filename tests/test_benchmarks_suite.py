@@ -162,7 +162,8 @@ def test_the_restorer_table_refuses_unknown_restorers_and_renders_gains_and_step
 
     with pytest.raises(SystemExit):
         rt.main(["--out", str(tmp_path), "--restorers", "sgan_b,unet9"])
-    assert f"--restorers: unknown ['unet9']; allowed: {', '.join(rt.RESTORERS)}" in capsys.readouterr().err
+    assert f"--restorers: unknown ['unet9']; allowed: {', '.join(rt.ALLOWED)}" in capsys.readouterr().err
+    assert rt.ALLOWED[-1] == "sgan_b_l1" and "sgan_b_l1" not in rt.RESTORERS  # allowed, not in the default table
 
     def cell(psnr, plain, ssim):
         return {"psnr_matched": psnr, "psnr": plain, "ssim": ssim}

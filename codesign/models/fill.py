@@ -59,5 +59,12 @@ def replicate_outside_field(x: torch.Tensor, sensor: torch.Tensor) -> torch.Tens
     ``sensor``, the simulator's crop of the padded canvas) replaced by edge replication of the field's border
     (replicate_pad, as the evaluation's classical Wiener pads); ``x`` unchanged when the field fills the canvas or is
     empty. Differentiable in ``x``."""
-    n = int((sensor > 0).any(-1).flatten(1).sum(1).max()) if sensor.numel() else 0  # the field's rows
+    n = field_size(sensor)
     return x if n in (0, x.shape[-1]) else replicate_pad(x, n)
+
+
+def field_size(sensor: torch.Tensor) -> int:
+    """The side of the sensor's field in a padded (B, C, P, P) sensor image: the most rows of any image holding a
+    non-zero pixel (the padding is exactly 0; a dark pixel inside the field may be 0 too, a whole dark row of every
+    image is not expected); 0 for an empty batch. One host sync."""
+    return int((sensor > 0).any(-1).flatten(1).sum(1).max()) if sensor.numel() else 0

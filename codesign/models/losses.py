@@ -12,7 +12,7 @@ from typing import Callable, Sequence
 import torch
 import torch.nn as nn
 
-from codesign.errors import ConfigError, require_list, require_number
+from codesign.errors import ConfigError, require_choice, require_list, require_number
 from codesign.models.vgg import ImageNetInput, extract, layer_index, load_vgg_features
 from codesign.spec_base import SpecMixin
 
@@ -161,13 +161,19 @@ def build_vgg_loss(weights_path, layers: Sequence[int | str] | None = None) -> t
     return VGGPerceptualLoss(features, VGG19_DEFAULT_LAYERS if layers is None else layers), f"on: {weights_path}"
 
 
+LOSS_REGIONS = ("canvas", "field")
+
+
 @dataclass(frozen=True)
 class LossWeights(SpecMixin):
     """Loss weights of one SGAN variant (supplement, Table "Values of Hyperparameters in Model Training").
 
     l1_stage1: Charbonnier L1 on I_b (s1); l1_stage2: Charbonnier L1 on both scales of b (s2); mdf: multiscale
     discriminator feature matching; vgg: VGG19 perceptual (needs vgg_weights); fft: FFT loss; adv: lambda_ADV of
-    both GANs; gp: lambda_GP. charbonnier_eps: the epsilon of sqrt(|x|^2 + eps).
+    both GANs; gp: lambda_GP. charbonnier_eps: the epsilon of sqrt(|x|^2 + eps). region: where the terms that
+    compare with a target (L1 on I_b and on b, VGG, FFT) are taken: "canvas", the whole padded grid (the paper's
+    images are the padded ones, so its networks also learn to outpaint the scene beyond the sensor's field), or
+    "field", the sensor's field alone, where every method is scored; the critics judge the canvas either way.
     """
 
     l1_stage1: float = 200.0
@@ -180,12 +186,14 @@ class LossWeights(SpecMixin):
     charbonnier_eps: float = 1e-6
     vgg_weights: str | None = None
     vgg_layers: tuple = (3, 8, 17, 26, 35)
+    region: str = "canvas"
     prefix: str = field(default="model.loss", compare=False, repr=False)
 
     def __post_init__(self) -> None:
         for k in ("l1_stage1", "l1_stage2", "mdf", "vgg", "fft", "adv", "gp"):
             require_number(f"{self.prefix}.{k}", getattr(self, k), lo=0)
         require_number(f"{self.prefix}.charbonnier_eps", self.charbonnier_eps, lo=0, lo_open=True, hi=1)
+        require_choice(f"{self.prefix}.region", self.region, LOSS_REGIONS)
         layers = require_list(f"{self.prefix}.vgg_layers", self.vgg_layers, "must be a list of VGG19 feature layers "
                               "(indices 0..36 or names such as relu3_4)")
         for i, layer in enumerate(layers):  # refused now, not when the VGG weights are loaded after the data

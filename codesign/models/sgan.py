@@ -19,7 +19,8 @@ import torch.nn.functional as F
 from codesign.config.store import register, spec_node
 from codesign.models import losses
 from codesign.models.discriminators import PatchDiscriminator
-from codesign.models.fill import saturated_fraction
+from codesign.camera import field_of_view
+from codesign.models.fill import field_size, saturated_fraction
 from codesign.models.level import LevelHead, best_log_gain, fit_weight, level_features
 from codesign.models.losses import LossWeights
 from codesign.models.restorer import Restorer, TrainContext
@@ -235,18 +236,24 @@ class SGAN(Restorer):
         w, eps = self.weights, self.weights.charbonnier_eps
         s, i_b = batch["sensor"], batch["irradiance"]
         targets, b = _targets(batch, self.spec.target_level), _held(out)
-        terms = {"rec1": losses.charbonnier(out["i_b"], i_b, eps),
+        fake_i, fake_b = out["i_b"], b  # what the critics judge: the whole canvas
+        if w.region == "field":  # the compared terms on the sensor's field alone (model.loss.region)
+            n = field_size(s)
+            fake_i, i_b = (_field(x, n, s) for x in (fake_i, i_b))
+            b, targets = [_field(x, n, s) for x in b], [_field(x, n, s) for x in targets]
+        terms = {"rec1": losses.charbonnier(fake_i, i_b, eps),
                  "rec2": sum(losses.charbonnier(b[k], targets[k], eps) for k in range(2))}
         total = w.l1_stage1 * terms["rec1"] + w.l1_stage2 * terms["rec2"]
         if w.adv > 0 or w.mdf > 0:
-            fake2 = [ctx.run(self.d2[k], b[k]) for k in range(2)]
+            fake2 = [ctx.run(self.d2[k], fake_b[k]) for k in range(2)]
             if w.adv > 0:
                 terms["adv"] = losses.generator_adv_loss(ctx.run(self.critic1, s, out["i_b"])[0]) + \
                     losses.generator_adv_loss([f[0] for f in fake2])
                 total = total + w.adv * terms["adv"]
             if w.mdf > 0:
+                real = _targets(batch, self.spec.target_level)
                 with torch.no_grad():
-                    real_feats = [ctx.run(self.d2[k], targets[k])[1] for k in range(2)]
+                    real_feats = [ctx.run(self.d2[k], real[k])[1] for k in range(2)]
                 terms["mdf"] = losses.feature_matching_loss(real_feats, [f[1] for f in fake2])
                 total = total + w.mdf * terms["mdf"]
         if w.vgg > 0 and self.vgg is not None:
@@ -269,6 +276,12 @@ class SGAN(Restorer):
 
     def check_input_size(self, padded_size: int, key: str = "data.padded_size") -> None:
         self.spec.check_input_size(padded_size, key)
+
+
+def _field(x: torch.Tensor, n: int, sensor: torch.Tensor) -> torch.Tensor:
+    """The sensor's field (``n`` of ``sensor``'s P pixels, centred) of ``x`` at its own scale (G2's coarse output
+    and target are at P / 2, their field n / 2)."""
+    return field_of_view(x, n * x.shape[-1] // sensor.shape[-1])
 
 
 def _held(out: dict) -> list[torch.Tensor]:
