@@ -35,6 +35,7 @@ GRADIENT = "benchmarks/results/mask_gradient/published_seed{}.json"
 PRETRAINED = "benchmarks/results/pretrained/eval_{}.json"
 RESTORERS = "benchmarks/results/restorers/restorer_table.json"
 TARGET_LEVEL = "benchmarks/results/restorers/target_level/target_level.json"
+ADAPTED = "benchmarks/results/pretrained/adapted/{}.json"
 JOINT_STAGE = next(label for label, *_ in GAINS if label.startswith("joint stage"))  # the main job's summary row
 
 
@@ -158,6 +159,16 @@ def _restorer_row(name: str, source: str = RESTORERS) -> Quote:
                  lambda d: _row_cells(d["rows"][name]["eval"]["alpha"]))
 
 
+def _adapted_row(label: str, seed: int, run: str) -> Quote:
+    """A row of docs/models.md Sec. 14: a restorer_table run (``adapt...``) or a pretrained_eval of one checkpoint
+    on one mask (the main job's arms)."""
+    def values(d):
+        rows = d["rows"]["sgan_b_l1"]["eval"]["alpha"] if "rows" in d else next(iter(d["masks"].values()))["alpha"]
+        return _row_cells(rows)
+    return Quote("docs/models.md", f"| {label} | {seed} | " + " | ".join(["{}"] * 6) + " |", ADAPTED.format(run),
+                 values)
+
+
 def _total_gains(m: dict) -> tuple[str, ...]:
     """The main job's total gain per alpha_l as the page writes it: +4.20 +- 1.45."""
     total = m["gains"][GAINS[-1][0]]
@@ -236,6 +247,16 @@ QUOTES: list[Quote] = [
                           "pool_l1b"),
                          ("shipped (L1 recipe, 6,400 + 2,400 + 2,400 + 2,400 pool steps, the last with the "
                           "replicated padding)", "pool_l1c"))),
+    # docs/models.md Sec. 14: the shipped network adapted to a mask
+    *(_adapted_row(label, seed, run) for label, seed, run in (
+        ("adapted, 320 steps", 0, "adapt_published_s0"), ("adapted, 320 steps", 1, "adapt_published_s1"),
+        ("adapted, 960 steps", 0, "adapt960_published_s0"),
+        ("the main job's published arm (200 + 120 steps)", 0, "published_s0"),
+        ("the main job's published arm", 1, "published_s1"), ("the main job's published arm", 2, "published_s2"),
+        ("adapted, 320 steps", 0, "adapt_spline_s0"), ("adapted, 320 steps", 1, "adapt_spline_s1"),
+        ("adapted, 960 steps", 0, "adapt960_spline_s0"), ("adapted, 960 steps", 1, "adapt960_spline_s1"),
+        ("the main job's designed arm (200 + 120 steps)", 0, "designed_s0"),
+        ("the main job's designed arm", 1, "designed_s1"), ("the main job's designed arm", 2, "designed_s2"))),
     # docs/models.md Sec. 13: the base's padding, the 220-step main job filled against replicate
     *(Quote("docs/models.md", f"| {label} + network | {{}} / {{}} / {{}} | {{}} / {{}} / {{}} |", MAIN_JOB_220,
             lambda m, key=key: _padding_row(m, key)) for label, key in
