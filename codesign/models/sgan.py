@@ -16,10 +16,10 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from codesign.camera import field_of_view
 from codesign.config.store import register, spec_node
 from codesign.models import losses
 from codesign.models.discriminators import PatchDiscriminator
-from codesign.camera import field_of_view
 from codesign.models.fill import field_size, saturated_fraction
 from codesign.models.level import LevelHead, best_log_gain, fit_weight, level_features
 from codesign.models.losses import LossWeights
