@@ -236,31 +236,32 @@ class SGAN(Restorer):
         w, eps = self.weights, self.weights.charbonnier_eps
         s, i_b = batch["sensor"], batch["irradiance"]
         targets, b = _targets(batch, self.spec.target_level), _held(out)
-        fake_i, fake_b = out["i_b"], b  # what the critics judge: the whole canvas
-        if w.region == "field":  # the compared terms on the sensor's field alone (model.loss.region)
+        # the images the compared terms take (model.loss.region): the canvas, or the sensor's field alone; the
+        # critics below judge the canvas either way
+        ci, ti, cb, tb = out["i_b"], i_b, b, targets
+        if w.region == "field":
             n = field_size(s)
-            fake_i, i_b = (_field(x, n, s) for x in (fake_i, i_b))
-            b, targets = [_field(x, n, s) for x in b], [_field(x, n, s) for x in targets]
-        terms = {"rec1": losses.charbonnier(fake_i, i_b, eps),
-                 "rec2": sum(losses.charbonnier(b[k], targets[k], eps) for k in range(2))}
+            ci, ti = _field(ci, n, s), _field(ti, n, s)
+            cb, tb = [_field(x, n, s) for x in b], [_field(x, n, s) for x in targets]
+        terms = {"rec1": losses.charbonnier(ci, ti, eps),
+                 "rec2": sum(losses.charbonnier(cb[k], tb[k], eps) for k in range(2))}
         total = w.l1_stage1 * terms["rec1"] + w.l1_stage2 * terms["rec2"]
         if w.adv > 0 or w.mdf > 0:
-            fake2 = [ctx.run(self.d2[k], fake_b[k]) for k in range(2)]
+            fake2 = [ctx.run(self.d2[k], b[k]) for k in range(2)]
             if w.adv > 0:
                 terms["adv"] = losses.generator_adv_loss(ctx.run(self.critic1, s, out["i_b"])[0]) + \
                     losses.generator_adv_loss([f[0] for f in fake2])
                 total = total + w.adv * terms["adv"]
             if w.mdf > 0:
-                real = _targets(batch, self.spec.target_level)
                 with torch.no_grad():
-                    real_feats = [ctx.run(self.d2[k], real[k])[1] for k in range(2)]
+                    real_feats = [ctx.run(self.d2[k], targets[k])[1] for k in range(2)]
                 terms["mdf"] = losses.feature_matching_loss(real_feats, [f[1] for f in fake2])
                 total = total + w.mdf * terms["mdf"]
         if w.vgg > 0 and self.vgg is not None:
-            terms["vgg"] = sum(self.vgg(b[k], targets[k]) for k in range(2))
+            terms["vgg"] = sum(self.vgg(cb[k], tb[k]) for k in range(2))
             total = total + w.vgg * terms["vgg"]
         if w.fft > 0:
-            terms["fft"] = sum(losses.fft_loss(b[k], targets[k]) for k in range(2))
+            terms["fft"] = sum(losses.fft_loss(cb[k], tb[k]) for k in range(2))
             total = total + w.fft * terms["fft"]
         terms["generator_total"] = total
         return terms
