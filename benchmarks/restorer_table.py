@@ -30,7 +30,7 @@ from pathlib import Path
 from benchmarks.common import keep_weights, machine, mask_overrides, markdown_table, write_json, write_text
 
 ROOT = Path(__file__).resolve().parents[1]
-RESTORERS = ("sgan_b", "sgan_e", "sgan_f", "sgan_b_gated", "wiener_unet")
+RESTORERS = ("sgan_b", "sgan_e", "sgan_f", "sgan_b_gated", "wiener_unet", "wiener_naf")
 ALLOWED = RESTORERS + ("sgan_b_l1",)  # the main job's network: --restorers only, not in the default table
 ALPHAS = ("0", "1e3", "1e5", "1e6")
 

@@ -19,8 +19,8 @@ importlib.import_module("codesign.models").restorer_kinds()
 # The Python API (codesign/api.py, docs/api.md): ``from codesign import compose, psf_and_lsr, ...``, loaded on first
 # use so that ``import codesign`` stays as cheap as the config registration above.
 API = ("compose", "optical_system", "build_mask", "configured_mask", "published_mask", "psf_and_lsr", "scene_names",
-       "sensor_image", "run", "checkpoint_config", "restore", "mask_search", "train_restorer", "OpticsSpec",
-       "OpticalSystem", "Camera", "Mask", "ConfigError", "alpha_tag")
+       "sensor_image", "run", "checkpoint_config", "restore", "restore_image", "mask_search", "train_restorer",
+       "OpticsSpec", "OpticalSystem", "Camera", "Mask", "ConfigError", "alpha_tag")
 
 
 def __getattr__(name: str):

@@ -30,7 +30,8 @@ from codesign.train.checkpoint import PRETRAINED, load_checkpoint
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 
 __all__ = ["compose", "camera", "optical_system", "build_mask", "configured_mask", "published_mask", "psf_and_lsr",
-           "scene_names", "sensor_image", "run", "checkpoint_config", "restore", "mask_search", "train_restorer",
+           "scene_names", "sensor_image", "run", "checkpoint_config", "restore", "restore_image", "mask_search",
+           "train_restorer",
            "OpticsSpec", "OpticalSystem", "Camera", "Mask", "ConfigError", "alpha_tag", "CONF_DIR"]
 
 
@@ -190,6 +191,44 @@ def restore(input: str | Path, checkpoint: str | Path, *overrides: str,
     named = str(checkpoint) in PRETRAINED  # a shipped checkpoint's name stays a name
     return run("restore", f"input={Path(input).resolve()}",
                f"checkpoint={checkpoint if named else Path(checkpoint).resolve()}", *overrides, run_dir=run_dir)
+
+
+def restore_image(counts, checkpoint: str | Path = "pretrained", mask: Mask | None = None, bin: float | None = None,
+                  tile: int | None = None, device: str | torch.device = "cpu") -> torch.Tensor:
+    """Restore one capture held in memory, no files: ``counts`` (H, W) or (C, H, W) sensor counts [DN] of any size
+    from a sensor of the checkpoint's pitch (e.g. ``sensor_image(...)["sensor_dn"][0, 0]``), through ``mask`` (a
+    Mask on the checkpoint's pupil grid, e.g. a search's design; default: the checkpoint's own mask), binned to
+    ``bin`` sensor pixels per network pixel (default: the network's finest trained scale), decoded in tiles of
+    ``tile`` px (default: whole up to 1536^2 px). checkpoint: 'pretrained' (the shipped restorer for any mask and
+    size) or a checkpoint.pt of a network that takes any size (model=wiener_naf). Returns (h, w) (or (C, h, w))
+    at the sensor's exposure, 1 = the full well (as +experiment=restore writes it). Raises ConfigError."""
+    from codesign.models.capture import RestoreSpec, capture_geometry, network_bin, restore_capture
+    from codesign.sensor.simulator import psf_state
+    from codesign.train.resume import apply_checkpoint_mask, load_trained
+
+    spec = RestoreSpec(bin=bin, tile=tile, prefix="restore_image")
+    x = torch.as_tensor(counts, dtype=torch.float64)
+    if x.dim() not in (2, 3) or min(x.shape[-2:]) < 8 or not bool(torch.isfinite(x).all()) or float(x.min()) < 0:
+        raise ConfigError("restore_image counts", tuple(x.shape), "must be (H, W) or (C, H, W) finite counts >= 0 "
+                          "of at least 8 x 8 pixels")
+    model, generators, ckpt_cfg, state = load_trained(checkpoint, torch.device(device))
+    cam = build_camera(ckpt_cfg, torch.device(device), torch.float32)
+    if mask is None:
+        apply_checkpoint_mask(cam.mask, state, checkpoint)
+        psf = cam.frozen_optics().state.psf
+    else:
+        grid = cam.system.grid
+        if mask.grid.n != grid.n or abs(mask.grid.pitch - grid.pitch) > 1e-12 * grid.pitch:
+            raise ConfigError("restore_image mask", mask.kind, f"was built on a {mask.grid.n}-sample pupil grid of "
+                              f"pitch {mask.grid.pitch:g} m; the checkpoint's optics sample {grid.n} at "
+                              f"{grid.pitch:g} m (build it on optical_system(checkpoint_config(...)))")
+        with torch.no_grad():
+            psf = psf_state(cam.system, mask.phase().to(grid.rho.device), mask.plate_cell_m).psf
+    factor = spec.bin if spec.bin is not None else network_bin(
+        int(ckpt_cfg.sensor.resolution), int(ckpt_cfg.data.image_size), (ckpt_cfg.get("data") or {}).get("scales"))
+    geometry = capture_geometry(tuple(x.shape[-2:]), factor, cam.sensor.pixel_pitch_m, cam.optics.focal_extent_m)
+    out = restore_capture(model, x, psf, cam.sensor, geometry, generators, spec.tile_for(geometry))
+    return out[0] if x.dim() == 2 else out
 
 
 def mask_search(*overrides: str, run_dir: str | Path | None = None) -> dict[str, Any]:

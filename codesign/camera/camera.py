@@ -83,6 +83,9 @@ class Camera(torch.nn.Module):
         # a frozen mask's halos: {"halo" (the design wavelength's) / "line_halo" (the laser line's): (key, LaserHalo)}
         self._halo_frozen: dict | None = None
         self._halo_train: dict | None = None  # a training mask's: age (optics evaluations), values, LaserHalo
+        # a frozen camera of the same mask on a sensor at least as large whose halo this one reuses (a restorer's
+        # pool at several pixel scales: the far PSF, seconds per mask, is the same light on any pixel grid)
+        self.halo_donor: Camera | None = None
         self.set_trainable(False)
 
     # ---- geometry ---------------------------------------------------------------------------------------------
@@ -201,7 +204,8 @@ class Camera(torch.nn.Module):
 
         def compute():
             if not cell:
-                cell.append(self._far_halo(self.mask, line))
+                donor = self.halo_donor
+                cell.append(donor._halo_source(key, line)() if donor is not None else self._far_halo(self.mask, line))
                 self._halo_frozen = {**(self._halo_frozen or {}), slot: (key, cell[0])}
             return cell[0]
         return compute

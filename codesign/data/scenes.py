@@ -66,25 +66,27 @@ class SceneSampler:
     def __next__(self) -> torch.Tensor:
         return self.sample()
 
-    def _draw_image(self, pool: list[str], index: int) -> tuple[str, torch.Tensor]:
-        """The image of ``pool[index]``; if it fails to decode (then dropped from the split), the next scene of
+    def _draw_image(self, pool: list[str], index: int, crop: int) -> tuple[str, torch.Tensor]:
+        """The image of ``pool[index]`` (at least ``crop`` px a side); if it fails to decode (then dropped from the split), the next scene of
         the split takes its place (no random draw, so the ranks of a distributed run stay in step)."""
         name = pool[index]
         while True:
             try:
-                return name, self.source.image(name, self.crop_size)
+                return name, self.source.image(name, crop)
             except UnreadableImage:
                 current = self._pool()
                 name = current[index % len(current)]
 
-    def sample(self, part: slice | None = None) -> torch.Tensor:
-        """One (B, 1, crop, crop) float32 batch in [0, 1]; with ``part`` only those samples of it.
+    def sample(self, part: slice | None = None, crop_size: int | None = None) -> torch.Tensor:
+        """One (B, 1, crop, crop) float32 batch in [0, 1]; with ``part`` only those samples of it; ``crop_size``:
+        this batch's crop instead of the sampler's (a pool camera at another pixel scale needs another).
 
         The random choices of all B samples are drawn whichever part is asked for (B scalars each), so the
         generator advances identically on every rank of a distributed run and the parts of the ranks together
         are the batch one process would draw (torch's DistributedSampler splits one shared sequence the same way).
         """
-        g, c, b = self.generator, self.crop_size, self.batch_size
+        g, b = self.generator, self.batch_size
+        c = self.crop_size if crop_size is None else crop_size
         pool = self._pool()
         idx = torch.randint(len(pool), (b,), generator=g).tolist()
         flip = (torch.rand(b, 2, generator=g) < 0.5).tolist()
@@ -95,7 +97,7 @@ class SceneSampler:
         out = torch.empty(len(mine), 1, c, c, dtype=torch.float32)
         self.last_names = []
         for j, i in enumerate(mine):
-            name, img = self._draw_image(pool, idx[i])
+            name, img = self._draw_image(pool, idx[i], c)
             h, w = img.shape
             top = min(int(corner[i][0] * (h - c + 1)), h - c)
             left = min(int(corner[i][1] * (w - c + 1)), w - c)
@@ -123,9 +125,12 @@ class DataConfig:
     scene when >= 2 scenes); split_seed: seed of the fixed train/test split (hash of seed and relative path);
     flips: random horizontal / vertical flips of training crops; cache_mb: decoded-image cache, MiB (least recently
     used images are evicted); params: the Sec. 6.2 scene-parameter distribution (ParamConfig).
-    masks: train a restorer over a pool of masks (a list of 'published', 'defocus:R' or mask-record paths; null = the
-    configured mask alone; codesign/train/mask_pool.py); mask_every: steps per pool member; mask_draws: random draws
-    around each listed mask; mask_jitter: their spread, times each mask's RMS parameter value.
+    masks: train a restorer over a pool of masks (a list of 'published', 'defocus:R', 'random:FAMILY[:N]' or
+    mask-record paths; null = the configured mask alone; codesign/train/mask_pool.py); mask_every: steps per pool
+    member; mask_draws: random draws around each listed mask; mask_jitter: their spread, times each mask's RMS
+    parameter value; mask_lsr: [lo, hi] sampled-LSR range of the 'random:FAMILY' members.
+    scales: train over pixel scales (with data.masks): a list of S, the whole sensor binned to S px per side (the
+    same sensor pitch, data.image_size px of it cropped); null = data.image_size alone.
     """
 
     scenes: str = "builtin"
@@ -142,11 +147,15 @@ class DataConfig:
     mask_every: int = 4
     mask_draws: int = 0
     mask_jitter: float = 0.1
+    mask_lsr: tuple = (1e-4, 1e-2)
+    scales: tuple | None = None
 
 
 DATA_KEYS = tuple(f.name for f in fields(DataConfig))
-MASKS_ALLOWED = ("must be a list of masks, each 'published', 'defocus:R' (R in rad, 0 < R <= 200) or the path of a "
-                 "mask record (best_mask.json, learned_mask.json), or null for the configured mask alone")
+MASKS_ALLOWED = ("must be a list of masks, each 'published', 'defocus:R' (R in rad, 0 < R <= 200), 'random:FAMILY' or "
+                 "'random:FAMILY:N' (N random masks of a family) or the path of a mask record (best_mask.json, "
+                 "learned_mask.json), or null for the configured mask alone")
+SCALES_ALLOWED = "must be a non-empty list of integer pixel scales in [8, sensor.resolution], or null"
 
 
 def _masks(value) -> tuple | None:
@@ -158,6 +167,31 @@ def _masks(value) -> tuple | None:
     if not items:
         raise ConfigError("data.masks", items, MASKS_ALLOWED.replace("a list", "a non-empty list"))
     return tuple(items)
+
+
+def _scales(value) -> tuple | None:
+    """data.scales as a sorted tuple of distinct integers >= 8 (the sensor's resolution bounds them where the pool
+    is built), or None."""
+    if value is None:
+        return None
+    items = require_list("data.scales", value, SCALES_ALLOWED)
+    if not items:
+        raise ConfigError("data.scales", items, SCALES_ALLOWED)
+    scales = [require_number(f"data.scales[{i}]", v, lo=8, hi=65536, integer=True) for i, v in enumerate(items)]
+    if len(set(scales)) != len(scales):
+        raise ConfigError("data.scales", items, SCALES_ALLOWED + " (each scale once)")
+    return tuple(sorted(scales))
+
+
+def _lsr_range(value) -> tuple:
+    allowed = "must be [lo, hi] with 0 < lo < hi <= 1 (the sampled LSR of the random pool members)"
+    items = require_list("data.mask_lsr", value, allowed)
+    if len(items) != 2:
+        raise ConfigError("data.mask_lsr", items, allowed)
+    lo, hi = (require_number(f"data.mask_lsr[{i}]", v, lo=0, lo_open=True, hi=1) for i, v in enumerate(items))
+    if not lo < hi:
+        raise ConfigError("data.mask_lsr", items, allowed)
+    return (float(lo), float(hi))
 
 
 def data_config(cfg: Mapping | Any) -> DataConfig:
@@ -202,6 +236,8 @@ def data_config(cfg: Mapping | Any) -> DataConfig:
         mask_draws=require_number("data.mask_draws", cfg.get("mask_draws", d.mask_draws), lo=0, hi=1000,
                                   integer=True),
         mask_jitter=require_number("data.mask_jitter", cfg.get("mask_jitter", d.mask_jitter), lo=0, hi=10),
+        mask_lsr=_lsr_range(cfg.get("mask_lsr", d.mask_lsr)),
+        scales=_scales(cfg.get("scales")),
     )
 
 

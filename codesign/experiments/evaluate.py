@@ -34,28 +34,33 @@ EXPERIMENT = Experiment(
 )
 
 
-def merged_eval_config(cfg: DictConfig, ckpt_cfg: DictConfig, typed: frozenset[str]) -> DictConfig:
+def merged_eval_config(cfg: DictConfig, ckpt_cfg: DictConfig, typed: frozenset[str],
+                       any_size: bool = False) -> DictConfig:
     """The checkpoint's physics, model and data split, with the scene-source keys typed on this command line
-    (``typed``: e.g. data.scenes, data.folder), this run's measured PSF (optics.psf_*, when it gives one) and its
-    ``evaluate`` block, and the mask when one is typed here (mask=... / mask.*=...: a restorer trained for many
-    masks, data.masks, restores through any). Untyped data keys keep the checkpoint's values, so the test split is
-    the one held out during training."""
+    (``typed``: e.g. data.scenes, data.folder; with ``any_size``, a network that takes any size, also
+    data.image_size and data.padded_size: it is evaluated at the pixel scale typed), this run's measured PSF
+    (optics.psf_*, when it gives one) and its ``evaluate`` block, and the mask when one is typed here (mask=... /
+    mask.*=...: a restorer trained for many masks, data.masks, restores through any). Untyped data keys keep the
+    checkpoint's values, so the test split is the one held out during training."""
     merged = with_measured_psf(OmegaConf.create(OmegaConf.to_container(ckpt_cfg, resolve=True)), cfg, typed)
     merged = with_typed_mask(merged, cfg, typed)
-    for key in data_keys_of_this_run(typed):
+    for key in data_keys_of_this_run(typed, any_size):
         merged.data[key] = cfg.data.get(key)
     merged.evaluate = cfg.get("evaluate")
     return merged
 
 
-def data_keys_of_this_run(typed: frozenset[str]) -> list[str]:
-    """The data keys evaluate takes from this command line (the scene source, the split), not the checkpoint."""
+def data_keys_of_this_run(typed: frozenset[str], any_size: bool = False) -> list[str]:
+    """The data keys evaluate takes from this command line (the scene source, the split; the image sizes for a
+    network that takes any size), not the checkpoint."""
     source_typed = bool({"data", "data.scenes", "data.folder"} & typed)  # scenes and folder go together
-    return [key for key in ("scenes", "folder", "test_fraction", "split_seed", "cache_mb")
+    keys = ("scenes", "folder", "test_fraction", "split_seed", "cache_mb") + (
+        ("image_size", "padded_size") if any_size else ())
+    return [key for key in keys
             if f"data.{key}" in typed or "data" in typed or (key in ("scenes", "folder") and source_typed)]
 
 
-def from_this_run(err: ConfigError, cfg: DictConfig, typed: frozenset[str]) -> bool:
+def from_this_run(err: ConfigError, cfg: DictConfig, typed: frozenset[str], any_size: bool = False) -> bool:
     """Whether the key ``err`` names holds this run's value in the merged configuration (typed data keys, the
     evaluate block, a measured PSF given here); any other key holds the checkpoint's stored value."""
     key = str(err.key)
@@ -63,16 +68,17 @@ def from_this_run(err: ConfigError, cfg: DictConfig, typed: frozenset[str]) -> b
         k.startswith("optics.psf_") for k in typed))
     return (key.startswith("evaluate.") or (key.startswith("optics.psf_") and psf_here)
             or (key.startswith("mask") and mask_typed(typed))
-            or any(key == f"data.{k}" for k in data_keys_of_this_run(typed)))
+            or any(key == f"data.{k}" for k in data_keys_of_this_run(typed, any_size)))
 
 
-def simulated_data(merged: DictConfig, cfg: DictConfig, typed: frozenset[str], path, device, seed: int):
+def simulated_data(merged: DictConfig, cfg: DictConfig, typed: frozenset[str], path, device, seed: int,
+                   any_size: bool = False):
     """The simulator of the merged configuration; a value it refuses that came from the checkpoint is named as
     stored in that file (it used to read as if typed here: "data.padded_size = 64: must be >= data.image_size")."""
     try:
         return SimulatedData(merged, device, seed)
     except ConfigError as err:
-        if from_this_run(err, cfg, typed):
+        if from_this_run(err, cfg, typed, any_size):
             raise
         raise stored_config_error("checkpoint", path, err) from None
 
@@ -118,9 +124,9 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     model, generators, ckpt_cfg, state = load_trained(path, device)
     typed = explicit_keys()
     refuse_other_model(cfg, ckpt_cfg, typed, {"kind": model.kind, **model.summary()}, path)
-    merged = merged_eval_config(cfg, ckpt_cfg, typed)
+    merged = merged_eval_config(cfg, ckpt_cfg, typed, model.any_size)
     seed = check_seed(cfg)
-    data = simulated_data(merged, cfg, typed, path, device, seed)
+    data = simulated_data(merged, cfg, typed, path, device, seed, model.any_size)
     if not mask_typed(typed):  # a co-designed checkpoint's learned mask, unless a mask is given here
         apply_checkpoint_mask(data.camera.mask, state, path)
         data.camera.invalidate()

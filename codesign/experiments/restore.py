@@ -1,9 +1,16 @@
 """``+experiment=restore input=PATH checkpoint=PATH``: restore real or simulated 16-bit sensor captures.
 
-Input: one 16-bit PNG / TIFF, or a folder of them, holding sensor counts (DN) at the checkpoint's network
-resolution (data.image_size square, e.g. the captures +experiment=simulate writes). Every file is checked
-(size, single channel, 16-bit integer samples, counts within the sensor's bit depth) before any restoration
-starts. Output: restored_<name>.png (16-bit, radiance 0..1 -> 0..65535) in the run dir, and metrics.json.
+Input: one 16-bit PNG / TIFF, or a folder of them, holding sensor counts (DN) of a sensor of the configured pitch
+(sensor.pixel_pitch_m, the checkpoint's sensor). A network that takes any size (model=wiener_naf, the shipped
+``checkpoint=pretrained``) restores a capture of any size and aspect: binned to the pixel scale it works at
+(``restore.bin``: sensor pixels per network pixel; default its finest trained scale, e.g. 2532 px -> 256), or at the
+scale asked (``restore.bin=1``: full resolution), through the PSF of the run's mask and optics (``mask=...``, or
+a measured PSF ``optics.psf_file``) at that pixel, its decoder tiled where the canvas is large (``restore.tile``),
+with a progress line per tile (codesign/models/capture.py). The SGAN checkpoints restore captures of exactly their
+network resolution (data.image_size square, e.g. the captures +experiment=simulate writes). Every file is checked
+(single channel, 16-bit integer samples, counts within the sensor's bit depth, size) before any restoration starts.
+Output: restored_<name>.png (16-bit, 0..1 of the full well at the sensor's exposure -> 0..65535; an SGAN: the scene
+radiance) in the run dir, and metrics.json.
 """
 from __future__ import annotations
 
@@ -16,13 +23,14 @@ import torch
 import torch.nn.functional as F
 
 from codesign.camera import build_camera, field_of_view, with_measured_psf
-from codesign.config.runtime import explicit_keys, mask_typed, with_typed_mask
+from codesign.config.runtime import explicit_keys, mask_typed, to_container, with_typed_mask
 from codesign.design.check import camera_sampling_report
 from codesign.design.measured_merit import measured_psf_report
 from codesign.errors import ConfigError
 from codesign.io import files as io
 from codesign.io.captures import read_counts, save_png16
 from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
+from codesign.models.capture import RestoreSpec, binned_shape, capture_geometry, network_bin, restore_capture
 from codesign.train.checkpoint import nonfinite_summary, stored_config_error
 from codesign.train.resume import apply_checkpoint_mask, load_trained
 from codesign.experiments.protocol import Experiment
@@ -33,7 +41,7 @@ log = logging.getLogger("codesign.restore")
 EXPERIMENT = Experiment(
     summary="restore 16-bit sensor captures with a trained checkpoint",
     first_work="build_camera().frozen_optics",
-    root_keys=("input", "checkpoint"),
+    root_keys=("input", "checkpoint", "restore"),
     reads=(),  # optics, sensor, model and data are the checkpoint's (but a measured PSF, optics.psf_*, typed here)
     outputs=("metrics.json",),
     measured_psf=True,
@@ -63,22 +71,38 @@ def input_files(path) -> list[Path]:
     raise ConfigError("input", str(path), "no such file or folder")
 
 
-def validate(files: list[Path], size: int, saturation_dn: float, padded: int | None = None) -> list[np.ndarray]:
-    """The counts of every file, each checked (size, range) before any is used; ``padded``: the checkpoint's
-    data.padded_size, named in the hint of a size error."""
+def validate(files: list[Path], size: int | None, saturation_dn: float, padded: int | None = None) -> list[np.ndarray]:
+    """The counts of every file, each checked (range; ``size``: the square side a fixed-size network needs, None
+    for a network that takes any size) before any is used; ``padded``: the checkpoint's data.padded_size, named in
+    the hint of a size error."""
     images = []
     for f in files:
         arr = read_counts(f)
-        if arr.shape != (size, size):
+        if size is not None and arr.shape != (size, size):
             raise ConfigError("input", str(f), f"is {arr.shape[1]} x {arr.shape[0]} px: the checkpoint's network "
                               f"resolution is {size} x {size} (data.image_size)" + (
                                   f"; simulate captures at that size with +experiment=simulate data.image_size="
-                                  f"{size} data.padded_size={padded}" if padded else ""))
+                                  f"{size} data.padded_size={padded}" if padded else "") +
+                              "; a network that takes any size restores any capture (checkpoint=pretrained)")
         if arr.max() > saturation_dn:
             raise ConfigError("input", str(f), f"has counts up to {arr.max():.0f} DN, above the sensor's "
                               f"{saturation_dn:.0f} DN (sensor.bit_depth)")
         images.append(arr)
     return images
+
+
+def working_bin(spec: RestoreSpec, ckpt_cfg, images: list[np.ndarray]) -> float:
+    """restore.bin, or the checkpoint's working scale; checked so that every capture keeps >= 8 network pixels a
+    side."""
+    scales = (ckpt_cfg.get("data") or {}).get("scales")
+    factor = spec.bin if spec.bin is not None else network_bin(int(ckpt_cfg.sensor.resolution),
+                                                                int(ckpt_cfg.data.image_size), scales)
+    smallest = min(min(a.shape) for a in images)
+    if min(binned_shape((smallest, smallest), factor)) < 8:
+        raise ConfigError("restore.bin", spec.bin if spec.bin is not None else round(factor, 4),
+                          f"leaves the smallest capture ({smallest} px a side) under 8 network pixels: at most "
+                          f"{smallest / 8:g}")
+    return factor
 
 
 def check_finite_output(restored: torch.Tensor, f: Path, path) -> None:
@@ -90,10 +114,56 @@ def check_finite_output(restored: torch.Tensor, f: Path, path) -> None:
                           f"weights are finite but the network does not compute finite images; nothing written")
 
 
+def _tile_progress(name: str):
+    """A progress line per tile of a large capture (a bar in the log)."""
+    def report(done: int, total: int) -> None:
+        if total > 1:
+            bar = "#" * round(20 * done / total)
+            log.info("restore %s: [%-20s] tile %d/%d", name, bar, done, total)
+    return report
+
+
+def restore_any_size(model, generators, camera, images, files, factor: float, spec: RestoreSpec, path):
+    """Each capture binned by ``factor`` and restored through the camera's window PSF (codesign/models/capture.py);
+    (restored images, per-image facts)."""
+    psf = camera.frozen_optics().state.psf
+    restored, facts = [], []
+    for f, arr in zip(files, images):
+        t0 = time.perf_counter()
+        geometry = capture_geometry(arr.shape, factor, camera.sensor.pixel_pitch_m, camera.optics.focal_extent_m)
+        tile = spec.tile_for(geometry)
+        out = restore_capture(model, torch.from_numpy(arr), psf, camera.sensor, geometry, generators, tile,
+                              _tile_progress(f.name))
+        check_finite_output(out, f, path)
+        restored.append(out[0].clamp(0, 1).cpu().numpy())
+        facts.append({"input": str(f), "input_size": list(arr.shape), "output_size": list(geometry.size),
+                      "kernel_px": geometry.kernel, "canvas": list(geometry.canvas), "tile": tile,
+                      "seconds": round(time.perf_counter() - t0, 3)})
+    return restored, facts
+
+
+def restore_fixed_size(model, generators, camera, images, files, path):
+    """A network of one input size (the SGAN): each capture at data.image_size on its padded grid."""
+    sensor, otf = camera.sensor, camera.otf
+    n, p = sensor.image_size, sensor.padded_size
+    m = (p - n) // 2
+    restored = []
+    for f, arr in zip(files, images):
+        x = torch.from_numpy(arr / (sensor.gain_dn_per_e * sensor.full_well_e)).float()[None, None]
+        x = F.pad(x, (m, p - n - m, m, p - n - m)).to(otf.device)
+        b = field_of_view(model.restore(x, otf, generators)["restored"], n)
+        check_finite_output(b, f, path)
+        restored.append(b.clamp(0, 1)[0, 0].cpu().numpy())
+    return restored
+
+
 def run(cfg, run_dir: Path, device: torch.device) -> float:
+    """Check the inputs and the checkpoint, build its camera (with the typed mask or measured PSF), restore every
+    capture, then write the restored PNGs (only once all are finite), metrics.json and TensorBoard images."""
     files = input_files(cfg.get("input"))
     if not cfg.get("checkpoint"):
         raise ConfigError("checkpoint", cfg.get("checkpoint"), "give the trained model: checkpoint=PATH")
+    spec = RestoreSpec.from_config(to_container(cfg.get("restore")) or {})
     model, generators, ckpt_cfg, state = load_trained(cfg.checkpoint, device)
     typed = explicit_keys()
     ckpt_cfg = with_measured_psf(ckpt_cfg, cfg, typed)  # the Wiener stage's OTF then is the measured PSF's
@@ -108,27 +178,31 @@ def run(cfg, run_dir: Path, device: torch.device) -> float:
         apply_checkpoint_mask(camera.mask, state, cfg.checkpoint)
     sensor = camera.sensor
     # every file checked before any work
-    images = validate(files, sensor.image_size, sensor.saturation_dn, sensor.padded_size)
+    fixed = None if model.any_size else sensor.image_size
+    images = validate(files, fixed, sensor.saturation_dn, sensor.padded_size)
+    factor = working_bin(spec, ckpt_cfg, images) if model.any_size else sensor.bin_factor
+    if spec.bin is not None and not model.any_size:
+        raise ConfigError("restore.bin", spec.bin, f"is for networks that take any size; this checkpoint's "
+                          f"({model.kind}) restores captures of {sensor.image_size} px only (leave restore.bin null)")
     sampling = {**camera_sampling_report(camera, ckpt_cfg, log), **measured_psf_report(camera, ckpt_cfg, log)}
-    otf = camera.otf
-    n, p = sensor.image_size, sensor.padded_size
-    m = (p - n) // 2
-    written, restored, t0 = [], [], time.perf_counter()
+    t0 = time.perf_counter()
     with torch.no_grad():
-        for f, arr in zip(files, images):
-            x = torch.from_numpy(arr / (sensor.gain_dn_per_e * sensor.full_well_e)).float()[None, None]
-            x = F.pad(x, (m, p - n - m, m, p - n - m)).to(device)
-            b = field_of_view(model.restore(x, otf, generators)["restored"], n)
-            check_finite_output(b, f, cfg.checkpoint)
-            restored.append(b.clamp(0, 1)[0, 0].cpu().numpy())
+        if model.any_size:
+            restored, facts = restore_any_size(model, generators, camera, images, files, factor, spec,
+                                               cfg.checkpoint)
+        else:
+            restored, facts = restore_fixed_size(model, generators, camera, images, files, cfg.checkpoint), []
+    seconds = (time.perf_counter() - t0) / len(files)
     # written only once every image restored finite: a bad one never leaves a folder of half the outputs
+    written = []
     for f, b in zip(files, restored):
         out = run_dir / f"restored_{f.stem}.png"
         save_png16(out, b, scale=65535.0)
         written.append(out.name)
-    seconds = (time.perf_counter() - t0) / len(files)
     metrics = {**sampling, "inputs": [str(f) for f in files], "outputs": written, "seconds_per_image": seconds,
-               "checkpoint": str(cfg.checkpoint), "device": str(device), "image_size": n, "padded_size": p}
+               "checkpoint": str(cfg.checkpoint), "device": str(device), "image_size": sensor.image_size,
+               "padded_size": sensor.padded_size, "bin": factor, "network_pitch_m": sensor.pixel_pitch_m * factor,
+               "captures": facts}
     io.write_json(run_dir / "metrics.json", metrics)
     writer = open_writer(run_dir, tensorboard_enabled(cfg))
     if writer is not None:
@@ -136,5 +210,6 @@ def run(cfg, run_dir: Path, device: torch.device) -> float:
             writer.add_image(f"input/{f.stem}", (arr / sensor.saturation_dn).astype(np.float32)[None], 0)
             writer.add_image(f"restored/{f.stem}", b[None], 0)
     log_summary(writer, {"checkpoint": str(cfg.checkpoint)}, metrics)
-    log.info("restored %d image(s) into %s (%.3f s/image)", len(files), run_dir, seconds)
+    log.info("restored %d image(s) into %s (%.3f s/image, %.4g sensor px per network px)", len(files), run_dir,
+             seconds, factor)
     return seconds

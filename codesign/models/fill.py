@@ -34,10 +34,13 @@ def push_pull_fill(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """``x`` (B, C, H, W) with every pixel where ``valid`` is False replaced by a smooth continuation of the valid
     ones (an image without any valid pixel is returned as it is)."""
     levels = [(x, valid.to(x.dtype))]
-    while min(levels[-1][0].shape[-2:]) > 1 and bool((levels[-1][1] == 0).any()):
+    # down to one pixel along both sides: a non-square image reaches one along its short side first, where holes
+    # along the long side may remain (that side alone keeps halving)
+    while max(levels[-1][0].shape[-2:]) > 1 and bool((levels[-1][1] == 0).any()):
         xv, v = levels[-1]
-        num = F.avg_pool2d(xv * v, 2, ceil_mode=True)
-        den = F.avg_pool2d(v, 2, ceil_mode=True)
+        k = tuple(2 if n > 1 else 1 for n in xv.shape[-2:])
+        num = F.avg_pool2d(xv * v, k, ceil_mode=True)
+        den = F.avg_pool2d(v, k, ceil_mode=True)
         levels.append((num / den.clamp_min(1e-12), (den > 0).to(x.dtype)))
     filled = levels[-1][0]
     for xv, v in reversed(levels[:-1]):

@@ -54,6 +54,7 @@ class Restorer(nn.Module):
 
     kind: ClassVar[str] = ""
     method: ClassVar[str] = ""  # the column name in evaluation tables and metrics keys (psnr_<method>_...)
+    any_size: ClassVar[bool] = False  # restores any (H, W) with the OTF on that grid (codesign/models/capture.py)
     spec: Any
 
     def __init_subclass__(cls, **kwargs):

@@ -36,14 +36,13 @@ HALO_DECADES = 6.0  # the halo channel's range: 1 at the laser's centre down to 
 
 
 def halo_map(sensor: torch.Tensor, otf: torch.Tensor) -> torch.Tensor:
-    """(B, 1, P, P) where the laser's light lies, from the system PSF (``otf``, its kernel at the origin) spread over
-    the saturated pixels: log10 of (PSF * saturated) relative to its maximum, mapped from [-HALO_DECADES, 0] to
-    [0, 1]; 0 everywhere in an image without saturated pixels (model.g1_halo). The shape of the halo around the
+    """(B, 1, H, W) where the laser's light lies, from the system PSF (``otf`` on the same grid, its kernel at the
+    origin) spread over the saturated pixels: log10 of (PSF * saturated) relative to its maximum, mapped from
+    [-HALO_DECADES, 0] to [0, 1]; 0 everywhere in an image without saturated pixels (model.g1_halo). The shape of the halo around the
     footprint is the mask's: this is what tells one G1 which halo to remove whatever mask it is given."""
-    p = sensor.shape[-1]
     # in float64: float32 FFT round-off (~1e-7 of the peak) would sit near the channel's floor
     sat = (sensor.detach() >= SATURATED).double()
-    spread = torch.fft.irfft2(torch.fft.rfft2(sat) * otf.to(torch.complex128), s=(p, p)).clamp_min(0)
+    spread = torch.fft.irfft2(torch.fft.rfft2(sat) * otf.to(torch.complex128), s=sensor.shape[-2:]).clamp_min(0)
     peak = spread.amax(dim=(-2, -1), keepdim=True)
     rel = spread / peak.clamp_min(torch.finfo(spread.dtype).tiny)
     level = (1 + torch.log10(rel.clamp_min(10 ** -HALO_DECADES)) / HALO_DECADES).clamp(0, 1)

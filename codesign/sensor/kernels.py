@@ -109,21 +109,24 @@ def kernel(psf: torch.Tensor, dx: float, size: int, pitch: float, integrate: boo
     return conserve_energy(k, psf)
 
 
-def kernel_otf(k: torch.Tensor, n_fft: int) -> torch.Tensor:
-    """rfft2 of an odd (..., k, k) kernel wrapped so its centre sits at index 0, on an n_fft x n_fft grid."""
+def kernel_otf(k: torch.Tensor, n_fft: int | tuple[int, int]) -> torch.Tensor:
+    """rfft2 of an odd (..., k, k) kernel wrapped so its centre sits at index 0, on an n_fft x n_fft grid (or
+    (rows, columns) for a rectangular one)."""
+    rows, cols = (n_fft, n_fft) if isinstance(n_fft, int) else n_fft
     size = k.shape[-1]
     c = size // 2
-    padded = k.new_zeros(k.shape[:-2] + (n_fft, n_fft))
+    padded = k.new_zeros(k.shape[:-2] + (rows, cols))
     padded[..., :size, :size] = k
     padded = torch.roll(padded, shifts=(-c, -c), dims=(-2, -1))
     return torch.fft.rfft2(padded)
 
 
-def otf_from_kernel(kernel: torch.Tensor, size: int) -> torch.Tensor:
-    """rfft2 (size x size // 2 + 1) of a centred (k, k) PSF kernel zero-padded to size x size, its centre moved
-    to pixel (0, 0) so that filtering does not shift the image. H(0) = sum(kernel)."""
+def otf_from_kernel(kernel: torch.Tensor, size: int | tuple[int, int]) -> torch.Tensor:
+    """rfft2 (size x size // 2 + 1, or rows x columns // 2 + 1 for ``size`` = (rows, columns)) of a centred (k, k)
+    PSF kernel zero-padded to that grid, its centre moved to pixel (0, 0) so that filtering does not shift the
+    image. H(0) = sum(kernel)."""
     k = kernel.shape[-1]
-    if k > size:
+    if k > min((size, size) if isinstance(size, int) else size):
         raise ValueError(f"kernel ({k} px) larger than the deconvolution grid ({size} px)")
     otf = kernel_otf(kernel.to(torch.float64), size)  # the simulator's own convention (same centring)
     return otf.to(torch.complex128 if kernel.dtype == torch.float64 else torch.complex64)

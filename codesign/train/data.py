@@ -92,19 +92,23 @@ class SimulatedData:
         out["alpha_b"] = params.alpha_b  # each scene's exposure (model.target_level=exposure moves it when used)
         return out
 
-    def _params(self, batch: int, generator: torch.Generator):
-        side = self.camera.sensor.side_m
+    def _params(self, batch: int, generator: torch.Generator, camera: Camera | None = None):
+        """Sec. 6.2 parameters, the laser's spot placed over ``camera``'s sensor (default the run's)."""
+        camera = self.camera if camera is None else camera
+        side = camera.sensor.side_m
         return sample_scene_params(batch, generator, self.cfg.data.params, sensor_width_m=side,
-                                   sensor_height_m=side, focal_length_m=self.camera.optics.focal_length_m)
+                                   sensor_height_m=side, focal_length_m=camera.optics.focal_length_m)
 
-    def train_draw(self, step: int) -> tuple:
+    def train_draw(self, step: int, camera: Camera | None = None) -> tuple:
         """(scenes, parameters, noise seeds) of training step ``step``: random crops, Sec. 6.2 parameters and one
-        noise seed per sample. Under torchrun the whole global batch is drawn on every rank (scalars) and this
-        rank's share simulated, so the batches do not depend on the number of processes."""
+        noise seed per sample, for ``camera`` (a pool member's, which may image another pixel scale; default the
+        run's). Under torchrun the whole global batch is drawn on every rank (scalars) and this rank's share
+        simulated, so the batches do not depend on the number of processes."""
+        camera = self.camera if camera is None else camera
         b = self.sampler.batch_size
         part = self.dist.shard(b)
-        scenes = self.sampler.sample(part)
-        params = self._params(b, self.param_gen).part(part)
+        scenes = self.sampler.sample(part, camera.scene_size)
+        params = self._params(b, self.param_gen, camera).part(part)
         base = (self.seed * 1_000_003 + step) * 65_536
         return scenes, params, [base + i for i in range(b)[part]]
 
@@ -113,7 +117,7 @@ class SimulatedData:
         the step's pool member, with its OTF, under data.masks."""
         if self.pool is not None:
             camera = self.pool.camera(step)
-            out = self.simulate(*self.train_draw(step), camera=camera)
+            out = self.simulate(*self.train_draw(step, camera), camera=camera)
             out["otf"] = camera.otf
             return out
         if not self.camera.trainable:

@@ -30,6 +30,8 @@ from codesign.data.scenes import data_config
 from codesign.errors import ConfigError
 from codesign.optics.masks import FAMILIES, build_mask, load_record, published_mask_config
 from codesign.sensor.simulator import SensorSimulator
+from codesign.sensor.spec import SensorSpec, kernel_size
+from codesign.train.mask_draws import random_family_masks
 
 log = logging.getLogger("codesign.train")
 
@@ -40,7 +42,8 @@ def pool_settings(cfg: DictConfig) -> dict | None:
     if dc.masks is None:
         return None
     members = [(str(m), _check_item(f"data.masks[{i}]", m)) for i, m in enumerate(dc.masks)]
-    return {"masks": members, "every": dc.mask_every, "draws": dc.mask_draws, "jitter": dc.mask_jitter}
+    return {"masks": members, "every": dc.mask_every, "draws": dc.mask_draws, "jitter": dc.mask_jitter,
+            "lsr": dc.mask_lsr, "scales": dc.scales}
 
 
 def _check_item(key: str, item) -> str | None:
@@ -48,6 +51,9 @@ def _check_item(key: str, item) -> str | None:
     if not isinstance(item, str) or not item.strip():
         raise ConfigError(key, item, "must be 'published', 'defocus:R' or the path of a mask record")
     if item == "published":
+        return None
+    if item.startswith("random:"):
+        random_member(key, item)
         return None
     if item.startswith("defocus:"):
         try:
@@ -62,9 +68,29 @@ def _check_item(key: str, item) -> str | None:
     return load_record(item, key, "must be 'published', 'defocus:R' or the path of a mask record")["kind"]
 
 
-def _member_masks(item: str, kind: str | None, cfg: DictConfig, grid, aperture_m: float, draws: int, jitter: float,
-                  rng) -> list:
-    """(name, frozen Mask) of the member ``item`` (``kind``: its record's family) and its ``draws`` random draws."""
+def random_member(key: str, item: str) -> tuple[str, int]:
+    """(family, count) of a 'random:FAMILY[:N]' member, checked."""
+    parts = item.split(":")
+    allowed = f"a random member is 'random:FAMILY' or 'random:FAMILY:N', FAMILY one of {', '.join(sorted(FAMILIES))}"
+    if len(parts) not in (2, 3) or parts[1] not in FAMILIES:
+        raise ConfigError(key, item, allowed)
+    try:
+        count = int(parts[2]) if len(parts) == 3 else 1
+    except ValueError:
+        count = 0
+    if not 1 <= count <= 1000:
+        raise ConfigError(key, item, allowed + " and N an integer in [1, 1000]")
+    return parts[1], count
+
+
+def _member_masks(item: str, kind: str | None, cfg: DictConfig, system, draws: int, jitter: float, rng,
+                  lsr_range: tuple[float, float]) -> list:
+    """(name, frozen Mask) of the member ``item`` (``kind``: its record's family) and its ``draws`` random draws
+    around it; a 'random:FAMILY:N' member is N random masks of the family (codesign/train/mask_draws.py)."""
+    grid, aperture_m = system.grid, system.spec.aperture_diameter_m
+    if item.startswith("random:"):
+        family, count = random_member("data.masks", item)
+        return random_family_masks(family, count, system, aperture_m, rng, lsr_range)
     mask_cfg = OmegaConf.to_container(cfg.mask, resolve=True)
     if item == "published":
         mask = build_mask(published_mask_config(mask_cfg), grid, aperture_m, prefix="data.masks")
@@ -115,27 +141,51 @@ class MaskPool:
         return [{"mask": n, "lsr_sampled": v} for n, v in zip(self.names, self.lsr())]
 
 
+def scaled_sensor(sensor: SensorSpec, optics, scale: int, key: str = "data.scales") -> SensorSpec:
+    """The run's sensor seen at pixel scale ``scale``: the whole sensor binned to ``scale`` px per side, of which the
+    network sees ``sensor.image_size`` px (a crop of the same pitch: a smaller sensor of sensor.image_size * bin
+    pixels), padded so that the PSF kernel at that pitch does not wrap in a deconvolution."""
+    if scale > sensor.resolution:
+        raise ConfigError(key, scale, f"must be <= sensor.resolution ({sensor.resolution}): the sensor is binned, "
+                          "never upsampled")
+    n = sensor.image_size
+    resolution = max(n, round(n * sensor.resolution / scale))
+    k = kernel_size(optics.focal_extent_m, sensor.pixel_pitch_m * resolution / n)
+    padded = max(sensor.padded_size, -(-(n + k - 1) // 8) * 8)
+    return sensor.replace(resolution=resolution, padded_size=padded)
+
+
 def build_mask_pool(cfg: DictConfig, base: Camera, seed: int) -> MaskPool | None:
-    """The pool of ``data.masks`` around ``base`` (the run's camera), or None when data.masks is null; every
-    member built and its optics computed before training starts."""
+    """The pool of ``data.masks`` (times ``data.scales``) around ``base`` (the run's camera), or None when data.masks
+    is null; every member built and its optics computed before training starts."""
     settings = pool_settings(cfg)
     if settings is None:
+        scales = data_config(cfg.data).scales
+        if scales is not None:
+            raise ConfigError("data.scales", list(scales), "trains over pixel scales with a pool of masks: set "
+                              "data.masks too (e.g. [published]), or leave data.scales null")
         return None
     if base.measured is not None:
         raise ConfigError("data.masks", [m for m, _ in settings["masks"]], "trains over computed masks: a measured PSF "
                           "(optics.psf_file) fixes the optics (leave one of them null)")
-    system, aperture = base.system, base.system.spec.aperture_diameter_m
+    system, sensor = base.system, base.simulator.sensor
+    scales = settings["scales"] or (None,)
+    sensors = [sensor if s is None else scaled_sensor(sensor, system.spec, s) for s in scales]
     rng = np.random.default_rng(seed + 424243)
     names, cameras = [], []
     for item, kind in settings["masks"]:
-        for name, mask in _member_masks(item, kind, cfg, system.grid, aperture, settings["draws"], settings["jitter"],
-                                        rng):
-            sim = SensorSimulator(base.simulator.sensor, base.simulator.optics, base.simulator.skip_unneeded)
-            cameras.append(Camera(system, mask, sim, base.device, None, base.laser_line, base.scene_spectrum))
-            names.append(name)
+        for name, mask in _member_masks(item, kind, cfg, system, settings["draws"], settings["jitter"], rng,
+                                        settings["lsr"]):
+            for i, (scale, spec) in enumerate(zip(scales, sensors)):
+                sim = SensorSimulator(spec, base.simulator.optics, base.simulator.skip_unneeded)
+                cameras.append(Camera(system, mask, sim, base.device, None, base.laser_line, base.scene_spectrum))
+                names.append(name if scale is None else f"{name} @ {scale} px")
+                if i:  # the coarsest scale's sensor is the largest: its far PSF covers every finer one's
+                    cameras[-1].halo_donor = cameras[-1 - i]
     pool = MaskPool(names, cameras, settings["every"], seed)
     lsr = pool.lsr()
-    log.info("data.masks: %d masks (%d listed, %d draws each at jitter %g), a new one every %d steps; sampled LSR "
-             "%.3g to %.3g", len(cameras), len(settings["masks"]), settings["draws"], settings["jitter"],
+    log.info("data.masks: %d cameras (%d listed masks, %d draws each at jitter %g; %s), a new one every %d steps; "
+             "sampled LSR %.3g to %.3g", len(cameras), len(settings["masks"]), settings["draws"], settings["jitter"],
+             "pixel scales " + ", ".join(map(str, scales)) if scales[0] is not None else "the run's pixel scale",
              settings["every"], min(lsr), max(lsr))
     return pool

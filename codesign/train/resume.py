@@ -19,6 +19,7 @@ from codesign.train.checkpoint import (
     load_module_state,
     state_mismatch,
 )
+from codesign.models.restorer import REGISTRY, restorer_kinds
 from codesign.train.model_setup import build_model
 from codesign.train.optim import EMA
 
@@ -78,6 +79,16 @@ INIT_MAY_DIFFER = ("model.loss", "model.name", "model.laser_gate_f0", "model.g2_
                    "optics.scene_spectrum") + tuple(f"optics.{k}" for k in MEASURED_DEFAULTS)
 
 
+def _must_match(cfg: DictConfig) -> tuple[str, ...]:
+    """INIT_MUST_MATCH, less the image sizes for a network that takes any size (it is trained over pixel scales and
+    restores at any: codesign/models/capture.py)."""
+    kind = OmegaConf.select(cfg, "model.kind") or "sgan"
+    restorer_kinds()  # every restorer class registered
+    if getattr(REGISTRY.get(kind), "any_size", False):
+        return tuple(k for k in INIT_MUST_MATCH if not k.startswith("data."))
+    return INIT_MUST_MATCH
+
+
 def initial_checkpoint(value: str | None, cfg: DictConfig) -> str | None:
     """``init.checkpoint`` as the checkpoint to start from: 'auto' is the shipped restorer ('pretrained') when it fits
     this run (the same network, optics, sensor and image sizes: INIT_MUST_MATCH), else None (fresh weights), said in
@@ -89,7 +100,7 @@ def initial_checkpoint(value: str | None, cfg: DictConfig) -> str | None:
     except ConfigError as err:
         log.info("init.checkpoint=auto: %s: the restorer starts from fresh weights", err)
         return None
-    differ = _differing(state["config"], cfg, INIT_MUST_MATCH, INIT_MAY_DIFFER)
+    differ = _differing(state["config"], cfg, _must_match(cfg), INIT_MAY_DIFFER)
     if differ:
         log.info("init.checkpoint=auto: the shipped restorer was trained with another %s than this run: the restorer "
                  "starts from fresh weights", ", ".join(differ))
@@ -107,7 +118,7 @@ def load_initial_weights(model, path, cfg: DictConfig, key: str = "init.checkpoi
     the checkpoint's step and mask family."""
     state = load_checkpoint(path, key)
     check_trained(state, path, key)
-    differ = _differing(state["config"], cfg, INIT_MUST_MATCH, INIT_MAY_DIFFER)
+    differ = _differing(state["config"], cfg, _must_match(cfg), INIT_MAY_DIFFER)
     if differ:
         raise ConfigError(key, str(path), "was trained with different " + ", ".join(differ) + ": a warm start keeps "
                           "the network, the optics, the sensor and the image sizes (only the mask may change)")

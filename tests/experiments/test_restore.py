@@ -56,3 +56,46 @@ def test_input_paths(tmp_path):
     _png(tmp_path / "b.png", np.zeros((4, 4), np.uint16))
     _png(tmp_path / "a.png", np.zeros((4, 4), np.uint16))
     assert [p.name for p in input_files(tmp_path)] == ["a.png", "b.png"]
+
+
+def test_a_network_of_any_size_restores_a_non_square_capture_at_the_bin_asked_in_tiles(tmp_path):
+    """+experiment=restore with a conditioned network (model=wiener_naf, fresh: its classical start): a 230 x 150
+    capture, larger than the training crops and not square, binned 4 x 4 (restore.bin=4), decoded in 32 px tiles: a
+    57 x 37 restoration whose uniform scene comes back at its level."""
+    import torch
+    from omegaconf import OmegaConf
+
+    from codesign import api
+    from codesign.io.captures import save_png16
+    from codesign.sensor.spec import SensorSpec
+    from codesign.train.checkpoint import save_checkpoint
+    from codesign.train.model_setup import build_model
+    from tests.train._util import tiny_cfg
+
+    cfg = tiny_cfg("model=wiener_naf")
+    torch.manual_seed(0)
+    state = {"model": build_model(cfg).state_dict(), "step": 1, "config": OmegaConf.to_container(cfg, resolve=True)}
+    ck = save_checkpoint(tmp_path / "checkpoint.pt", state)
+    sensor = SensorSpec()
+    level = 0.3 * sensor.gain_dn_per_e * sensor.full_well_e
+    capture = tmp_path / "frame.png"
+    save_png16(capture, np.full((230, 150), level / 65535.0), scale=65535.0)
+    out = api.restore(capture, ck, "restore.bin=4", "restore.tile=32", "logging.tensorboard=false",
+                      run_dir=tmp_path / "restore")
+    restored = read_counts(out["run_dir"] / "restored_frame.png") / 65535.0
+    assert restored.shape == (57, 37) and out["bin"] == 4.0
+    assert out["captures"][0]["tile"] == 32 and out["captures"][0]["output_size"] == [57, 37]
+    assert np.abs(restored - 0.3).max() < 1e-4
+
+
+def test_restore_bin_is_refused_when_it_leaves_too_few_pixels(tmp_path):
+    from codesign.experiments.restore import working_bin
+    from codesign.models.capture import RestoreSpec
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.create({"sensor": {"resolution": 2532}, "data": {"image_size": 96, "scales": [96, 256]}})
+    images = [np.zeros((100, 60))]
+    assert working_bin(RestoreSpec(bin=2.0), cfg, images) == 2.0
+    with pytest.raises(ConfigError, match=r"^restore\.bin = 9\.8906: leaves the smallest capture \(60 px a side\) "
+                       r"under 8 network pixels: at most 7\.5$"):
+        working_bin(RestoreSpec(), cfg, images)

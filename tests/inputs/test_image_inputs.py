@@ -123,7 +123,8 @@ def test_restore_refuses_a_bad_capture_before_any_restoration(tmp_path, monkeypa
                         f"input={capture}")
     assert line == (f"codesign: configuration error: input = '{capture}': is 32 x 32 px: the checkpoint's network "
                     f"resolution is 48 x 48 (data.image_size); simulate captures at that size with "
-                    f"+experiment=simulate data.image_size=48 data.padded_size=64")
+                    f"+experiment=simulate data.image_size=48 data.padded_size=64; a network that takes any size "
+                    f"restores any capture (checkpoint=pretrained)")
 
 
 # ---- scene folders (data.folder) ---------------------------------------------------------------------------

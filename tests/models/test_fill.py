@@ -262,3 +262,13 @@ def test_g1_runs_only_on_lasered_images_and_gives_the_whole_batchs_result():
         clean = model(batch[[0, 3]], otf)
     hook.remove()
     assert seen == [] and torch.equal(clean["i_b"], push_pull_fill(batch[[0, 3]], valid_pixels(batch[[0, 3]])))
+
+
+def test_a_non_square_image_is_filled_to_its_far_ends():
+    """The pyramid halves until both sides reach one pixel: a wide image's short side gets there first, and the
+    holes along its long side (here the last rows and columns) must still be filled."""
+    for shape in ((136, 88), (17, 129), (1, 40), (40, 3)):
+        x = torch.zeros(1, 1, *shape)
+        x[..., shape[0] // 3: shape[0] // 2 + 1, shape[1] // 3: shape[1] // 2 + 1] = 0.4
+        filled = push_pull_fill(x, valid_pixels(x))
+        assert float((filled - 0.4).abs().max()) < 1e-6, shape

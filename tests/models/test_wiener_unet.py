@@ -26,7 +26,7 @@ def test_registered_and_composed_like_any_restorer():
     assert model.critics() == [] and not model.adversarial and model.method == "wiener_unet"
     with pytest.raises(ConfigError, match=r"^model\.size = 'huge': must be one of tiny, cpu, paper$"):
         build_restorer({"kind": "wiener_unet", "size": "huge"})
-    with pytest.raises(ConfigError, match=r"^model\.kind = 'vit': must be one of sgan, wiener_unet$"):
+    with pytest.raises(ConfigError, match=r"^model\.kind = 'vit': must be one of sgan, wiener_naf, wiener_unet$"):
         build_restorer({"kind": "vit"})
 
 

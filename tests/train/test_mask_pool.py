@@ -103,3 +103,85 @@ def test_shipped_checkpoint_is_found_by_name_or_named_as_missing(tmp_path, monke
     assert str(err.value) == (f"init.checkpoint = 'pretrained': names the shipped restorer "
                               f"{tmp_path / ckpt.PRETRAINED['pretrained']}, which this installation lacks (reinstall "
                               "codesign, or give a checkpoint path)")
+
+
+def test_random_family_members_lie_in_the_lsr_range_and_repeat_for_a_seed():
+    cfg = tiny_cfg("data.masks=[random:zernike:2,random:halfring,random:pixel]", "data.mask_lsr=[1e-3,2e-2]")
+    data = SimulatedData(cfg, CPU, 0)
+    pool = build_mask_pool(cfg, data.camera, 0)
+    assert [n.split(" (")[0] for n in pool.names] == ["random:zernike 1", "random:zernike 2", "random:halfring 1",
+                                                      "random:pixel 1"]
+    assert all(1e-3 <= v <= 2e-2 for v in pool.lsr())
+    assert [c.mask.kind for c in pool.cameras] == ["zernike", "zernike", "halfring", "pixel"]
+    again = build_mask_pool(cfg, data.camera, 0)
+    assert all(torch.equal(a.mask.to_vector(), b.mask.to_vector()) for a, b in zip(pool.cameras, again.cameras))
+    other = build_mask_pool(cfg, data.camera, 1)
+    assert not torch.equal(pool.cameras[0].mask.to_vector(), other.cameras[0].mask.to_vector())
+
+
+@pytest.mark.parametrize("item", ["random:cube", "random:spline:0", "random:spline:x", "random:"])
+def test_a_bad_random_member_is_named(item):
+    cfg = tiny_cfg(f"data.masks=[published,'{item}']")
+    data = SimulatedData(cfg, CPU, 0)
+    with pytest.raises(ConfigError, match=rf"^data\.masks\[1\] = '{item}': a random member is 'random:FAMILY' or "
+                       r"'random:FAMILY:N', FAMILY one of halfring, pixel, spiral, spline, zernike"):
+        build_mask_pool(cfg, data.camera, 0)
+
+
+def test_pixel_scales_bin_the_same_sensor_and_pad_for_the_kernel():
+    """data.scales: each member at every scale S, a crop of data.image_size px of the sensor binned to S px a side:
+    the same pitch, a network pixel of resolution / S sensor pixels, and padding that holds the kernel."""
+    cfg = tiny_cfg("data.masks=[published]", "data.scales=[48,96,192]", "data.mask_every=1")
+    data = SimulatedData(cfg, CPU, 0)
+    pool = build_mask_pool(cfg, data.camera, 0)
+    data.use_pool(pool)
+    assert pool.names == ["published @ 48 px", "published @ 96 px", "published @ 192 px"]
+    full = data.camera.sensor
+    for cam, scale in zip(pool.cameras, (48, 96, 192)):
+        s = cam.sensor
+        assert s.pixel_pitch_m == full.pixel_pitch_m and s.image_size == full.image_size
+        assert abs(s.coarse_pitch_m - full.pixel_pitch_m * full.resolution / scale) < 0.01 * s.coarse_pitch_m
+        assert s.padded_size >= s.image_size + cam.simulator.coarse.ksize - 1 and s.padded_size % 8 == 0
+    assert pool.cameras[0].sensor == full  # the run's own scale is the run's sensor
+    kernels = [c.simulator.coarse.ksize for c in pool.cameras]
+    assert kernels[0] < kernels[1] < kernels[2]  # a finer pixel: the PSF spans more of them
+    for step in range(6):
+        cam, batch = pool.camera(step), data.train_batch(step)
+        p = cam.padded_size
+        assert batch["sensor"].shape[-2:] == (p, p) and batch["otf"].shape == (p, p // 2 + 1)
+
+
+def test_pixel_scales_are_checked():
+    cfg = tiny_cfg("data.scales=[48,96]")
+    data = SimulatedData(cfg, CPU, 0)
+    with pytest.raises(ConfigError, match=r"^data\.scales = \[48, 96\]: trains over pixel scales with a pool of "
+                       r"masks: set data.masks too \(e\.g\. \[published\]\), or leave data\.scales null$"):
+        build_mask_pool(cfg, data.camera, 0)
+    cfg = tiny_cfg("data.masks=[published]", "data.scales=[48,3000]")
+    data = SimulatedData(cfg, CPU, 0)
+    with pytest.raises(ConfigError, match=r"^data\.scales = 3000: must be <= sensor\.resolution \(2532\)"):
+        build_mask_pool(cfg, data.camera, 0)
+    with pytest.raises(ConfigError, match=r"^data\.scales = \[48, 48\]: must be a non-empty list of integer pixel "
+                       r"scales in \[8, sensor\.resolution\], or null \(each scale once\)$"):
+        SimulatedData(tiny_cfg("data.scales=[48,48]"), CPU, 0)
+
+
+def test_finer_scales_reuse_the_far_psf_of_the_coarsest_whose_sensor_is_largest():
+    """One far PSF per mask (seconds each): the finer scales' smaller sensors take the coarsest scale's, which also
+    keeps the light that falls beyond a small sensor out of it, as on the large sensor it is a crop of (a far plane
+    of the small sensor's own reach squeezes that light into it: more saturated pixels)."""
+    from codesign.data.params import preset_params
+
+    cfg = tiny_cfg("data.masks=[published]", "data.scales=[48,192]", "sensor.laser_halo=true")
+    data = SimulatedData(cfg, CPU, 0)
+    coarse, fine = build_mask_pool(cfg, data.camera, 0).cameras
+    assert fine.halo_donor is coarse and coarse.halo_donor is None
+    scenes = data.sampler.sample(None, fine.scene_size)
+    params = preset_params("laser_1e6", scenes.shape[0])
+    shared = fine(scenes, params, 5)["sensor"]
+    assert fine._halo_frozen["halo"][1] is coarse._halo_frozen["halo"][1]
+    own = build_mask_pool(tiny_cfg("data.masks=[published]", "data.scales=[192]", "sensor.laser_halo=true"),
+                          data.camera, 0).cameras[0]
+    alone = own(scenes, params, 5)["sensor"]
+    saturated = lambda x: float((x >= 0.999).float().mean())  # noqa: E731
+    assert 0.2 < saturated(shared) < saturated(alone)  # measured 0.343 and 0.461
