@@ -10,17 +10,15 @@ rank 0's run directory (codesign/train/distributed.py).
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 import hydra
 from omegaconf import DictConfig
 
+from codesign.config import CONF_DIR
 from codesign.signals import Interrupted, interruptible
 
-CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
 
-
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="config")
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
 def _hydra_main(cfg: DictConfig) -> float | None:
     from codesign.experiments import run_experiment
 
@@ -66,9 +64,14 @@ def main() -> None:
 
     args = sys.argv[1:]
     if "--version" in args:
-        from codesign import __version__
+        from importlib.metadata import PackageNotFoundError, version
 
-        print(__version__)
+        try:  # the installed distribution's (a wheel's, pip install .'s); a bare checkout falls back to the package's
+            number = version("codesign")
+        except PackageNotFoundError:
+            from codesign import __version__ as number
+
+        print(f"codesign {number}")
         raise SystemExit(0)
     if "--help" in args or "-h" in args:
         print(help_text(), end="")

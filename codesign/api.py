@@ -17,6 +17,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 import codesign.experiments as _experiments
 from codesign.camera import Camera, build_camera
+from codesign.config import CONF_DIR
 from codesign.config.runtime import apply_debug_overrides, command_line_keys, renamed_key_error, to_container
 from codesign.data.scenes import build_scene_source
 from codesign.data.params import alpha_tag, fixed_scene_params
@@ -27,7 +28,6 @@ from codesign.optics import OpticalSystem, OpticsSpec, build_mask
 from codesign.optics.masks import Mask
 from codesign.train.checkpoint import PRETRAINED, load_checkpoint
 
-CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 
 __all__ = ["compose", "camera", "optical_system", "build_mask", "configured_mask", "published_mask", "psf_and_lsr",
            "scene_names", "sensor_image", "run", "checkpoint_config", "restore", "restore_image", "mask_search",

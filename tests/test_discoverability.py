@@ -39,7 +39,7 @@ def test_version_is_codesigns_and_pyprojects():
     assert codesign.__version__ == project["version"]
     proc = run_codesign("--version")
     assert proc.returncode == 0, proc.stderr[-2000:]
-    assert proc.stdout == f"{codesign.__version__}\n"
+    assert proc.stdout == f"codesign {codesign.__version__}\n"
 
 
 def test_hydra_help_is_still_hydras():
