@@ -18,9 +18,9 @@ importlib.import_module("codesign.models").restorer_kinds()
 
 # The Python API (codesign/api.py, docs/api.md): ``from codesign import compose, psf_and_lsr, ...``, loaded on first
 # use so that ``import codesign`` stays as cheap as the config registration above.
-API = ("compose", "optical_system", "build_mask", "configured_mask", "published_mask", "psf_and_lsr", "scene_names",
-       "sensor_image", "run", "checkpoint_config", "restore", "restore_image", "mask_search", "train_restorer",
-       "OpticsSpec", "OpticalSystem", "Camera", "Mask", "ConfigError", "alpha_tag")
+API = ("compose", "build_camera", "optical_system", "build_mask", "configured_mask", "published_mask",
+       "psf_and_lsr", "scene_names", "sensor_image", "run", "checkpoint_config", "restore", "restore_image", "quality",
+       "mask_search", "train_restorer", "OpticsSpec", "OpticalSystem", "Camera", "Mask", "ConfigError", "alpha_tag")
 
 
 def __getattr__(name: str):
@@ -33,13 +33,4 @@ def __dir__() -> list[str]:
     return sorted(set(globals()) | set(API))
 
 
-class _CallableModule(type(_resolvers)):
-    """codesign.camera stays the package and is also the API's ``camera(cfg=None, device="cpu", dtype=float32)``:
-    ``from codesign import camera; camera()`` is the Camera of the default config (codesign.api.camera)."""
-
-    def __call__(self, *args, **kwargs):
-        return importlib.import_module("codesign.api").camera(*args, **kwargs)
-
-
-importlib.import_module("codesign.camera").__class__ = _CallableModule
-__all__ = ["camera", *API]
+__all__ = list(API)

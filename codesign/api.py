@@ -16,7 +16,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 import codesign.experiments as _experiments
-from codesign.camera import Camera, build_camera
+from codesign.camera import Camera, build_camera as _camera_of
 from codesign.config import CONF_DIR
 from codesign.config.runtime import apply_debug_overrides, command_line_keys, renamed_key_error, to_container
 from codesign.data.scenes import build_scene_source
@@ -29,10 +29,10 @@ from codesign.optics.masks import Mask
 from codesign.train.checkpoint import PRETRAINED, load_checkpoint
 
 
-__all__ = ["compose", "camera", "optical_system", "build_mask", "configured_mask", "published_mask", "psf_and_lsr",
-           "scene_names", "sensor_image", "run", "checkpoint_config", "restore", "restore_image", "mask_search",
-           "train_restorer",
-           "OpticsSpec", "OpticalSystem", "Camera", "Mask", "ConfigError", "alpha_tag", "CONF_DIR"]
+__all__ = ["compose", "build_camera", "optical_system", "build_mask", "configured_mask", "published_mask",
+           "psf_and_lsr", "scene_names", "sensor_image", "run", "checkpoint_config", "restore", "restore_image",
+           "quality", "mask_search", "train_restorer", "OpticsSpec", "OpticalSystem", "Camera", "Mask", "ConfigError",
+           "alpha_tag", "CONF_DIR"]
 
 
 def compose(*overrides: str, experiment: str | None = None) -> DictConfig:
@@ -69,13 +69,17 @@ def _config(cfg: DictConfig | None) -> DictConfig:
     return compose() if cfg is None else cfg
 
 
-def camera(cfg: DictConfig | None = None, device: str | torch.device = "cpu",
-           dtype: torch.dtype = torch.float32) -> Camera:
+def build_camera(cfg: DictConfig | None = None, device: str | torch.device = "cpu",
+                 dtype: torch.dtype = torch.float32, mask: Mask | None = None) -> Camera:
     """The Camera (optical system, frozen mask, sensor simulator) of ``cfg`` (default: ``compose()``, the default
-    optics and the published five half-ring mask); codesign.camera.build_camera. ``camera.frozen_optics()`` holds
-    the PSF state; ``camera(scenes, params, seed)`` simulates a batch (scenes: (N, 1, S, S) radiance in [0, 1]
+    optics and the published five half-ring mask); ``mask``: image through this Mask instead of the configured one
+    (e.g. a search's design; one built on another pupil grid is sampled onto the camera's). ``cam.frozen_optics()``
+    holds the PSF state; ``cam(scenes, params, seed)`` simulates a batch (scenes: (N, 1, S, S) radiance in [0, 1]
     with S = camera.scene_size; params: a SceneParams, e.g. from fixed_scene_params)."""
-    return build_camera(_config(cfg), torch.device(device), dtype)
+    cam = _camera_of(_config(cfg), torch.device(device), dtype)
+    if mask is not None:
+        cam.use_mask(mask)
+    return cam
 
 
 def optical_system(cfg: DictConfig | None = None, device: str | torch.device = "cpu",
@@ -106,7 +110,8 @@ def psf_and_lsr(mask: Mask | None = None, system: OpticalSystem | None = None,
                 cfg: DictConfig | None = None) -> dict[str, Any]:
     """PSF and figures of merit of a mask, as ``+experiment=psf`` reports them (design.merit.evaluate_mask).
 
-    mask: any Mask (default: the published mask); system: its OpticalSystem (default: optical_system(cfg)).
+    mask: any Mask (default: the published mask; one built on another pupil grid is sampled onto ``system``'s);
+    system: the OpticalSystem (default: optical_system(cfg)).
     Returns a dict: ``psf`` (focal-window tensor, focal_n x focal_n samples of focal_pitch_m metres, in units of
     the pupil's total power per sample), ``psf_uncoded`` (the same without the mask), ``phase`` (rad), ``lsr``
     (laser suppression ratio: the certified continuous PSF peak over the uncoded peak, dimensionless),
@@ -116,6 +121,8 @@ def psf_and_lsr(mask: Mask | None = None, system: OpticalSystem | None = None,
     cfg = _config(cfg)
     system = system or optical_system(cfg)
     mask = mask if mask is not None else published_mask(system, cfg)
+    if mask.grid.n != system.grid.n or abs(mask.grid.pitch - system.grid.pitch) > 1e-12 * system.grid.pitch:
+        mask = mask.on_grid(system.grid, system.spec.aperture_diameter_m)  # e.g. a design from a coarser search
     ms = metrics_spec(cfg)
     values, arrays = evaluate_mask(system, mask, ms.mtf_band, ms.lsr_p, ms.lsr_grids)
     return {**values, "psf": arrays["psf"], "psf_uncoded": arrays["psf_uncoded"], "phase": arrays["phase"]}
@@ -135,14 +142,14 @@ def sensor_image(scene: str | int = 0, alpha_l: float = 1e6, cfg: DictConfig | N
     scene: a name from scene_names(cfg) or an index into the test split. alpha_l: the laser's strength relative to
     the scene (the paper's alpha_l, dimensionless; 0 = no laser). params: other SceneParams fields (paper's figure
     values by default; laser_angle_rad in radians, default simulate.laser_angle_rad). cam: a Camera of cfg to reuse
-    (default: camera(cfg)). seed: the noise seed (None: the config's seed). Returns the simulator's outputs for a
+    (default: build_camera(cfg)). seed: the noise seed (None: the config's seed). Returns the simulator's outputs for a
     batch of one: ``sensor_dn`` (1, 1, n, n) sensor counts (DN, n = data.image_size), ``saturated`` (1, 1, n, n)
     bool, ``laser`` (1, 1, n, n) the laser's part of the image before noise and digitization (irradiance units); on
     the padded grid (1, 1, p, p), p = data.padded_size, the image centred (codesign.camera.field_of_view crops it):
     ``sensor`` (counts / full scale, 0..1, the network input), ``scene`` (the target radiance, 0..1) and
     ``irradiance`` (the scene through the optics)."""
     cfg = _config(cfg)
-    cam = cam or camera(cfg)
+    cam = cam or build_camera(cfg)
     sim = cam.simulator
     source = build_scene_source(cfg.data)
     fixed = SimulateSpec.from_config(to_container(cfg.get("simulate")) or {})
@@ -162,13 +169,13 @@ def run(experiment: str, *overrides: str, run_dir: str | Path | None = None) -> 
     """Run an experiment as ``python -m codesign +experiment=NAME OVERRIDES... hydra.run.dir=RUN_DIR`` does, in
     this process (codesign.experiments.run_experiment: validation, debug shrink, threads, device), and return its
     ``metrics.json`` as a dict, with ``run_dir`` (a Path) added. run_dir: default outputs/api/<NAME>/<time>.
-    A configuration error prints ``codesign: configuration error: ...`` and raises SystemExit(2), as the CLI."""
+    A configuration error raises ConfigError (its key, value and what is allowed), before any work."""
     cfg = compose(*overrides, experiment=experiment)
     run_dir = Path(run_dir) if run_dir is not None else _new_run_dir(experiment)
     run_dir.mkdir(parents=True, exist_ok=True)
     with open_dict(cfg):
         cfg.debug = None  # applied by compose (typed keys kept); run_experiment would apply it again over them
-    _experiments.run_experiment(cfg, run_dir)
+    _experiments.run_experiment(cfg, run_dir, exit_on_error=False)
     metrics_file = run_dir / "metrics.json"
     metrics = json.loads(metrics_file.read_text()) if metrics_file.is_file() else {}
     return {**metrics, "run_dir": run_dir}
@@ -194,49 +201,73 @@ def restore(input: str | Path, checkpoint: str | Path, *overrides: str,
 
 
 def restore_image(counts, checkpoint: str | Path = "pretrained", mask: Mask | None = None, bin: float | None = None,
-                  tile: int | None = None, device: str | torch.device = "cpu") -> torch.Tensor:
+                  input_bin: float = 1.0, tile: int | None = None, device: str | torch.device = "cpu"
+                  ) -> torch.Tensor:
     """Restore one capture held in memory, no files: ``counts`` (H, W) or (C, H, W) sensor counts [DN] of any size
-    from a sensor of the checkpoint's pitch (e.g. ``sensor_image(...)["sensor_dn"][0, 0]``), through ``mask`` (a
-    Mask on the checkpoint's pupil grid, e.g. a search's design; default: the checkpoint's own mask), binned to
-    ``bin`` sensor pixels per network pixel (default: the network's finest trained scale), decoded in tiles of
+    from a sensor of the checkpoint's pitch (e.g. ``sensor_image(...)["sensor_dn"][0, 0]``), through ``mask`` (any
+    Mask, e.g. a search's design, sampled onto the checkpoint's pupil grid; default: the checkpoint's own mask), binned to
+    ``bin`` sensor pixels per network pixel (default: the network's finest trained scale; ``input_bin``: sensor
+    pixels per capture pixel, 1 for a raw capture, sensor.resolution / data.image_size for a capture simulated at
+    the network resolution as sensor_image makes them), decoded in tiles of
     ``tile`` px (default: whole up to 1536^2 px). checkpoint: 'pretrained' (the shipped restorer for any mask and
     size) or a checkpoint.pt of a network that takes any size (model=wiener_naf). Returns (h, w) (or (C, h, w))
     at the sensor's exposure, 1 = the full well (as +experiment=restore writes it). Raises ConfigError."""
-    from codesign.models.capture import RestoreSpec, capture_geometry, network_bin, restore_capture
-    from codesign.sensor.simulator import psf_state
+    from codesign.models.capture import RestoreSpec, capture_factor, capture_geometry, restore_capture
     from codesign.train.resume import apply_checkpoint_mask, load_trained
 
-    spec = RestoreSpec(bin=bin, tile=tile, prefix="restore_image")
+    spec = RestoreSpec(bin=bin, input_bin=input_bin, tile=tile, prefix="restore_image")
     x = torch.as_tensor(counts, dtype=torch.float64)
     if x.dim() not in (2, 3) or min(x.shape[-2:]) < 8 or not bool(torch.isfinite(x).all()) or float(x.min()) < 0:
         raise ConfigError("restore_image counts", tuple(x.shape), "must be (H, W) or (C, H, W) finite counts >= 0 "
                           "of at least 8 x 8 pixels")
     model, generators, ckpt_cfg, state = load_trained(checkpoint, torch.device(device))
-    cam = build_camera(ckpt_cfg, torch.device(device), torch.float32)
+    cam = _camera_of(ckpt_cfg, torch.device(device), torch.float32)
     if mask is None:
         apply_checkpoint_mask(cam.mask, state, checkpoint)
-        psf = cam.frozen_optics().state.psf
-    else:
-        grid = cam.system.grid
-        if mask.grid.n != grid.n or abs(mask.grid.pitch - grid.pitch) > 1e-12 * grid.pitch:
-            raise ConfigError("restore_image mask", mask.kind, f"was built on a {mask.grid.n}-sample pupil grid of "
-                              f"pitch {mask.grid.pitch:g} m; the checkpoint's optics sample {grid.n} at "
-                              f"{grid.pitch:g} m (build it on optical_system(checkpoint_config(...)))")
-        with torch.no_grad():
-            psf = psf_state(cam.system, mask.phase().to(grid.rho.device), mask.plate_cell_m).psf
-    factor = spec.bin if spec.bin is not None else network_bin(
-        int(ckpt_cfg.sensor.resolution), int(ckpt_cfg.data.image_size), (ckpt_cfg.get("data") or {}).get("scales"))
-    geometry = capture_geometry(tuple(x.shape[-2:]), factor, cam.sensor.pixel_pitch_m, cam.optics.focal_extent_m)
+    else:  # on the checkpoint's pupil grid (sampled onto it by its family when it was designed on another)
+        cam.use_mask(mask)
+    psf = cam.frozen_optics().state.psf
+    factor = capture_factor(spec, ckpt_cfg)
+    geometry = capture_geometry(tuple(x.shape[-2:]), factor, cam.sensor.pixel_pitch_m * spec.input_bin,
+                                cam.optics.focal_extent_m)
     out = restore_capture(model, x, psf, cam.sensor, geometry, generators, spec.tile_for(geometry))
     return out[0] if x.dim() == 2 else out
 
 
+def quality(restored: torch.Tensor, scene: torch.Tensor) -> dict[str, float]:
+    """How close ``restored`` is to ``scene`` (both (H, W) or (N, 1, H, W), radiance in [0, 1], at least 11 px a
+    side), as the evaluation scores: ``psnr`` and ``ssim`` as they are, ``psnr_matched`` and ``ssim_matched`` after
+    the least-squares gain and offset (the sensor cannot tell the scene's level: alpha_b is unknown), dB and 0..1,
+    means over the images."""
+    from codesign.models.quality import psnr, ssim
+    from codesign.train.evaluation import affine_match
+
+    x, y = (torch.as_tensor(t, dtype=torch.float32) for t in (restored, scene))
+    if x.shape != y.shape or x.dim() not in (2, 4) or min(x.shape[-2:]) < 11:
+        raise ConfigError("quality", (tuple(x.shape), tuple(y.shape)), "restored and scene must have one shape, "
+                          "(H, W) or (N, 1, H, W), at least 11 px a side")
+    x, y = (t[None, None] if t.dim() == 2 else t for t in (x, y))
+    m = affine_match(x, y)
+    return {"psnr": float(psnr(x.clamp(0, 1), y).mean()), "ssim": float(ssim(x.clamp(0, 1), y).mean()),
+            "psnr_matched": float(psnr(m, y).mean()), "ssim_matched": float(ssim(m, y).mean())}
+
+
 def mask_search(*overrides: str, run_dir: str | Path | None = None) -> dict[str, Any]:
     """A mask-only search (``+experiment=mask_search``, e.g. ``"mask=spline"``, ``"search.max_evals=50"``,
-    ``"debug=smoke"``). Writes best_mask.json (a record ``mask.init=PATH`` takes), evaluations.csv and figures;
-    returns metrics.json (``lsr``, ``mtf_mean`` of the best design, ``lsr_published`` of the published mask, ...)
-    with ``run_dir``."""
-    return run("mask_search", *overrides, run_dir=run_dir)
+    ``"debug=smoke"``). Returns its figures, metrics.json (``lsr``: the certified peak LSR, ``mtf_mean`` of the
+    best design, ``lsr_published`` of the published mask, ...), with ``mask``: the best design as a frozen Mask on
+    the search's pupil grid (``psf_and_lsr(mask, cfg=...)``, ``build_camera(mask=mask)``, ``restore_image(...,
+    mask=mask)`` take it) and ``run_dir``, where best_mask.json (a record ``mask.init=PATH`` takes), evaluations.csv
+    and the figures are written."""
+    from codesign.optics.masks import FAMILIES, load_record
+
+    result = run("mask_search", *overrides, run_dir=run_dir)
+    record = result["run_dir"] / "best_mask.json"
+    kind = load_record(record, "mask.init", "a mask record")["kind"]
+    system = optical_system(compose(*overrides, experiment="mask_search"))
+    mask = build_mask({**FAMILIES[kind].Spec.defaults(), "kind": kind, "init": str(record)}, system.grid,
+                      system.spec.aperture_diameter_m)
+    return {**result, "mask": mask.freeze()}
 
 
 def train_restorer(*overrides: str, run_dir: str | Path | None = None, experiment: str = "baseline"

@@ -23,7 +23,7 @@ args = parser.parse_args()
 
 cfg = codesign.compose(*args.overrides, *(["debug=smoke"] if args.smoke else []), experiment="simulate")
 scene = int(args.scene) if args.scene.lstrip("-").isdigit() else args.scene
-cam = codesign.camera(cfg)  # built once: its PSF is computed once for both images
+cam = codesign.build_camera(cfg)  # built once: its PSF is computed once for both images
 print(f"camera: {cam.mask.kind} mask, {cam.image_size} x {cam.image_size} px network image "
       f"({cam.sensor.coarse_pitch_m * 1e6:.2f} um pixels), scene crop {cam.scene_size} px; "
       f"test scenes {codesign.scene_names(cfg)[:4]}")

@@ -140,6 +140,19 @@ class Camera(torch.nn.Module):
         """The mask's values changed: recompute the cached optics on next use."""
         self._frozen = None
 
+    def use_mask(self, mask: Mask) -> None:
+        """Image through ``mask`` from now on, frozen; a mask built on another pupil grid (a search on a coarser
+        one) is sampled onto this camera's by its family (Mask.on_grid)."""
+        if self.measured is not None:
+            raise ConfigError("optics.psf_file", self.measured.path, "a measured PSF fixes the optics: a camera "
+                              "with one images through no other mask")
+        grid = self.system.grid
+        if mask.grid.n != grid.n or abs(mask.grid.pitch - grid.pitch) > 1e-12 * grid.pitch:
+            mask = mask.on_grid(grid, self.system.spec.aperture_diameter_m)
+        self.mask = self.mask_forward = mask.to(grid.rho.device)
+        self.set_trainable(False)
+        self._frozen, self._halo_frozen = None, None
+
     # ---- the optics -------------------------------------------------------------------------------------------
     def optics_of(self, phase: torch.Tensor, key: tuple | None = None) -> OpticsOutputs:
         """PSF state, network-pitch kernel and padded-grid OTF of a pupil phase; all carry the phase's graph.

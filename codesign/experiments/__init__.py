@@ -166,9 +166,10 @@ def _discard_empty_run_dir(run_dir: Path) -> None:
             parent.rmdir()
 
 
-def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None:
-    """Validate the common keys, apply ``debug`` shrinking, then run ``cfg.task``; config errors exit with 2, an
-    output file that cannot be written with 1 (the earlier file is unchanged)."""
+def run_experiment(cfg: DictConfig, run_dir: Path | None = None, exit_on_error: bool = True) -> float | None:
+    """Validate the common keys, apply ``debug`` shrinking, then run ``cfg.task``; config errors exit with 2 (with
+    ``exit_on_error`` False, as the Python API calls it: raised as ConfigError, after the same clean-up), an output
+    file that cannot be written with 1 (the earlier file is unchanged)."""
     run_dir = Path(run_dir) if run_dir is not None else _run_dir()
     ctx = distributed.current()
     if not ctx.is_main:  # rank 0 reports progress; the others only warnings (into <job>.rank<k>.log)
@@ -224,6 +225,9 @@ def run_experiment(cfg: DictConfig, run_dir: Path | None = None) -> float | None
         distributed.settle(ctx)  # the same error stops every rank: let the others finish creating the run dir
         if ctx.is_main:
             _discard_empty_run_dir(run_dir)
+        if not exit_on_error:
+            raise
+        if ctx.is_main:
             print(f"codesign: configuration error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
     except OutputWriteError as err:

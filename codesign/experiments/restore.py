@@ -30,7 +30,7 @@ from codesign.errors import ConfigError
 from codesign.io import files as io
 from codesign.io.captures import read_counts, save_png16
 from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
-from codesign.models.capture import RestoreSpec, binned_shape, capture_geometry, network_bin, restore_capture
+from codesign.models.capture import RestoreSpec, binned_shape, capture_factor, capture_geometry, restore_capture
 from codesign.train.checkpoint import nonfinite_summary, stored_config_error
 from codesign.train.resume import apply_checkpoint_mask, load_trained
 from codesign.experiments.protocol import Experiment
@@ -92,16 +92,14 @@ def validate(files: list[Path], size: int | None, saturation_dn: float, padded: 
 
 
 def working_bin(spec: RestoreSpec, ckpt_cfg, images: list[np.ndarray]) -> float:
-    """restore.bin, or the checkpoint's working scale; checked so that every capture keeps >= 8 network pixels a
-    side."""
-    scales = (ckpt_cfg.get("data") or {}).get("scales")
-    factor = spec.bin if spec.bin is not None else network_bin(int(ckpt_cfg.sensor.resolution),
-                                                                int(ckpt_cfg.data.image_size), scales)
+    """Capture pixels per network pixel (restore.bin or the checkpoint's working scale, over restore.input_bin);
+    checked so that every capture keeps >= 8 network pixels a side."""
+    factor = capture_factor(spec, ckpt_cfg)
     smallest = min(min(a.shape) for a in images)
     if min(binned_shape((smallest, smallest), factor)) < 8:
-        raise ConfigError("restore.bin", spec.bin if spec.bin is not None else round(factor, 4),
+        raise ConfigError("restore.bin", spec.bin if spec.bin is not None else round(factor * spec.input_bin, 4),
                           f"leaves the smallest capture ({smallest} px a side) under 8 network pixels: at most "
-                          f"{smallest / 8:g}")
+                          f"{smallest * spec.input_bin / 8:g} sensor pixels per network pixel")
     return factor
 
 
@@ -130,7 +128,8 @@ def restore_any_size(model, generators, camera, images, files, factor: float, sp
     restored, facts = [], []
     for f, arr in zip(files, images):
         t0 = time.perf_counter()
-        geometry = capture_geometry(arr.shape, factor, camera.sensor.pixel_pitch_m, camera.optics.focal_extent_m)
+        pitch = camera.sensor.pixel_pitch_m * spec.input_bin  # the capture's pixel
+        geometry = capture_geometry(arr.shape, factor, pitch, camera.optics.focal_extent_m)
         tile = spec.tile_for(geometry)
         out = restore_capture(model, torch.from_numpy(arr), psf, camera.sensor, geometry, generators, tile,
                               _tile_progress(f.name))
@@ -181,9 +180,10 @@ def run(cfg, run_dir: Path, device: torch.device) -> float:
     fixed = None if model.any_size else sensor.image_size
     images = validate(files, fixed, sensor.saturation_dn, sensor.padded_size)
     factor = working_bin(spec, ckpt_cfg, images) if model.any_size else sensor.bin_factor
-    if spec.bin is not None and not model.any_size:
-        raise ConfigError("restore.bin", spec.bin, f"is for networks that take any size; this checkpoint's "
-                          f"({model.kind}) restores captures of {sensor.image_size} px only (leave restore.bin null)")
+    for key, value, default in (("restore.bin", spec.bin, None), ("restore.input_bin", spec.input_bin, 1.0)):
+        if value != default and not model.any_size:
+            raise ConfigError(key, value, f"is for networks that take any size; this checkpoint's ({model.kind}) "
+                              f"restores captures of {sensor.image_size} px only (leave {key} at its default)")
     sampling = {**camera_sampling_report(camera, ckpt_cfg, log), **measured_psf_report(camera, ckpt_cfg, log)}
     t0 = time.perf_counter()
     with torch.no_grad():
@@ -201,7 +201,8 @@ def run(cfg, run_dir: Path, device: torch.device) -> float:
         written.append(out.name)
     metrics = {**sampling, "inputs": [str(f) for f in files], "outputs": written, "seconds_per_image": seconds,
                "checkpoint": str(cfg.checkpoint), "device": str(device), "image_size": sensor.image_size,
-               "padded_size": sensor.padded_size, "bin": factor, "network_pitch_m": sensor.pixel_pitch_m * factor,
+               "padded_size": sensor.padded_size, "bin": factor * spec.input_bin, "input_bin": spec.input_bin,
+               "network_pitch_m": sensor.pixel_pitch_m * factor * spec.input_bin,
                "captures": facts}
     io.write_json(run_dir / "metrics.json", metrics)
     writer = open_writer(run_dir, tensorboard_enabled(cfg))

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Mapping
 
 import torch
 import torch.nn.functional as F
@@ -40,9 +40,12 @@ AUTO_TILE = 512
 class RestoreSpec(SpecMixin):
     """bin: sensor pixels per network pixel, a real number >= 1 (1: full resolution; null: the finest pixel scale
     the network was trained at, e.g. 2532 / 256 = 9.89 for data.scales up to 256, or its data.image_size's);
+    input_bin: sensor pixels per capture pixel (1: a raw capture; a capture already binned, e.g. one
+    +experiment=simulate wrote at data.image_size: sensor.resolution / data.image_size), at most bin;
     tile: the side of the tiles the decoder runs on (null: whole up to a canvas of 1536^2 pixels, else 512)."""
 
     bin: float | None = None
+    input_bin: float = 1.0
     tile: int | None = None
     prefix: str = field(default="restore", compare=False, repr=False)
 
@@ -50,6 +53,7 @@ class RestoreSpec(SpecMixin):
         p = self.prefix
         if self.bin is not None:
             object.__setattr__(self, "bin", float(require_number(f"{p}.bin", self.bin, lo=1, hi=1e4)))
+        object.__setattr__(self, "input_bin", float(require_number(f"{p}.input_bin", self.input_bin, lo=1, hi=1e4)))
         if self.tile is not None:
             object.__setattr__(self, "tile", require_number(f"{p}.tile", self.tile, lo=32, hi=65536, integer=True))
 
@@ -61,10 +65,22 @@ class RestoreSpec(SpecMixin):
         return AUTO_TILE if rows * cols > AUTO_TILE_PX else None
 
 
-def network_bin(sensor_resolution: int, image_size: int, scales) -> float:
-    """Sensor pixels per network pixel a checkpoint works at: its finest trained pixel scale (data.scales), else its
-    data.image_size (the whole sensor binned to it)."""
-    return sensor_resolution / (max(scales) if scales else image_size)
+def network_bin(config: Mapping) -> float:
+    """Sensor pixels per network pixel a checkpoint works at, from its configuration: its finest trained pixel scale
+    (data.scales), else its data.image_size (the whole sensor binned to it)."""
+    scales = config["data"].get("scales")
+    return int(config["sensor"]["resolution"]) / (max(scales) if scales else int(config["data"]["image_size"]))
+
+
+def capture_factor(spec: RestoreSpec, config: Mapping) -> float:
+    """Capture pixels per network pixel: (restore.bin or the checkpoint's network_bin) / restore.input_bin;
+    ConfigError when that asks for a network pixel finer than the capture's."""
+    factor = (spec.bin if spec.bin is not None else network_bin(config)) / spec.input_bin
+    if factor < 1 - 1e-9:
+        raise ConfigError(f"{spec.prefix}.input_bin", spec.input_bin, f"is coarser than the network pixel ("
+                          f"{spec.bin if spec.bin is not None else network_bin(config):.4g} sensor pixels): a capture "
+                          "is binned to the network's scale, never upsampled")
+    return max(factor, 1.0)
 
 
 def _area_weights(n_in: int, n_out: int, factor: float, dtype) -> torch.Tensor:

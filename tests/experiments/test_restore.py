@@ -97,5 +97,5 @@ def test_restore_bin_is_refused_when_it_leaves_too_few_pixels(tmp_path):
     images = [np.zeros((100, 60))]
     assert working_bin(RestoreSpec(bin=2.0), cfg, images) == 2.0
     with pytest.raises(ConfigError, match=r"^restore\.bin = 9\.8906: leaves the smallest capture \(60 px a side\) "
-                       r"under 8 network pixels: at most 7\.5$"):
+                       r"under 8 network pixels: at most 7\.5 sensor pixels per network pixel$"):
         working_bin(RestoreSpec(), cfg, images)

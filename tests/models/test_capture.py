@@ -53,8 +53,8 @@ def test_the_canvas_holds_the_kernel_and_centres_the_image():
 
 
 def test_the_network_scale_is_the_finest_trained_one():
-    assert network_bin(2532, 96, [96, 128, 256]) == 2532 / 256
-    assert network_bin(2532, 96, None) == 2532 / 96
+    assert network_bin({"sensor": {"resolution": 2532}, "data": {"image_size": 96, "scales": [96, 256]}}) == 2532 / 256
+    assert network_bin({"sensor": {"resolution": 2532}, "data": {"image_size": 96}}) == 2532 / 96
     assert RestoreSpec().tile_for(capture_geometry((2532, 2532), 1.0, DX, EXTENT)) == 512
     assert RestoreSpec().tile_for(capture_geometry((2532, 2532), 9.89, DX, EXTENT)) is None
     with pytest.raises(ConfigError, match=r"^restore\.bin = 0\.5: "):
