@@ -33,11 +33,18 @@ ALPHAS = ("0", "1e3", "1e5", "1e6")
 FLOORS = ("wiener", "sensor")
 
 
-def evaluate(checkpoint: str, mask: str, scenes: Path, threads: int, work: Path) -> dict:
-    run = work / mask.replace("/", "_")
+def evaluate(checkpoint: str, mask: str, scenes: Path | str, threads: int, work: Path,
+             size: tuple[int, int] | None = None) -> dict:
+    """``+experiment=evaluate`` of ``checkpoint`` through ``mask`` on the photographs of ``scenes`` (a folder, or
+    'heldout': the package's 16); ``size``: (data.image_size, data.padded_size) to evaluate at, for a network that
+    takes any size (None: the checkpoint's)."""
+    run = work / f"{mask.replace('/', '_')}_{size[0] if size else 'own'}_{Path(str(scenes)).name}"
+    source = ["evaluate.scenes=heldout"] if str(scenes) == "heldout" else [
+        "data.scenes=folder", f"data.folder={scenes}", "evaluate.scenes=data", "evaluate.split=all"]
+    sizes = [f"data.image_size={size[0]}", f"data.padded_size={size[1]}"] if size else []
     cmd = [sys.executable, "-m", "codesign", "+experiment=evaluate", f"checkpoint={checkpoint}",
-           *mask_overrides(mask), "data.scenes=folder", f"data.folder={scenes}", "evaluate.scenes=data",
-           "evaluate.split=all", "evaluate.max_scenes=100", f"evaluate.laser_strengths=[{','.join(ALPHAS)}]",
+           *mask_overrides(mask), *source, *sizes, "evaluate.max_scenes=100",
+           f"evaluate.laser_strengths=[{','.join(ALPHAS)}]",
            "evaluate.stages=[]", f"threads={threads}", "logging.tensorboard=false", f"hydra.run.dir={run}"]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
@@ -78,17 +85,20 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--checkpoint", required=True, help="a checkpoint path or 'pretrained'")
     p.add_argument("--masks", default="published,heldout")
-    p.add_argument("--scenes", type=Path, default=SCENES)
+    p.add_argument("--scenes", default=str(SCENES), help="a folder of photographs, or 'heldout' (the package's)")
+    p.add_argument("--size", type=int, nargs=2, metavar=("IMAGE", "PADDED"),
+                   help="data.image_size and data.padded_size to evaluate at (a network that takes any size)")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--out", type=Path, required=True)
     a = p.parse_args(argv)
-    if not a.scenes.is_dir():
-        p.error(f"--scenes: no folder {a.scenes}")
+    if a.scenes != "heldout" and not Path(a.scenes).is_dir():
+        p.error(f"--scenes: neither 'heldout' nor a folder: {a.scenes}")
+    scenes = a.scenes if a.scenes == "heldout" else Path(a.scenes).resolve()
     work = Path(tempfile.mkdtemp(prefix="codesign_pretrained_eval_"))
-    result = {"checkpoint": a.checkpoint, "scenes_folder": str(a.scenes), "date": time.strftime("%Y-%m-%d"),
-              "masks": {}}
+    result = {"checkpoint": a.checkpoint, "scenes_folder": str(scenes), "date": time.strftime("%Y-%m-%d"),
+              "size": a.size, "masks": {}}
     for mask in [m.strip() for m in a.masks.split(",") if m.strip()]:
-        result["masks"][mask] = evaluate(a.checkpoint, mask, a.scenes.resolve(), a.threads, work)
+        result["masks"][mask] = evaluate(a.checkpoint, mask, scenes, a.threads, work, tuple(a.size) if a.size else None)
         print(table({"masks": {mask: result["masks"][mask]}}), flush=True)
     a.out.parent.mkdir(parents=True, exist_ok=True)
     tmp = a.out.with_suffix(".tmp")

@@ -29,6 +29,8 @@ from codesign.camera import Camera
 from codesign.data.scenes import data_config
 from codesign.errors import ConfigError
 from codesign.optics.masks import FAMILIES, build_mask, load_record, published_mask_config
+from codesign.optics.lines import LaserLines
+from codesign.optics.materials import material_of
 from codesign.sensor.simulator import SensorSimulator
 from codesign.sensor.spec import SensorSpec, kernel_size
 from codesign.train.mask_draws import random_family_masks
@@ -155,9 +157,26 @@ def scaled_sensor(sensor: SensorSpec, optics, scale: int, key: str = "data.scale
     return sensor.replace(resolution=resolution, padded_size=padded)
 
 
+def laser_lines(cfg: DictConfig, base: Camera) -> list[tuple]:
+    """(name, sensor spec, LaserLines or None) of every laser line the pool's lasers shine at: each of
+    optics.laser_wavelengths_m when it is set (the lines the mask must protect against: the restorer meets their
+    PSFs too), else the run's own (sensor.wavelength_laser_m); name None for the run's own alone."""
+    system, sensor = base.system, base.simulator.sensor
+    wavelengths = system.spec.laser_wavelengths_m
+    if not wavelengths:
+        return [(None, sensor, base.laser_line)]
+    material = material_of(cfg)
+    out = []
+    for lam in wavelengths:
+        line = None if system.spec.is_design_wavelength(lam) else LaserLines(system, material.index, (lam,))
+        out.append((f"laser {lam * 1e9:.0f} nm", sensor.replace(wavelength_laser_m=lam), line))
+    return out
+
+
 def build_mask_pool(cfg: DictConfig, base: Camera, seed: int) -> MaskPool | None:
-    """The pool of ``data.masks`` (times ``data.scales``) around ``base`` (the run's camera), or None when data.masks
-    is null; every member built and its optics computed before training starts."""
+    """The pool of ``data.masks`` (times ``data.scales``, times the laser lines of optics.laser_wavelengths_m) around
+    ``base`` (the run's camera), or None when data.masks is null; every member built and its optics computed before
+    training starts."""
     settings = pool_settings(cfg)
     if settings is None:
         scales = data_config(cfg.data).scales
@@ -170,22 +189,27 @@ def build_mask_pool(cfg: DictConfig, base: Camera, seed: int) -> MaskPool | None
                           "(optics.psf_file) fixes the optics (leave one of them null)")
     system, sensor = base.system, base.simulator.sensor
     scales = settings["scales"] or (None,)
-    sensors = [sensor if s is None else scaled_sensor(sensor, system.spec, s) for s in scales]
+    lines = laser_lines(cfg, base)
     rng = np.random.default_rng(seed + 424243)
     names, cameras = [], []
     for item, kind in settings["masks"]:
         for name, mask in _member_masks(item, kind, cfg, system, settings["draws"], settings["jitter"], rng,
                                         settings["lsr"]):
-            for i, (scale, spec) in enumerate(zip(scales, sensors)):
-                sim = SensorSimulator(spec, base.simulator.optics, base.simulator.skip_unneeded)
-                cameras.append(Camera(system, mask, sim, base.device, None, base.laser_line, base.scene_spectrum))
-                names.append(name if scale is None else f"{name} @ {scale} px")
-                if i:  # the coarsest scale's sensor is the largest: its far PSF covers every finer one's
-                    cameras[-1].halo_donor = cameras[-1 - i]
+            for line_name, laser_sensor, line in lines:
+                donor = None
+                for scale in scales:
+                    spec = laser_sensor if scale is None else scaled_sensor(laser_sensor, system.spec, scale)
+                    sim = SensorSimulator(spec, base.simulator.optics, base.simulator.skip_unneeded)
+                    cam = Camera(system, mask, sim, base.device, None, line, base.scene_spectrum)
+                    cam.halo_donor = donor  # the coarsest scale's sensor is the largest: its far PSF covers the rest
+                    donor = donor or cam
+                    cameras.append(cam)
+                    names.append(" @ ".join(n for n in (name, None if scale is None else f"{scale} px", line_name)
+                                            if n))
     pool = MaskPool(names, cameras, settings["every"], seed)
     lsr = pool.lsr()
-    log.info("data.masks: %d cameras (%d listed masks, %d draws each at jitter %g; %s), a new one every %d steps; "
-             "sampled LSR %.3g to %.3g", len(cameras), len(settings["masks"]), settings["draws"], settings["jitter"],
-             "pixel scales " + ", ".join(map(str, scales)) if scales[0] is not None else "the run's pixel scale",
-             settings["every"], min(lsr), max(lsr))
+    log.info("data.masks: %d cameras (%d listed masks, %d draws each at jitter %g; %s; %d laser line(s)), a new "
+             "one every %d steps; sampled LSR %.3g to %.3g", len(cameras), len(settings["masks"]), settings["draws"],
+             settings["jitter"], "pixel scales " + ", ".join(map(str, scales)) if scales[0] is not None else
+             "the run's pixel scale", len(lines), settings["every"], min(lsr), max(lsr))
     return pool

@@ -185,3 +185,21 @@ def test_finer_scales_reuse_the_far_psf_of_the_coarsest_whose_sensor_is_largest(
     alone = own(scenes, params, 5)["sensor"]
     saturated = lambda x: float((x >= 0.999).float().mean())  # noqa: E731
     assert 0.2 < saturated(shared) < saturated(alone)  # measured 0.343 and 0.461
+
+
+def test_the_pool_shines_its_lasers_at_every_configured_line():
+    """optics.laser_wavelengths_m: each member also at each laser line, the laser's PSF the mask's surface seen
+    there (a line off the design wavelength has its own), the scene at the design wavelength as ever."""
+    from codesign.data.params import preset_params
+
+    cfg = tiny_cfg("data.masks=[published]", "optics.laser_wavelengths_m=[633e-9,532e-9]", "data.mask_every=1")
+    data = SimulatedData(cfg, CPU, 0)
+    pool = build_mask_pool(cfg, data.camera, 0)
+    assert pool.names == ["published @ laser 633 nm", "published @ laser 532 nm"]
+    red, green = pool.cameras
+    assert red.laser_line is None and green.laser_line is not None
+    assert green.sensor.wavelength_laser_m == 532e-9 and red.sensor.wavelength_laser_m == 633e-9
+    assert torch.equal(red.otf, green.otf)  # the restorer's OTF: the scene's, at the design wavelength
+    scenes = data.sampler.sample(None, red.scene_size)
+    params = preset_params("laser_1e6", scenes.shape[0])
+    assert not torch.equal(red(scenes, params, 3)["sensor"], green(scenes, params, 3)["sensor"])
