@@ -126,7 +126,7 @@ def main(argv=None) -> int:
         p.error(f"--times: no file {a.times}")
     work = Path(tempfile.mkdtemp(prefix="codesign_restorer_table_"))
     a.out.mkdir(parents=True, exist_ok=True)
-    record = {"machine": machine(), "args": {k: str(v) for k, v in vars(a).items()}, "work": str(work), "rows": {}}
+    record = {"machine": machine(), "args": {k: str(v) for k, v in vars(a).items()}, "rows": {}}
     for name in names:
         t0, rundir = time.perf_counter(), work / name
         cmd = train_command(name, a, rundir)

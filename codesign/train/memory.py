@@ -10,7 +10,8 @@ minutes of setup. The estimate:
                double-counts and what the backward frees as it goes)
   simulation   batch x the scene crop's FFT plane x SIMULATION_BYTES (scene, irradiance, spectra, noise fields)
   laser halo   the far PSF plane (when sensor.laser_halo): its FFT buffers and float64 integral image
-  mask pool    data.masks: every further pool member's kept halo (its float64 integral image) and PSF spectra
+  mask pool    data.masks: every further pool member's kept halo (its float64 integral image; shared between the
+               pixel scales of one mask) and PSF spectra
   base         the interpreter and its libraries
 
 Calibrated on the peak resident memory of real CPU baseline runs (preset cpu, 2 steps, /usr/bin/time -v):
@@ -72,9 +73,9 @@ def saved_bytes_per_sample(model, padded: int) -> int:
     return saved
 
 
-def training_estimate(model, camera, batch: int, ema: bool = False, pool_members: int = 0) -> dict:
+def training_estimate(model, camera, batch: int, ema: bool = False, pool: list | None = None) -> dict:
     """The estimate (bytes per part and total) of a training run of ``model`` on ``camera``'s images (and on those
-    of ``pool_members`` further masks, data.masks)."""
+    of the ``pool`` cameras, data.masks: each keeps its optics, and its own halo unless it shares another's)."""
     params = sum(p.numel() for m in model.generators() + model.critics() for p in m.parameters())
     parts = {
         "parameters": params * (5 if ema else 4) * 4,
@@ -82,16 +83,20 @@ def training_estimate(model, camera, batch: int, ema: bool = False, pool_members
         "simulation": batch * camera.simulator.coarse.n_fft ** 2 * SIMULATION_BYTES,
         "base": BASE_BYTES,
     }
+    pool = pool or []
     if camera.halo_on:  # sensor.laser_halo, and no measured PSF (which has no halo)
-        from codesign.optics.far_field import far_spec
-
-        far_n = far_spec(camera.system.spec, camera.sensor.side_m).focal_n
-        parts["laser_halo"] = far_n ** 2 * HALO_BYTES
-        if pool_members:
-            parts["mask_pool"] = pool_members * (far_n ** 2 * KEPT_HALO_BYTES + KEPT_OPTICS_BYTES)
-    elif pool_members:
-        parts["mask_pool"] = pool_members * KEPT_OPTICS_BYTES
+        parts["laser_halo"] = _far_n(camera) ** 2 * HALO_BYTES
+    if pool:
+        kept = sum(_far_n(c) ** 2 * KEPT_HALO_BYTES for c in pool if c.halo_on and c.halo_donor is None)
+        parts["mask_pool"] = kept + len(pool) * KEPT_OPTICS_BYTES
     return {**parts, "total": sum(parts.values())}
+
+
+def _far_n(camera) -> int:
+    """Samples per side of the far PSF plane of ``camera``'s halo (its sensor's reach)."""
+    from codesign.optics.far_field import far_spec
+
+    return far_spec(camera.system.spec, camera.sensor.side_m).focal_n
 
 
 def check_training_fits(model, data, spec, device, task: str) -> dict:
@@ -99,9 +104,8 @@ def check_training_fits(model, data, spec, device, task: str) -> dict:
     batch = data.sampler.batch_size
     share = -(-batch // data.dist.world)
     pool = getattr(data, "pool", None)
-    members = len(pool.cameras) if pool is not None else 0
-    return check_fits(training_estimate(model, data.camera, share, bool(spec.ema), members), device,
-                      f"+experiment={task} (batch {share} per process)", batch)
+    return check_fits(training_estimate(model, data.camera, share, bool(spec.ema), pool.cameras if pool else None),
+                      device, f"+experiment={task} (batch {share} per process)", batch)
 
 
 def check_fits(estimate: dict, device: torch.device, what: str, batch: int) -> dict:
