@@ -1,6 +1,6 @@
 """The benchmark suite: run time against error for every stage, one command.
 
-    python -m benchmarks                      # quick scale (~13 min on 2 CPU cores), all benchmarks
+    python -m benchmarks                      # quick scale (37 min on 2 CPU cores, docs/benchmarks.md), all
     python -m benchmarks --scale full         # full scale (longer sweeps, bigger grids, longer trainings)
     python -m benchmarks --only psf,mask      # a subset (docs/benchmarks.md is then left alone)
 
@@ -8,10 +8,13 @@ Each benchmark is a module benchmarks/bench_<name>.py (a name in BENCHMARKS) wit
 ``python -m benchmarks.bench_<name> [--scale S]`` runs one alone. Each prints its tables and writes JSON + PNG into
 benchmarks/results/<scale>/; a complete run rewrites docs/benchmarks.md (quick) or docs/benchmarks_full.md (full)
 from what it measured (machine, threads, torch version and date included). Shared helpers live in
-benchmarks/common.py; benchmarks/ holds no other modules but benchmarks/gpu.py, the GPU campaign (``python -m
-benchmarks.gpu``, docs/gpu.md), which is not part of the suite. The JSON files directly under benchmarks/results/
-are earlier measurements that docs/ quotes, kept as they were. Benchmarks are measurements, not tests: nothing here
-asserts a time.
+benchmarks/common.py. Beside the suite, not part of it: the GPU campaign (gpu.py, ``python -m benchmarks.gpu``,
+docs/gpu.md); the check of the docs' quoted figures against their results files (doc_figures.py); and the commands
+that made figures the docs still show: every restorer side by side (restorer_table.py), the shipped restorer's
+training and its evaluation mask by mask (pretrain.py, pretrained_eval.py), the main job over seeds
+(main_job_seeds.py) and the stored designs' certified peaks and laser lines (design_peaks.py). Studies that ran
+once left the folder; docs/results_log.md names the commit that has each. benchmarks/results/ keeps what the docs
+quote and what a benchmark compares against. Benchmarks are measurements, not tests: nothing here asserts a time.
 """
 from __future__ import annotations
 

@@ -68,7 +68,7 @@ def run_isolated(module: str, args: list[str], env: dict[str, str] | None = None
 
 # ---- the suite interface (python -m benchmarks) ------------------------------------------------------------
 # Each suite module (benchmarks/bench_*.py) defines ``run(scale: str, out: Path) -> Report``: it measures at
-# scale "quick" (the whole suite ~13 min on 2 CPU cores: 12.8 measured) or "full", prints its tables, writes JSON
+# scale "quick" (the whole suite 37 min on 2 CPU cores, docs/benchmarks.md) or "full", prints its tables, writes JSON
 # and PNGs into ``out`` (benchmarks/results/<scale>/) and returns what docs/benchmarks.md shows.
 SCALES = ("quick", "full")
 
@@ -297,16 +297,15 @@ def keep_weights(src: Path, dst: Path) -> dict:
     return {"checkpoint": dst.name, "checkpoint_mib": round(dst.stat().st_size / 2**20, 2)}
 
 
-# ---- studies over seeds (codesign_study.py, main_job_seeds.py) ----------------------------------------------
+# ---- the main job over seeds (main_job_seeds.py) -----------------------------------------------------------
 JOINT_GOAL_DB = 0.5  # issue 36: the joint stage at least +0.5 dB over its frozen arm at alpha_l = 1e6
 
 
 class Runner:
-    """Runs the study's commands one after another with their logs beside their outputs, skipping finished runs,
-    and prints a line per run with the time left (each kind of run, pretraining, fine-tuning or evaluation, at
-    its own mean duration so far)."""
+    """Runs a study's commands one after another with their logs beside their outputs, skipping finished runs,
+    and prints a line per run with the time left (each kind of run at its own mean duration so far)."""
 
-    def __init__(self, counts: dict[str, int], name: str = "codesign_study"):
+    def __init__(self, counts: dict[str, int], name: str = "main_job_seeds"):
         self.name = name  # the study's name in an error
         self.left = dict(counts)
         self.total, self.done = sum(counts.values()), 0

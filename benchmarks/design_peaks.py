@@ -1,6 +1,6 @@
 """Re-measure the stored designs (benchmarks/results/full/design/*/best_mask.json) where issue 37 asks: at the
 certified continuous peak, and at the common laser lines as the plate would be made. A study of stored records, not
-a timing (as codesign_study.py and early_steps.py run experiments).
+a timing.
 
     python -m benchmarks.design_peaks continuous [NAME ...]   # design_peaks: continuous_lsr.json
     python -m benchmarks.design_peaks lines [NAME ...]          # wavelength_lsr.json (all stored designs)

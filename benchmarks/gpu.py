@@ -76,6 +76,16 @@ PLANS = {
 }
 
 
+def portable(text: str, work: Path, out: Path) -> str:
+    """``text`` (a recorded command, a folder) without this machine's paths: the campaign's temporary folder as
+    <tmp>, an --out outside the checkout as <out>, the checkout's paths relative to it (tests/test_repository.py
+    refuses machine paths in committed files)."""
+    subs = [(str(work), "<tmp>")] + ([] if out.resolve().is_relative_to(REPO) else [(str(out), "<out>")])
+    for path, name in subs + [(f"{REPO}/", ""), (str(REPO), "."), (f"{REPO.parent}/", "../")]:
+        text = text.replace(path, name)
+    return text
+
+
 class Budget:
     """Wall-clock budget of the campaign: ``left()`` seconds remain; steps take shares of the whole."""
 
@@ -313,7 +323,7 @@ def step_train(p: dict, dev: torch.device, work: Path, out: Path, budget: float)
     metrics = json.loads((run / "metrics.json").read_text()) if (run / "metrics.json").is_file() else {}
     keep = ("variant", "size", "parameters_generators", "parameters_critics", "steps", "seconds", "image_size",
             "padded_size", "skipped_updates")
-    res = {"exit": rc, "wall_seconds": sec, "command": "python -m " + " ".join(cmd[2:]),
+    res = {"exit": rc, "wall_seconds": sec, "command": portable("python -m " + " ".join(cmd[2:]), work, out),
            **{k: metrics[k] for k in keep if k in metrics}}
     if (run / "checkpoint.pt").is_file():
         res.update(keep_weights(run / "checkpoint.pt", out / "checkpoint.pt"))
@@ -336,9 +346,9 @@ def step_evaluate(p: dict, dev: torch.device, checkpoint: str, scenes: Path | No
     if panel.is_file():
         shutil.copyfile(panel, out / "restorations_1e6.png")
     print(f"  evaluation: exit {rc}, {sec:.0f} s", flush=True)
-    return {"exit": rc, "seconds": sec, "scenes": str(scenes) if scenes else "built-in test split",
+    return {"exit": rc, "seconds": sec, "scenes": portable(str(scenes), work, out) if scenes else "built-in test split",
             "evaluation_scenes": m.get("evaluation_scenes"), "scores": scores,
-            "command": "python -m " + " ".join(cmd[2:])}
+            "command": portable("python -m " + " ".join(cmd[2:]), work, out)}
 
 
 def inference_figure(rows: list[dict], path: Path) -> Path | None:
@@ -592,8 +602,10 @@ setuptools (the build backend of the editable install). On the node, from the ch
 
 Everything it measures lands in benchmarks/results/gpu/ (gpu.json, tests.log, train.log, evaluate.log, the
 figures, and checkpoint.pt: the trained network's weights and config, 10.4 MiB at the cpu width) and this page;
-gpu.json is written after every step, so a campaign cut short keeps what it measured. `python -m benchmarks.gpu
---dry-run --out DIR` rehearses every step at tiny sizes on a CPU (tests/test_gpu_campaign.py runs it).
+gpu.json is written after every step, so a campaign cut short keeps what it measured. The repository keeps gpu.json,
+the figures, notes.md and profile_sgan_f.txt, not the logs; gpu.json records paths relative to the checkout.
+`python -m benchmarks.gpu --dry-run --out DIR` rehearses every step at tiny sizes on a CPU (tests/test_gpu_campaign.py
+runs it).
 
 Where the node's results come back as files (a device tool that runs one command on a copy of the checkout):
 `--out DIR` writes the 8 files into DIR; copied into benchmarks/results/gpu/ here, `python -m benchmarks.gpu

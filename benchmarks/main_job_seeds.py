@@ -10,8 +10,8 @@ Each seed runs in OUT/seed<k> (the main job's own folder: a killed seed continue
 its metrics.json written, is not run again). OUT/seeds.json and OUT/seeds.md: per seed the LSR against the
 published mask, the total gain and the joint stage's gain (PSNR after the gain/offset match, mean over the held-out
 photographs +- the 95 % interval of the per-scene differences); over the seeds their mean and standard deviation,
-and the joint stage's verdict read as the co-design study reads its arms (paired_gain in benchmarks/common.py: the
-seed spread is the larger standard deviation over seeds of the two systems compared).
+and the joint stage's verdict (paired_gain in benchmarks/common.py: the seed spread is the larger standard deviation
+over seeds of the two systems compared).
 """
 from __future__ import annotations
 

@@ -30,19 +30,16 @@ def test_every_registered_benchmark_is_a_module_with_a_run_function(name):
 
 
 def test_benchmarks_holds_the_suite_and_its_helpers_only():
-    """No stand-alone studies beside the suite: __main__, common, one bench_<name>.py per registry entry, the GPU
-    campaign (gpu.py), which runs parts of entries on a GPU node as __main__ runs them all, and the studies that
-    run experiments, not timings: the co-design study (codesign_study.py), the main job over seeds
-    (main_job_seeds.py), the network's first training steps (early_steps.py), the re-measurement of the stored
-    designs' peaks (design_peaks.py) and the mask gradient's signal against its batch noise (mask_gradient.py), the
-    shipped restorer's training and its evaluation mask by mask (pretrain.py, pretrained_eval.py), every restorer
-    side by side (restorer_table.py), the bound on knowing the scene's level (level_bound.py); and two tools of the
-    results: the check of the docs' quoted figures against them (doc_figures.py) and the record of how the held-out
-    photographs were made (heldout_scenes.py)."""
+    """No one-off studies beside the suite (they leave; docs/results_log.md names the commit that has each):
+    __main__, common, one bench_<name>.py per registry entry, the GPU campaign (gpu.py), which runs parts of entries
+    on a GPU node as __main__ runs them all, the check of the docs' quoted figures against their results files
+    (doc_figures.py), and the commands that made figures the docs still show: every restorer side by side
+    (restorer_table.py), the shipped restorer's training and its evaluation mask by mask (pretrain.py,
+    pretrained_eval.py), the main job over seeds (main_job_seeds.py) and the stored designs' certified peaks
+    (design_peaks.py)."""
     modules = {p.name for p in BENCH_DIR.glob("*.py")}
-    allowed = {"__init__.py", "__main__.py", "common.py", "gpu.py", "codesign_study.py", "early_steps.py",
-               "design_peaks.py", "doc_figures.py", "heldout_scenes.py", "mask_gradient.py", "pretrain.py",
-               "pretrained_eval.py", "restorer_table.py", "level_bound.py", "main_job_seeds.py"} | \
+    allowed = {"__init__.py", "__main__.py", "common.py", "gpu.py", "doc_figures.py", "restorer_table.py",
+               "pretrain.py", "pretrained_eval.py", "main_job_seeds.py", "design_peaks.py"} | \
         {f"bench_{n}.py" for n in BENCHMARKS}
     assert modules <= allowed, f"not part of the suite: {sorted(modules - allowed)}"
     assert not [p for p in BENCH_DIR.iterdir() if p.is_dir() and p.name not in ("results", "__pycache__")]
@@ -143,18 +140,6 @@ def test_peers_worker_refuses_thread_pools_set_after_python_started(monkeypatch)
     with pytest.raises(SystemExit, match=r"^bench_peers worker --threads 1: the thread pools must be set before "
                                          r"Python starts \(MKL_NUM_THREADS=None\); run it through measure\(\)$"):
         bench_peers.worker(["--threads", "1", "--samples", "384"])
-
-
-def test_early_steps_refuses_unknown_conditions_before_any_work(capsys):
-    from benchmarks import early_steps
-
-    with pytest.raises(SystemExit):
-        early_steps.main(["--presets", "laser_0,laser_7"])
-    err = capsys.readouterr().err
-    assert "--presets 'laser_0,laser_7': allowed figure, E1, E2, M, H1, H2, laser_0, laser_1e1" in err
-    # each condition keeps its noise stream whichever others are scored (0 and 1: the default pair, as before)
-    assert [early_steps.noise_offset(p) for p in ("laser_0", "laser_1e6")] == [0, 1]
-    assert len({early_steps.noise_offset(p) for p in ("laser_0", "laser_1e3", "laser_1e5", "laser_1e6", "H1")}) == 5
 
 
 def test_the_restorer_table_refuses_unknown_restorers_and_renders_gains_and_step_times(tmp_path, capsys):

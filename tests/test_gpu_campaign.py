@@ -81,6 +81,20 @@ def test_a_short_compiled_call_adds_cells_and_keeps_the_earlier_ones():
     again = gpu.merge_compiled(merged, [cell("float32+compile", error="OutOfMemoryError: CUDA")])
     assert again == [old[0], cell("float32+compile", error="OutOfMemoryError: CUDA")]
 
+def test_recorded_commands_name_no_path_of_the_machine(tmp_path):
+    """gpu.json goes into the repository: its commands and folders name the checkout's paths relative to it, the
+    campaign's temporary folder as <tmp> and an --out outside the checkout as <out> (tests/test_repository.py)."""
+    work, out = tmp_path / "codesign_gpu_x", tmp_path / "out"
+    cmd = (f"python -m codesign +experiment=evaluate checkpoint={out}/checkpoint.pt data.folder={REPO.parent}/shared/"
+           f"data/scenes hydra.run.dir={work}/evaluate init={REPO}/benchmarks/results/gpu/checkpoint.pt")
+    assert gpu.portable(cmd, work, out) == ("python -m codesign +experiment=evaluate checkpoint=<out>/checkpoint.pt "
+                                            "data.folder=../shared/data/scenes hydra.run.dir=<tmp>/evaluate "
+                                            "init=benchmarks/results/gpu/checkpoint.pt")
+    inside = REPO / "benchmarks" / "results" / "gpu"
+    assert gpu.portable(f"checkpoint={inside}/checkpoint.pt", work, inside) == \
+        "checkpoint=benchmarks/results/gpu/checkpoint.pt"
+
+
 @pytest.mark.parametrize("args,message", [
     (["--dry-run"], "--dry-run needs --out DIR (its tiny-size figures must not replace the GPU results)"),
     (["--dry-run", "--out", "X", "--only", "tests,fly"], "--only 'tests,fly': allowed steps: tests, speed, compiled, "
