@@ -12,6 +12,7 @@ from codesign.config.store import register, spec_node
 from codesign.errors import ConfigError, require_list, require_number
 from codesign.io.tensorboard import log_mask
 from codesign.optics import OpticalSystem, RadialMTF, build_mask, metrics
+from codesign.optics.lines import smooth_lsr
 from codesign.optics.masks import published_mask_config
 from codesign.optics.metrics import require_band_frequencies
 from codesign.optics.psf import SUBSAMPLE_SHIFTS
@@ -70,10 +71,7 @@ def mask_figures_of_merit(system, mask, radial: RadialMTF, band: tuple[float, fl
     """
     phase = mask.phase()
     psf = system.psf(phase, mask.plate_cell_m)
-    h0 = system.uncoded_peak
-    samples = system.lsr_samples(phase, psf, grids, mask.plate_cell_m)
-    sampled = float(metrics.lsr_sampled(samples, h0))
-    smooth = float(metrics.lsr_smooth(samples, h0, p))
+    smooth, sampled = (float(v) for v in smooth_lsr(system, phase, psf, p, grids, mask.plate_cell_m))
     mtf2d = metrics.mtf(psf)
     rad = radial(mtf2d)
     mean, mn = radial.summary(rad, band)

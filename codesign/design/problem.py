@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from codesign.optics import metrics
+from codesign.optics.lines import smooth_lsr
 
 
 @dataclass
@@ -113,12 +114,8 @@ class DesignProblem:
         phase = self.mask.phase()
         psf = self.system.psf(phase, self.mask.plate_cell_m)
         h = psf.to(torch.float64)
-        if self.lines is None:
-            samples = self.system.lsr_samples(phase, psf, self.lsr_grids, self.mask.plate_cell_m).to(torch.float64)
-            smooth, sampled = metrics.lsr_smooth(samples, self.system.uncoded_peak, p), \
-                samples.detach().max() / self.system.uncoded_peak
-        else:
-            smooth, sampled = self.lines.smooth_lsr(phase, p, self.lsr_grids, self.mask.plate_cell_m, psf)
+        smooth, sampled = smooth_lsr(self.system, phase, psf, p, self.lsr_grids, self.mask.plate_cell_m, self.lines,
+                                     torch.float64)
         out = {"lsr_smooth": smooth, "lsr_sampled": sampled,
                "mtf_mean": self.radial.summary(self.radial(metrics.mtf(h)), self.band)[0], "energy": h.sum()}
         if self.restorability is not None:

@@ -29,6 +29,7 @@ from codesign.fab.laser_lines import lines_summary, log_lines, run_lines, surfac
 from codesign.io import files as io, plots
 from codesign.io.tensorboard import open_writer, tensorboard_enabled
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask, circular_mtf, metrics
+from codesign.optics.lines import smooth_lsr
 from codesign.experiments.protocol import Experiment
 from codesign.signals import Interrupted
 
@@ -62,8 +63,8 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     monitor = MaskMonitor(system, published, ms.mtf_band, ms.lsr_p, ms.lsr_grids)
     base, base_arr = monitor.measure(published, refine=True)
     if s.lsr_over == "wavelengths":  # a ceiling "published" is the published mask's worst sampled line
-        _, worst_sampled = lines.smooth_lsr(published.phase().detach(), ms.lsr_p, ms.lsr_grids,
-                                            published.plate_cell_m)
+        _, worst_sampled = smooth_lsr(system, published.phase().detach(), None, ms.lsr_p, ms.lsr_grids,
+                                      published.plate_cell_m, lines)
         base["lsr_sampled"] = float(worst_sampled)
     limit = MTFLimit(system, ms.mtf_band)
     needs_restorability = s.objective == "restorability" or s.restorability_floor is not None

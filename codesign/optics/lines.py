@@ -105,12 +105,6 @@ class LaserLines:
             out.append(system.lsr_samples(ph, psf, grids, cell_m).to(torch.float64) / system.uncoded_peak)
         return torch.cat(out, dim=-2)
 
-    def smooth_lsr(self, phase: torch.Tensor, p: float, grids: int, cell_m: float | None = None,
-                   design_psf: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """(smooth worst-case LSR over the lines, the worst sampled LSR without gradient)."""
-        r = self.ratio_samples(phase, grids, cell_m, design_psf)
-        return metrics.lsr_smooth(r, 1.0, p), r.detach().max()
-
     @torch.no_grad()
     def table(self, phase: torch.Tensor, cell_m: float | None = None, alpha_l: float = SATURATION_ALPHA_L,
               rel_tol: float = 3e-3) -> list[dict]:
@@ -132,6 +126,33 @@ class LaserLines:
                          "window_energy": float(psf.sum()),
                          "saturated_px": int((psf * alpha_l > system.uncoded_peak).sum())})
         return rows
+
+
+def smooth_lsr(system: OpticalSystem, phase: torch.Tensor | None, psf: torch.Tensor | None, p: float, grids: int = 1,
+               cell_m: float | None = None, lines: LaserLines | None = None, dtype: torch.dtype | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The smooth LSR ||h||_p / h0(0) of a mask, and its sampled LSR max(h) / h0(0) without gradient: the one
+    function the mask search, the joint training's constraint and the figures of merit take it from.
+
+    Taken over the window's samples of ``psf`` (m, m) and, given the ``phase`` (n, n) [rad] it came from, the focal
+    grids offset by half a sample (``grids``: 1, 2 or 4; ``OpticalSystem.lsr_samples``); with ``lines`` (a
+    LaserLines), over every line's samples, each over its own uncoded peak, in float64: the smooth worst case over
+    the lines (``psf``, when given, is the design wavelength's). ``phase`` None: ``psf``'s samples alone (no
+    sub-grids, no lines). ``psf`` None: computed from ``phase``. ``cell_m``: the mask's plate cell [m]
+    (``OpticalSystem.psf``); ``dtype``: the samples cast to it first (None: as computed). Both values are
+    dimensionless tensors, (...) for a psf (..., m, m).
+    """
+    if lines is not None and phase is not None:
+        r = lines.ratio_samples(phase, grids, cell_m, psf)
+        return metrics.lsr_smooth(r, 1.0, p), r.detach().max()
+    if phase is None:
+        samples = psf
+    else:
+        samples = system.lsr_samples(phase, system.psf(phase, cell_m) if psf is None else psf, grids, cell_m)
+    if dtype is not None:
+        samples = samples.to(dtype)
+    h0 = system.uncoded_peak
+    return metrics.lsr_smooth(samples, h0, p), metrics.lsr_sampled(samples.detach(), h0)
 
 
 def worst(rows: list[dict]) -> dict:

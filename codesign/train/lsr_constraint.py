@@ -20,7 +20,7 @@ import torch
 
 from codesign.config.store import register, spec_node
 from codesign.errors import ConfigError, require_choice, require_number
-from codesign.optics import metrics
+from codesign.optics.lines import smooth_lsr
 from codesign.spec_base import SpecMixin
 
 SCHEDULES = ("constant", "trainer", "cosine")
@@ -168,10 +168,7 @@ class LSRConstraint:
                    ) -> torch.Tensor:
         """The smooth LSR of the window PSF ``psf`` and, given the ``phase`` it came from, of the grids offset
         between its samples (``grids``); with ``lines``, the smooth worst case over them."""
-        if self.lines is not None and phase is not None:
-            return self.lines.smooth_lsr(phase, self.p, self.grids, cell_m, psf)[0]
-        samples = psf if phase is None else self.system.lsr_samples(phase, psf, self.grids, cell_m)
-        return metrics.lsr_smooth(samples, self.system.uncoded_peak, self.p)
+        return smooth_lsr(self.system, phase, psf, self.p, self.grids, cell_m, self.lines)[0]
 
     @torch.no_grad()
     def measure(self, mask) -> float:

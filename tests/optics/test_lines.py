@@ -12,8 +12,8 @@ import pytest
 import torch
 
 from codesign.errors import ConfigError
-from codesign.optics import OpticalSystem, OpticsSpec
-from codesign.optics.lines import LaserLines, curve_wavelengths, phase_scale, surface_phase, worst
+from codesign.optics import OpticalSystem, OpticsSpec, metrics
+from codesign.optics.lines import LaserLines, curve_wavelengths, phase_scale, smooth_lsr, surface_phase, worst
 from codesign.optics.materials import Material
 
 SCALE = 1.2  # the line 633 nm / 1.2 = 527.5 nm in a material of constant index: the phase is 1.2x the design's
@@ -82,12 +82,28 @@ def test_design_line_is_the_design_phase(system):
 def test_smooth_worst_case_bounds_every_line(system):
     phase = (11.0 * (system.grid.rho / (system.spec.aperture_diameter_m / 2)) ** 2).requires_grad_(True)
     lines = LaserLines(system, Material().index)
-    smooth, sampled = lines.smooth_lsr(phase, 16.0, 2)
+    smooth, sampled = smooth_lsr(system, phase, None, 16.0, 2, lines=lines)
     per_line = [float(s.psf(lines.phase(phase, i)).max()) / s.uncoded_peak for i, s in enumerate(lines.systems)]
     assert float(sampled) >= max(per_line) * (1 - 1e-12)  # the half-sample grid can only add samples
     assert float(smooth) >= float(sampled)
     smooth.backward()
     assert phase.grad is not None and torch.isfinite(phase.grad).all() and phase.grad.abs().sum() > 0
+
+
+def test_one_smooth_lsr_over_samples_sub_grids_and_lines(system):
+    """smooth_lsr: the samples alone without a phase, the half-sample grids with one, the worst line with lines;
+    the sampled LSR is the samples' maximum over h0(0) in each case."""
+    phase = 11.0 * (system.grid.rho / (system.spec.aperture_diameter_m / 2)) ** 2
+    psf, h0 = system.psf(phase), system.uncoded_peak
+    smooth, sampled = smooth_lsr(system, None, psf, 16.0, 2)
+    assert float(smooth) == float(metrics.lsr_smooth(psf, h0, 16.0)) and float(sampled) == float(psf.max()) / h0
+    samples = system.lsr_samples(phase, psf, 2)
+    smooth, sampled = smooth_lsr(system, phase, None, 16.0, 2)
+    assert float(smooth) == float(metrics.lsr_smooth(samples, h0, 16.0)) and float(sampled) == float(samples.max()) / h0
+    lines = LaserLines(system, Material().index)
+    ratios = lines.ratio_samples(phase, 2)
+    smooth, sampled = smooth_lsr(system, phase, psf, 16.0, 2, lines=lines)
+    assert float(smooth) == float(metrics.lsr_smooth(ratios, 1.0, 16.0)) and float(sampled) == float(ratios.max())
 
 
 def test_line_settings_are_checked():
