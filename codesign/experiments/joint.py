@@ -19,7 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 from codesign.config.runtime import check_seed, logging_spec, to_container
 from codesign.design.check import camera_sampling_report, report_sampling, sampling_of, verify_design
 from codesign.design.limits import MTFLimit
-from codesign.train.lsr_constraint import CodesignSpec, LSRConstraint, published_fraction
+from codesign.train.lsr_constraint import CodesignSpec, LSRConstraint
 from codesign.errors import ConfigError
 from codesign.design.merit import MaskMonitor, metrics_spec, published_reference
 from codesign.fab.laser_lines import lines_summary, log_lines, run_lines
@@ -287,19 +287,14 @@ def _network(cfg, init: InitSpec, seed: int) -> tuple:
 
 
 def _lsr_max(cs: CodesignSpec, monitor: MaskMonitor, system, mask, reference, lines=None) -> tuple[float, str]:
-    """The smooth-LSR ceiling (codesign.lsr_max) and where it comes from (``lines``: the worst of these lines)."""
-    worst = "" if lines is None else " (worst laser line)"
-    if cs.lsr_max == "start":
-        return LSRConstraint(cs, system, 1.0, monitor.p, monitor.grids, lines).measure(mask), \
-            f"the start mask's smooth LSR{worst}"
-    share = published_fraction(cs.lsr_max) if cs.lsr_max is not None else 1.0
-    if share is None:
-        return float(cs.lsr_max), "given"
-    part = "" if share == 1 else f"1/{1 / share:g} of "
-    if lines is not None:
-        return share * LSRConstraint(cs, system, 1.0, monitor.p, monitor.grids, lines).measure(reference), \
-            f"the {part}published mask's smooth LSR{worst}"
-    return share * monitor.reference[0]["lsr_smooth"], f"the {part}published mask's smooth LSR"
+    """The smooth-LSR ceiling (codesign.lsr_max: CodesignSpec.lsr_max_value) and where it comes from (``lines``: the
+    worst of these lines)."""
+    def measured(which):
+        return lambda: LSRConstraint(cs, system, 1.0, monitor.p, monitor.grids, lines).measure(which)
+
+    published = measured(reference) if lines is not None else lambda: monitor.reference[0]["lsr_smooth"]
+    return cs.lsr_max_value(published, measured(mask),
+                            "smooth LSR" + ("" if lines is None else " (worst laser line)"))
 
 
 # codesign.lsr_max this many times below the start mask's smooth LSR draws a warning: the constraint then

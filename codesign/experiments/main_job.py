@@ -43,7 +43,7 @@ from codesign.optics.masks import FAMILIES, published_mask_config
 from codesign.train import distributed
 from codesign.train.evaluation import eval_settings
 from codesign.train.data import SimulatedData
-from codesign.train.lsr_constraint import CodesignSpec, published_fraction
+from codesign.train.lsr_constraint import CodesignSpec
 from codesign.train.memory import check_training_fits
 from codesign.train.model_setup import build_model
 from codesign.train.protocol_summary import protocol_summary, summary_record, systems_figure
@@ -68,21 +68,6 @@ def save_images(path: Path, images: dict, method: str) -> Path:
     keep = {"truth": "truth", "input": "input", "wiener": "wiener", method: "network"}
     out = {name: images[key][:SHOWN_SCENES].detach().cpu().clone() for key, name in keep.items() if key in images}
     return io.atomic_write_bytes(path, lambda f: torch.save(out, f))
-
-
-def lsr_ceiling(cs: CodesignSpec, published_peak: float, designing: bool) -> tuple[float, str]:
-    """codesign.lsr_max of the codesign protocol as a certified-peak ceiling, and where it comes from."""
-    if cs.lsr_max is None:
-        share = DEFAULT_SHARE if designing else 1.0
-    elif cs.lsr_max == "start":
-        share = 1.0
-    else:
-        share = published_fraction(cs.lsr_max)
-    if share is None:
-        return float(cs.lsr_max), "given"
-    what = "the published mask's certified peak" if share == 1 else f"1/{1 / share:g} of the published mask's " \
-                                                                     "certified peak"
-    return share * published_peak, what
 
 
 def _stage_cfg(cfg: DictConfig, mask: dict, **changes) -> DictConfig:
@@ -153,7 +138,8 @@ def run_protocol(cfg: DictConfig, run_dir: Path, device: torch.device, train) ->
             published_peak = lines_summary(lines, phase, published.plate_cell_m)["published"]["lsr_worst"]
         else:
             published_peak = system.continuous_lsr(published.phase(), published.plate_cell_m)
-    lsr_max, lsr_max_from = lsr_ceiling(cs, published_peak, designing)
+    lsr_max, lsr_max_from = cs.lsr_max_value(lambda: published_peak, measure="certified peak",
+                                             default_share=DEFAULT_SHARE if designing else 1.0)
     stages = {s: run_dir / s for s in STAGES}
     same = not designing and mask_cfg == published_cfg  # the published system is then the designed one
     pub_steps = (0, 0) if same else (spec.steps, cs.finetune_steps)

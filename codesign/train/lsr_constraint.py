@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Callable
 
 import torch
 
@@ -119,7 +120,27 @@ class CodesignSpec(SpecMixin):
             if not isinstance(getattr(self, key), bool):
                 raise ConfigError(f"{p}.{key}", getattr(self, key), "must be true or false")
 
+    def lsr_max_value(self, published: Callable[[], float], start: Callable[[], float] | None = None,
+                      measure: str = "smooth LSR", default_share: float = 1.0) -> tuple[float, str]:
+        """codesign.lsr_max as a number, and where it comes from (what metrics.json records as lsr_max_from): the
+        one place the setting becomes a ceiling, for either protocol.
+
+        A number is itself ("given"); published is ``published()``, published/K its K-th part, null
+        ``default_share`` of it; start is ``start()``, the start mask's own (None: the published mask's, as
+        published). ``published``, ``start``: the LSR (dimensionless) of each mask, measured only when asked;
+        ``measure``: what they measure, for the label (e.g. "certified peak", "smooth LSR (worst laser line)").
+        """
+        if self.lsr_max == "start" and start is not None:
+            return start(), f"the start mask's {measure}"
+        share = default_share if self.lsr_max is None else 1.0 if self.lsr_max == "start" else \
+            published_fraction(self.lsr_max)
+        if share is None:
+            return float(self.lsr_max), "given"
+        part = "" if share == 1 else f"1/{1 / share:g} of "
+        return share * published(), f"{part}the published mask's {measure}"
+
     def warmup_steps(self, steps: int) -> int:
+        """The steps with the mask frozen at the start of ``steps`` (warmup_fraction of them, rounded)."""
         return int(round(self.warmup_fraction * steps))
 
     def mask_lr_factor(self, step: int, steps: int, network_factor) -> float:

@@ -139,6 +139,24 @@ def test_lsr_max_as_a_share_of_the_published_mask():
         [None] * 5
 
 
+def test_lsr_max_becomes_a_number_in_one_place():
+    """CodesignSpec.lsr_max_value: what each protocol's ceiling is and what metrics.json says it came from; only the
+    mask the setting names is measured."""
+    def never():
+        raise AssertionError("measured a mask the setting does not name")
+
+    peak = lambda: 2e-3  # noqa: E731
+    value = lambda v, **kw: CodesignSpec(lsr_max=v).lsr_max_value(**kw)  # noqa: E731
+    assert value(0.5, published=never, start=never) == (0.5, "given")
+    assert value("published", published=peak) == (2e-3, "the published mask's smooth LSR")
+    assert value("published/8", published=peak, measure="certified peak") == \
+        (0.125 * 2e-3, "1/8 of the published mask's certified peak")
+    assert value(None, published=peak, measure="certified peak", default_share=0.25) == \
+        (0.25 * 2e-3, "1/4 of the published mask's certified peak")
+    assert value("start", published=never, start=lambda: 3e-3) == (3e-3, "the start mask's smooth LSR")
+    assert value("start", published=peak, measure="certified peak") == (2e-3, "the published mask's certified peak")
+
+
 def test_penalty_is_zero_inside_the_margin_and_quadratic_beyond(tmp_path):
     tr = joint_trainer(tmp_path)
     c = tr.codesign.constraint
