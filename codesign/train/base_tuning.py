@@ -16,7 +16,7 @@ import math
 import torch
 
 from codesign.camera import field_of_view as centre
-from codesign.train.evaluation import NSR_GRID, affine_match
+from codesign.train.evaluation import NSR_GRID, tune_nsr
 
 log = logging.getLogger("codesign.train")
 
@@ -28,12 +28,13 @@ def tune_base_nsr(model, data, size: int) -> float:
     param = model.g2.log_nsr
     batch = data.preset_batch(data.validation_scenes(size), "laser_0", seed=data.validation_noise_seed)
     target = centre(batch["scene"], data.image_size)
-    errors = []
-    for nsr in NSR_GRID:
-        param.fill_(math.log(nsr))
-        out = centre(model.restore(batch["sensor"], data.otf)["restored"], data.image_size)
-        errors.append(float((affine_match(out, target) - target).square().mean()))
-    best = NSR_GRID[min(range(len(errors)), key=errors.__getitem__)]
+
+    def outputs():  # the network's output at each nsr of the grid, the base's parameter set to it first
+        for nsr in NSR_GRID:
+            param.fill_(math.log(nsr))
+            yield model.restore(batch["sensor"], data.otf)["restored"]
+
+    best = tune_nsr(outputs(), target, data.image_size)
     param.fill_(math.log(best))
     log.info("the restorer's Wiener base tuned to this mask on %d training crops without a laser: nsr %.3g (from "
              "%.3g)", target.shape[0], best, model.spec.g2_base_nsr)

@@ -21,6 +21,7 @@ import io as _io
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Iterable
 
 import numpy as np
 import torch
@@ -80,6 +81,21 @@ def affine_match(x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     var = (x - xm).square().mean(dim=(-2, -1), keepdim=True)
     a = torch.where(var > 0, cov / var.clamp_min(1e-30), torch.zeros_like(var))
     return (a * (x - xm) + tm).clamp(0, 1)
+
+
+def tune_nsr(outputs: Iterable[torch.Tensor], target: torch.Tensor, size: int) -> float:
+    """The noise-to-signal ratio of NSR_GRID whose Wiener output restores ``target`` best: the one Wiener nsr tuning
+    of the evaluation's baselines and of a restorer's Wiener base (codesign/train/base_tuning.py).
+
+    ``outputs``: one restoration per nsr of NSR_GRID, in its order, (B, 1, H, W) each (an iterable: each may be
+    computed when asked); ``target``: the scenes' central ``size`` x ``size`` pixels, (B, 1, size, size). Tuned for
+    structure (per-image gain/offset matched): a global gain fitted across images of unknown alpha_b shrinks every
+    candidate towards the mean and would make the choice arbitrary. The criterion is the images' pooled squared
+    error, not their mean PSNR: a flat crop (sky, a black border) is matched almost exactly by every candidate, and
+    its near-unbounded PSNR would weigh most.
+    """
+    errors = [float((affine_match(centre(x, size), target) - target).square().mean()) for x in outputs]
+    return NSR_GRID[int(np.argmin(errors))]
 
 
 class Evaluator:
@@ -150,15 +166,8 @@ class Evaluator:
         inputs = {"wiener": replicate_pad(net["s"], self.n)}
         if "i_b" in net:
             inputs["g1_wiener"] = net["i_b"]
-        best_nsr = {}
-        for name, y in inputs.items():
-            # tuned for structure (per-image gain/offset matched): a global gain fitted across images of
-            # unknown alpha_b shrinks every candidate towards the mean and would make the choice arbitrary.
-            # The criterion is the images' pooled squared error, not their mean PSNR: a flat crop (sky, a black
-            # border) is matched almost exactly by every candidate, and its near-unbounded PSNR would weigh most
-            errors = [float((affine_match(centre(x, self.n), target) - target).square().mean())
-                      for x in classical_wiener_sweep(y, self.data.otf, NSR_GRID)]
-            best_nsr[name] = NSR_GRID[int(np.argmin(errors))]
+        best_nsr = {name: tune_nsr(classical_wiener_sweep(y, self.data.otf, NSR_GRID), target, self.n)
+                    for name, y in inputs.items()}
         tuned = self._outputs(net, best_nsr)
         self.calib = {"nsr": best_nsr}
         for name in self.methods[:-1]:

@@ -6,7 +6,7 @@ import torch
 
 from codesign.models.wiener import classical_wiener_sweep
 from codesign.train.evaluation import (NSR_GRID, Evaluator, affine_match, centre, conditions, fit_affine,
-                                      flat_summary, remove_black_level, replicate_pad)
+                                      flat_summary, remove_black_level, replicate_pad, tune_nsr)
 from tests.train._util import tiny_trainer
 
 
@@ -35,6 +35,18 @@ def test_black_level_only_on_the_field_and_replicate_padding():
     x = torch.arange(64.0).view(1, 1, 8, 8)
     p = replicate_pad(x, 4)
     assert torch.equal(p[..., 2:6, 2:6], x[..., 2:6, 2:6]) and torch.equal(p[0, 0, 0, 2:6], x[0, 0, 2, 2:6])
+
+
+def test_tune_nsr_takes_the_least_pooled_error_after_the_gain_offset_match():
+    """The one Wiener nsr tuning: candidates in NSR_GRID order, scored on the field of view after the per-image
+    gain/offset match (an affine copy of the target is the best candidate)."""
+    g = torch.Generator().manual_seed(0)
+    target = torch.rand(2, 1, 8, 8, generator=g)
+    padded = torch.nn.functional.pad(target, (2, 2, 2, 2))  # the candidates carry a border beyond the field
+    outputs = [padded + 0.3 * torch.rand(padded.shape, generator=g) for _ in NSR_GRID]
+    outputs[5] = 0.5 * padded + 0.1
+    outputs[7] = padded + 0.01 * torch.rand(padded.shape, generator=g)
+    assert tune_nsr(outputs, target, 8) == NSR_GRID[5]
 
 
 def test_conditions_and_flat_summary():
