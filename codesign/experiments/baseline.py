@@ -19,10 +19,9 @@ from codesign.train.evaluation import eval_settings, run_evaluation
 from codesign.train.mask_pool import build_mask_pool
 from codesign.train.memory import check_training_fits
 from codesign.train.resume import initial_checkpoint, load_initial_weights, resume_if_possible
-from codesign.train.model_setup import build_model, distributed_metrics, run_metrics
+from codesign.train.model_setup import build_model, build_trainer, distributed_metrics, run_metrics
 from codesign.train.spec import InitSpec, TrainerSpec
 from codesign.train.optim import init_weights
-from codesign.train.trainer import Trainer
 from codesign.experiments.protocol import Experiment
 
 log = logging.getLogger("codesign.restoration")
@@ -30,7 +29,7 @@ log = logging.getLogger("codesign.restoration")
 
 EXPERIMENT = Experiment(
     summary="train a restorer (SGAN-B/E/F or a plug-in) on the frozen published mask, then evaluate it",
-    first_work="Trainer.fit",
+    first_work="build_trainer().fit",
     root_keys=("init",),
     outputs=("metrics.json", "checkpoint.pt", "evaluation.csv"),
     resumes=True,
@@ -56,8 +55,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     sampling = {**camera_sampling_report(data.camera, cfg, log), **measured_psf_report(data.camera, cfg, log)} \
         if ctx.is_main else {}
     memory = check_training_fits(model, data, spec, device, "baseline")  # before any training
-    trainer = Trainer(model=model, data=data, spec=spec, run_dir=run_dir, device=device, config=to_container(cfg),
-                      seed=seed, dist=ctx)
+    trainer = build_trainer(cfg, model, data, run_dir, device, seed, ctx, spec)
     resume_if_possible(trainer, cfg, run_dir)
     # purge_step drops the events a killed run logged after its last checkpoint; rank 0 alone writes
     trainer.writer = open_writer(run_dir, tensorboard_enabled(cfg) and ctx.is_main, purge_step=trainer.step)

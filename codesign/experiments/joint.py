@@ -37,11 +37,10 @@ from codesign.train.evaluation import conditions, eval_settings, run_evaluation
 from codesign.train.mask_codesign import MaskCodesign
 from codesign.train.memory import check_training_fits
 from codesign.train.resume import initial_checkpoint, load_initial_weights, resume_if_possible
-from codesign.train.model_setup import build_model, distributed_metrics, run_metrics
+from codesign.train.model_setup import build_model, build_trainer, distributed_metrics, run_metrics
 from codesign.train.spec import InitSpec, TrainerSpec
 from codesign.train.summary import comparison_figure, joint_summary
 from codesign.train.optim import init_weights
-from codesign.train.trainer import Trainer
 from codesign.experiments.main_job import IMAGES_FILE, run_protocol, save_images
 from codesign.experiments.protocol import Experiment
 
@@ -164,8 +163,7 @@ def run_single(cfg: DictConfig, run_dir: Path, device: torch.device, evaluate: b
         start.update(_tune_base(model, data, ev))
     mask = MaskCodesign(camera=camera, spec=cs, lsr_max=lsr_max, lsr_p=ms.lsr_p, lsr_grids=ms.lsr_grids,
                         steps=spec.steps, device=device, monitor=monitor, dist=ctx, lines=constrained)
-    trainer = Trainer(model=model, data=data, spec=spec, run_dir=run_dir, device=device, config=to_container(cfg),
-                      seed=seed, dist=ctx, codesign=mask)
+    trainer = build_trainer(cfg, model, data, run_dir, device, seed, ctx, spec, codesign=mask)
     common = run_metrics(cfg, model, device)
     log.info("joint: network %s (%s, %s) generators %.2fM parameters; mask %s (%d parameters, lr %.3g, frozen for "
              "%d steps); lsr_max %.4g (%s); %d steps, batch %d, %d px padded to %d", common["network"],
@@ -331,8 +329,7 @@ def _published_train(cfg, published_cfg, init, spec, steps, seed, device, run_di
     data = SimulatedData(pub_cfg, device, seed, ctx)
     if not warm:
         _tune_base(model, data, eval_settings(pub_cfg))
-    trainer = Trainer(model=model, data=data, spec=pub_spec, run_dir=sub, device=device, config=to_container(pub_cfg),
-                      seed=seed, dist=ctx)
+    trainer = build_trainer(pub_cfg, model, data, sub, device, seed, ctx, pub_spec)
     timing = _train(trainer, pub_cfg, sub, log_every, "published mask")
     return model, trainer, data, timing
 

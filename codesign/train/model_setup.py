@@ -1,4 +1,5 @@
-"""What every training task builds the same way: the restorer of a config, and the run's common metrics."""
+"""What every training task builds the same way: the restorer of a config, its trainer, and the run's common
+metrics."""
 from __future__ import annotations
 
 import torch
@@ -6,6 +7,9 @@ from omegaconf import DictConfig
 
 from codesign.config.runtime import to_container
 from codesign.models import build_restorer, parameter_count
+from codesign.train import distributed
+from codesign.train.spec import TrainerSpec
+from codesign.train.trainer import Trainer
 
 
 def build_model(cfg: DictConfig):
@@ -13,6 +17,17 @@ def build_model(cfg: DictConfig):
     model = build_restorer(to_container(cfg.model))
     model.check_input_size(int(cfg.data.padded_size))
     return model
+
+
+def build_trainer(cfg: DictConfig, model, data, run_dir, device: torch.device, seed: int,
+                  dist: distributed.DistContext = distributed.SINGLE, spec: TrainerSpec | None = None,
+                  codesign=None) -> Trainer:
+    """The one way a task builds its Trainer from a composed config: ``model`` trained on ``data`` under ``spec``
+    (None: ``cfg.trainer``), writing into ``run_dir``, its checkpoints recording ``cfg`` whole; ``codesign``: a
+    MaskCodesign when the mask trains too; ``dist``: the torchrun context."""
+    spec = TrainerSpec.from_config(to_container(cfg.trainer)) if spec is None else spec
+    return Trainer(model=model, data=data, spec=spec, run_dir=run_dir, device=device, config=to_container(cfg),
+                   seed=seed, dist=dist, codesign=codesign)
 
 
 def distributed_metrics(trainer) -> dict:
