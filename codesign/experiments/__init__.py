@@ -138,6 +138,7 @@ def to_plain(node) -> dict:
 
 
 def experiment_function(name: str) -> Callable:
+    """The run(cfg, run_dir, device) of experiment ``name``."""
     return experiment_module(name).run
 
 
@@ -175,49 +176,8 @@ def run_experiment(cfg: DictConfig, run_dir: Path | None = None, exit_on_error: 
     if not ctx.is_main:  # rank 0 reports progress; the others only warnings (into <job>.rank<k>.log)
         logging.getLogger("codesign").setLevel(logging.WARNING)
     try:
-        task = cfg.get("task")
-        if task not in EXPERIMENTS:
-            raise ConfigError("task", task, "choose an experiment with +experiment=NAME; available: "
-                              + ", ".join(sorted(EXPERIMENTS)))
-        if ctx.enabled and not protocol(task).distributed:
-            trainers = ", ".join(n for n in EXPERIMENTS if protocol(n).distributed)
-            raise ConfigError("task", task, f"does not train networks and runs in one process: start it without "
-                              f"torchrun (training experiments under torchrun: {trainers})")
-        check_root_keys(cfg, task)
-        applied = apply_debug(cfg, explicit_keys())
-        if applied:
-            log.info("debug=%s: applied %s", cfg.debug.name, ", ".join(applied))
-        root = run_spec(cfg)
-        seed = root.seed
-        check_logging(cfg)
-        check_measured_psf(cfg, task)
-        if "mask" in read_keys(task):  # a mask.init record read whole, and made for these optics, before any work
-            check_mask_init(to_plain(cfg.get("mask")), to_plain(cfg.get("optics")))
-        threads = set_threads(root.threads)
-        device = resolve_device(root.device, ctx.local_rank if ctx.enabled else None)
-        deterministic = set_deterministic(root.deterministic, device)
-        if ctx.is_main:  # the other ranks write nothing
-            io.check_writable_dir(run_dir)  # before any work: never an hour of training, then a failed write
-            io.check_output_files(run_dir, protocol(task).outputs)
-        torch.manual_seed(seed)
-        log.info("task=%s device=%s threads=%d deterministic=%s run_dir=%s%s", task, device, threads,
-                 "on" if deterministic else "off", run_dir,
-                 f" ranks={ctx.world} ({distributed.backend_name()})" if ctx.enabled else "")
-        if ctx.is_main:
-            removed = rundir.start_work(run_dir, task)  # from here on a killed run is an unfinished one
-            if removed:
-                log.info("removed %d temp file(s) a killed run left: %s", len(removed),
-                         ", ".join(str(p.relative_to(run_dir)) for p in removed))
-        note = _SmokeNote() if smoke_active(cfg) else None
-        logger = getattr(experiment_module(task), "log", None)
-        if note is not None and isinstance(logger, logging.Logger):
-            logger.addFilter(note)
-        try:
-            with interruptible():  # SIGINT / SIGTERM: Interrupted, reported below (python -m codesign: from the start)
-                result = experiment_function(task)(cfg, run_dir, device)
-        finally:
-            if note is not None and isinstance(logger, logging.Logger):
-                logger.removeFilter(note)
+        task, device = _prepare(cfg, run_dir, ctx)
+        result = _call(task, cfg, run_dir, device)
         if ctx.is_main:
             rundir.finish_work(run_dir, task)  # last, after every output: the run counts as finished
         return result
@@ -237,6 +197,64 @@ def run_experiment(cfg: DictConfig, run_dir: Path | None = None, exit_on_error: 
         if ctx.is_main:
             print(f"codesign: {interrupt_line(stop, run_dir, ctx, cfg.get('task'))}", file=sys.stderr)
         raise SystemExit(stop.exit_code) from None
+
+
+def _check_task(cfg: DictConfig, ctx) -> str:
+    """The experiment ``cfg.task`` names, refused when unknown or, under torchrun, when it does not train."""
+    task = cfg.get("task")
+    if task not in EXPERIMENTS:
+        raise ConfigError("task", task, "choose an experiment with +experiment=NAME; available: "
+                          + ", ".join(sorted(EXPERIMENTS)))
+    if ctx.enabled and not protocol(task).distributed:
+        trainers = ", ".join(n for n in EXPERIMENTS if protocol(n).distributed)
+        raise ConfigError("task", task, f"does not train networks and runs in one process: start it without "
+                          f"torchrun (training experiments under torchrun: {trainers})")
+    return task
+
+
+def _prepare(cfg: DictConfig, run_dir: Path, ctx) -> tuple[str, torch.device]:
+    """Everything before an experiment's work: the task and the common keys checked, ``debug`` applied, threads,
+    device and determinism set, the run directory checked writable and marked started; returns (task, device)."""
+    task = _check_task(cfg, ctx)
+    check_root_keys(cfg, task)
+    applied = apply_debug(cfg, explicit_keys())
+    if applied:
+        log.info("debug=%s: applied %s", cfg.debug.name, ", ".join(applied))
+    root = run_spec(cfg)
+    check_logging(cfg)
+    check_measured_psf(cfg, task)
+    if "mask" in read_keys(task):  # a mask.init record read whole, and made for these optics, before any work
+        check_mask_init(to_plain(cfg.get("mask")), to_plain(cfg.get("optics")))
+    threads = set_threads(root.threads)
+    device = resolve_device(root.device, ctx.local_rank if ctx.enabled else None)
+    deterministic = set_deterministic(root.deterministic, device)
+    if ctx.is_main:  # the other ranks write nothing
+        io.check_writable_dir(run_dir)  # before any work: never an hour of training, then a failed write
+        io.check_output_files(run_dir, protocol(task).outputs)
+    torch.manual_seed(root.seed)
+    log.info("task=%s device=%s threads=%d deterministic=%s run_dir=%s%s", task, device, threads,
+             "on" if deterministic else "off", run_dir,
+             f" ranks={ctx.world} ({distributed.backend_name()})" if ctx.enabled else "")
+    if ctx.is_main:
+        removed = rundir.start_work(run_dir, task)  # from here on a killed run is an unfinished one
+        if removed:
+            log.info("removed %d temp file(s) a killed run left: %s", len(removed),
+                     ", ".join(str(p.relative_to(run_dir)) for p in removed))
+    return task, device
+
+
+def _call(task: str, cfg: DictConfig, run_dir: Path, device: torch.device):
+    """The experiment's run(cfg, run_dir, device), interruptible, its smoke-size records marked under debug=smoke."""
+    note = _SmokeNote() if smoke_active(cfg) else None
+    logger = getattr(experiment_module(task), "log", None)
+    if note is not None and isinstance(logger, logging.Logger):
+        logger.addFilter(note)
+    try:
+        with interruptible():  # SIGINT / SIGTERM: Interrupted, reported below (python -m codesign: from the start)
+            return experiment_function(task)(cfg, run_dir, device)
+    finally:
+        if note is not None and isinstance(logger, logging.Logger):
+            logger.removeFilter(note)
 
 
 def resume_command(run_dir: Path, ctx) -> str:
@@ -273,4 +291,5 @@ def interrupt_line(stop: Interrupted, run_dir: Path, ctx, task: str | None) -> s
 
 
 def resolved_config_yaml(cfg: DictConfig) -> str:
+    """The config as YAML, interpolations resolved."""
     return OmegaConf.to_yaml(cfg, resolve=True)
