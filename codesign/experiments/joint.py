@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from codesign.config.runtime import check_seed, logging_spec, to_container
-from codesign.design.check import camera_sampling_report, report_sampling, sampling_of, verify_design
+from codesign.design.check import camera_sampling_report, recheck_gain, report_sampling, sampling_of
 from codesign.design.limits import MTFLimit
 from codesign.train.lsr_constraint import CodesignSpec, LSRConstraint
 from codesign.errors import ConfigError
@@ -39,7 +40,7 @@ from codesign.train.memory import check_training_fits
 from codesign.train.resume import initial_checkpoint, load_initial_weights, resume_if_possible
 from codesign.train.model_setup import build_model, build_trainer, distributed_metrics, run_metrics
 from codesign.train.spec import InitSpec, TrainerSpec
-from codesign.train.summary import comparison_figure, joint_summary
+from codesign.train.summary import comparison_figure, joint_summary, restorer_scores
 from codesign.train.optim import init_weights
 from codesign.experiments.main_job import IMAGES_FILE, run_protocol, save_images
 from codesign.experiments.protocol import Experiment
@@ -105,19 +106,6 @@ def _save_learned_mask(mask, spec, run_dir: Path, values: dict) -> dict:
     return {"r_n": record["r"], "theta_n": record["theta"]}
 
 
-def _scores(evaluation: dict, method: str, suffix: str = "") -> dict:
-    """psnr / ssim (plain, and _matched: after the gain/offset match) of the restorer's restorations (column
-    ``method``), the mean over the conditions and per condition, keys ending in ``suffix`` ("_published": the
-    published system's)."""
-    out = {}
-    for metric in ("psnr", "ssim", "psnr_matched", "ssim_matched"):
-        vals = {cond: t[method][metric] for cond, t in evaluation.items()}
-        out[f"{metric}{suffix}"] = float(np.mean(list(vals.values())))
-        for cond, v in vals.items():
-            out[f"{metric}{suffix}_{cond}"] = v
-    return out
-
-
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     """codesign.protocol=codesign: the main job's stages (codesign/experiments/main_job.py), each stage's training
     a run_single; single: one run_single."""
@@ -134,7 +122,68 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
 def run_single(cfg: DictConfig, run_dir: Path, device: torch.device, evaluate: bool = True) -> float:
     """One joint training of the configured mask (its published comparison when codesign.compare_published); then,
     when ``evaluate``, the evaluation on the held-out scenes (without: metrics.json holds the training's figures,
-    the pretraining stages of the codesign protocol)."""
+    the pretraining stages of the codesign protocol). Steps: build, train (and the published comparison), report
+    the masks, evaluate."""
+    job = _build(cfg, run_dir, device)
+    timing = _train(job.trainer, cfg, run_dir, job.log_every, "joint", calibrate=evaluate)
+    job.camera.set_trainable(False)
+    job.camera.invalidate()
+    # every rank trains the published comparison too; evaluations and files then come from rank 0 alone
+    published = _published_train(cfg, job.published_cfg, job.init, job.spec, job.trainer.step, job.seed, device,
+                                 run_dir, job.log_every, job.ctx) if job.cs.compare_published else None
+    if not job.ctx.is_main:
+        return None
+    metrics = _mask_report(job, run_dir, timing)
+    if not evaluate:
+        io.write_json(run_dir / "metrics.json", metrics)
+        _hparams(job.trainer.writer, cfg, metrics, job.model.method)
+        log.info("joint: lsr %.4g, mtf_mean %.4g after %d steps (not evaluated); wrote %s", metrics["lsr"],
+                 metrics["mtf_mean"], metrics["steps"], run_dir)
+        return float("nan")
+    return _evaluate(job, run_dir, metrics, published)
+
+
+@dataclass
+class _Joint:
+    """What a joint run builds before it trains (run_single's first step): its settings, the restorer and its
+    starting weights, the simulated data and camera, the published reference mask, the LSR ceiling and the trainer
+    with the mask's co-design component."""
+
+    cfg: DictConfig
+    seed: int
+    spec: TrainerSpec
+    cs: CodesignSpec
+    ms: object
+    ev: dict
+    log_every: int
+    published_cfg: dict
+    init: InitSpec
+    model: object
+    warm: dict
+    ctx: object
+    data: SimulatedData
+    reference: object
+    monitor: MaskMonitor
+    lines: object
+    lsr_max: float
+    lsr_max_from: str
+    start: dict
+    mask: MaskCodesign | None = None
+    trainer: object = None
+    common: dict = field(default_factory=dict)
+
+    @property
+    def camera(self):
+        return self.data.camera
+
+    @property
+    def system(self):
+        return self.data.camera.system
+
+
+def _build(cfg: DictConfig, run_dir: Path, device: torch.device) -> _Joint:
+    """Every setting checked, the network with its starting weights, the data, the LSR ceiling and its checks, the
+    Wiener base tuned (fresh weights), the mask's co-design component and the trainer."""
     seed = check_seed(cfg)
     spec = TrainerSpec.from_config(to_container(cfg.trainer))
     cs = CodesignSpec.from_config(to_container(cfg.get("codesign")) or {})
@@ -143,12 +192,10 @@ def run_single(cfg: DictConfig, run_dir: Path, device: torch.device, evaluate: b
     log_every = logging_spec(cfg).log_every
     published_cfg = published_mask_config(to_container(cfg.mask))
     init = InitSpec.from_config(to_container(cfg.get("init")) or {})
-
     model, warm = _network(cfg, init, seed)
     ctx = distributed.current()
     data = SimulatedData(cfg, device, seed, ctx)
-    camera = data.camera
-    system = camera.system
+    camera, system = data.camera, data.camera.system
     reference = published_reference(to_container(cfg.mask), system)
     monitor = MaskMonitor(system, reference, ms.mtf_band, ms.lsr_p, ms.lsr_grids)
     lines = run_lines(cfg, system, "codesign.lsr_over" if cs.lsr_over == "wavelengths" else None)
@@ -161,69 +208,76 @@ def run_single(cfg: DictConfig, run_dir: Path, device: torch.device, evaluate: b
                      **_check_lsr_max(lsr_max, cs, monitor, system, camera.mask, constrained))
     if not warm:
         start.update(_tune_base(model, data, ev))
-    mask = MaskCodesign(camera=camera, spec=cs, lsr_max=lsr_max, lsr_p=ms.lsr_p, lsr_grids=ms.lsr_grids,
-                        steps=spec.steps, device=device, monitor=monitor, dist=ctx, lines=constrained)
-    trainer = build_trainer(cfg, model, data, run_dir, device, seed, ctx, spec, codesign=mask)
-    common = run_metrics(cfg, model, device)
+    job = _Joint(cfg, seed, spec, cs, ms, ev, log_every, published_cfg, init, model, warm, ctx, data, reference,
+                 monitor, lines, lsr_max, lsr_max_from, start)
+    job.mask = MaskCodesign(camera=camera, spec=cs, lsr_max=lsr_max, lsr_p=ms.lsr_p, lsr_grids=ms.lsr_grids,
+                            steps=spec.steps, device=device, monitor=monitor, dist=ctx, lines=constrained)
+    job.trainer = build_trainer(cfg, model, data, run_dir, device, seed, ctx, spec, codesign=job.mask)
+    job.common = run_metrics(cfg, model, device)
+    _log_start(job)
+    job.trainer.steps_after = spec.steps if cs.compare_published else 0  # the ETA covers the published training too
+    return job
+
+
+def _log_start(job: _Joint) -> None:
+    """The run's one line before training: network, mask, ceiling, steps and sizes."""
+    common, cs, spec, data = job.common, job.cs, job.spec, job.data
     log.info("joint: network %s (%s, %s) generators %.2fM parameters; mask %s (%d parameters, lr %.3g, frozen for "
              "%d steps); lsr_max %.4g (%s); %d steps, batch %d, %d px padded to %d", common["network"],
-             common["variant"], common["size"], common["parameters_generators"] / 1e6, to_container(cfg.mask)["kind"],
-             sum(p.numel() for p in camera.mask.parameters()), cs.mask_lr, cs.warmup_steps(spec.steps), lsr_max,
-             lsr_max_from, spec.steps, int(cfg.data.batch_size), data.image_size, data.padded_size)
-    trainer.steps_after = spec.steps if cs.compare_published else 0  # the ETA covers the published training too
-    timing = _train(trainer, cfg, run_dir, log_every, "joint", calibrate=evaluate)
-    camera.set_trainable(False)
-    camera.invalidate()
-    steps = trainer.step
-    # every rank trains the published comparison too; evaluations and files then come from rank 0 alone
-    published = _published_train(cfg, published_cfg, init, spec, steps, seed, device, run_dir, log_every, ctx) \
-        if cs.compare_published else None
-    if not ctx.is_main:
-        return None
+             common["variant"], common["size"], common["parameters_generators"] / 1e6,
+             to_container(job.cfg.mask)["kind"], sum(p.numel() for p in job.camera.mask.parameters()), cs.mask_lr,
+             cs.warmup_steps(spec.steps), job.lsr_max, job.lsr_max_from, spec.steps, int(job.cfg.data.batch_size),
+             data.image_size, data.padded_size)
 
+
+def _mask_report(job: _Joint, run_dir: Path, timing: dict) -> dict:
+    """After training (rank 0): the learned and the published mask measured, re-checked and drawn (phase, PSF, MTF
+    figures, learned_mask.json), over the laser lines when there are some; returns metrics.json's entries so far."""
+    system, mask, monitor, ms, cs = job.system, job.camera.mask, job.monitor, job.ms, job.cs
+    steps = job.trainer.step
     with torch.no_grad():
         psf0 = system.uncoded_psf().cpu().numpy()
-    learned = _mask_outputs(monitor, system, camera.mask, run_dir, "learned", psf0)
-    recheck = _recheck(camera.mask, reference, system.spec, ms.mtf_band, ms.recheck_tolerance)
+    learned = _mask_outputs(monitor, system, mask, run_dir, "learned", psf0)
+    recheck = recheck_gain(mask, job.reference, system.spec, ms.mtf_band, ms.recheck_tolerance, log)
     verified = recheck["recheck"]["learned"]  # its design and fine-grid evaluations answer the sampling question
     sampling = report_sampling(sampling_of(verified["design"], verified["fine"]), log, "the learned mask")
-    base = _mask_outputs(monitor, system, reference, run_dir, "published", psf0)
-    rings = _save_learned_mask(camera.mask, system.spec, run_dir, learned)
+    base = _mask_outputs(monitor, system, job.reference, run_dir, "published", psf0)
+    rings = _save_learned_mask(mask, system.spec, run_dir, learned)
     freqs = monitor.radial.freqs.cpu().numpy()
     io.save_figure(run_dir / "mtf.png", plots.mtf_figure(
         freqs, {"learned mask": learned.pop("mtf_radial"), "published mask": base.pop("mtf_radial"),
                 "analytic circular pupil": circular_mtf(torch.from_numpy(freqs)).numpy()},
         ms.mtf_band, f"radial MTF after {steps} joint steps"))
-
-    metrics = {**common, **distributed_metrics(trainer), **mask.record(), "steps": steps, **timing,
-               "lsr_max": lsr_max, "lsr_max_from": lsr_max_from, **start, **sampling,
-               **warm,
-               "lsr_constraint_met": learned["lsr_smooth"] <= lsr_max * (1 + cs.guard_tolerance),
+    trainer = job.trainer
+    metrics = {**job.common, **distributed_metrics(trainer), **job.mask.record(), "steps": steps, **timing,
+               "lsr_max": job.lsr_max, "lsr_max_from": job.lsr_max_from, **job.start, **sampling,
+               **job.warm,
+               "lsr_constraint_met": learned["lsr_smooth"] <= job.lsr_max * (1 + cs.guard_tolerance),
                "skipped_updates": trainer.skipped, "undone_updates": trainer.rollbacks,
-               "vgg_loss": model.loss_status, "mask_kind": to_container(cfg.mask)["kind"],
-               **learned, **{f"{k}_published": v for k, v in base.items()}, **camera.mask.summary(), **rings,
+               "vgg_loss": job.model.loss_status, "mask_kind": to_container(job.cfg.mask)["kind"],
+               **learned, **{f"{k}_published": v for k, v in base.items()}, **mask.summary(), **rings,
                **recheck, "checkpoint": str(run_dir / CHECKPOINT_NAME)}
-    if lines is not None:
+    if job.lines is not None:
         metrics["lsr_over"] = cs.lsr_over
-        metrics["laser_lines"] = summary = lines_summary(lines, {"learned": camera.mask.phase().detach(),
-                                                                 "published": reference.phase().detach()},
-                                                         camera.mask.plate_cell_m)
+        metrics["laser_lines"] = summary = lines_summary(job.lines, {"learned": mask.phase().detach(),
+                                                                     "published": job.reference.phase().detach()},
+                                                         mask.plate_cell_m)
         for name in ("learned", "published"):
             log_lines(summary, name, f"{name} mask")
-    if not evaluate:
-        io.write_json(run_dir / "metrics.json", metrics)
-        _hparams(trainer.writer, cfg, metrics, model.method)
-        log.info("joint: lsr %.4g, mtf_mean %.4g after %d steps (not evaluated); wrote %s", metrics["lsr"],
-                 metrics["mtf_mean"], steps, run_dir)
-        return float("nan")
+    return metrics
+
+
+def _evaluate(job: _Joint, run_dir: Path, metrics: dict, published) -> float:
+    """The learned system (and the published one, when trained) evaluated on the held-out scenes, the comparison
+    figure, metrics.json and the summary; returns the learned system's mean PSNR."""
+    model, ev, seed = job.model, job.ev, job.seed
     keep = (COMPARED,) if COMPARED in conditions(ev["lasers"], ev["stages"]) else ()
-    joint_eval = run_evaluation(ev, model, trainer.restoring_modules(), data, run_dir, seed, keep)
+    joint_eval = run_evaluation(ev, model, job.trainer.restoring_modules(), job.data, run_dir, seed, keep)
     for key in ("evaluation", "evaluation_scenes", "evaluation_per_scene_psnr_matched"):
         metrics[key] = joint_eval[key]
     if keep:  # the first scenes' restorations at COMPARED, for the main job's figure of every system
         save_images(run_dir / IMAGES_FILE, joint_eval["images"][COMPARED], model.method)
-    metrics.update(_scores(joint_eval["evaluation"], model.method))  # with or without the published comparison
-
+    metrics.update(restorer_scores(joint_eval["evaluation"], model.method))  # with or without the published comparison
     if published is not None:
         extra, pub_images = _published_evaluation(*published, run_dir, ev, seed, keep)
         metrics.update(extra)
@@ -233,7 +287,7 @@ def run_single(cfg: DictConfig, run_dir: Path, device: torch.device, evaluate: b
                 names=joint_eval["evaluation_scenes"], tables={"learned": joint_eval["evaluation"][COMPARED],
                                                                "published": extra["evaluation_published"][COMPARED]}))
     io.write_json(run_dir / "metrics.json", metrics)
-    _hparams(trainer.writer, cfg, metrics, model.method)
+    _hparams(job.trainer.writer, job.cfg, metrics, model.method)
     if published is not None:
         print(joint_summary({**metrics, "seed": seed}, model.method), flush=True)
     else:
@@ -242,27 +296,6 @@ def run_single(cfg: DictConfig, run_dir: Path, device: torch.device, evaluate: b
                  metrics["mtf_mean"], metrics["mtf_mean_published"])
     log.info("wrote %s", run_dir)
     return metrics.get("psnr", float("nan"))
-
-
-def _recheck(mask, reference, spec, band, tolerance: float) -> dict:
-    """The learned mask's gain over the published one where training could not cheat: both masks on a pupil grid
-    finer by the family's factor and on a window twice as wide (codesign.design.check.verify_design). The published
-    mask itself moves there (13 % of its light falls outside the default window), so what must hold is the ratio
-    learned / published of LSR and of mtf_mean: within ``tolerance`` of its value on the training optics, or a
-    warning."""
-    learned, published = verify_design(mask, spec, band, tolerance), verify_design(reference, spec, band, tolerance)
-    ratios = {f"{k}_ratio_{where}": learned[where][k] / published[where][k]
-              for where in ("design", "fine", "whole") for k in ("lsr", "mtf_mean")}
-    moved = max(abs(ratios[f"{k}_ratio_{w}"] / ratios[f"{k}_ratio_design"] - 1)
-                for w in ("fine", "whole") for k in ("lsr", "mtf_mean"))
-    agree = moved <= tolerance
-    if not agree:
-        log.warning("the learned mask's gain does NOT survive the re-check: its LSR / mtf_mean relative to the "
-                    "published mask's move by up to %.1f%% (tolerance %.0f%%) on a pupil grid %dx as fine or a window "
-                    "twice as wide: part of the gain is the simulation's, not the optics' (metrics.json: recheck)",
-                    100 * moved, 100 * tolerance, learned["fine_factor"])
-    return {"recheck": {"learned": learned, "published": published, **ratios}, "recheck_gain_moved": moved,
-            "recheck_agree": agree}
 
 
 def _tune_base(model, data, ev: dict) -> dict:
@@ -345,7 +378,7 @@ def _published_evaluation(model, trainer, data, timing: dict, run_dir, ev, seed,
         trainer.writer.close()
     return {**{f"{k}_published": v for k, v in timing.items()}, "evaluation_published": result["evaluation"],
             "evaluation_per_scene_psnr_matched_published": result["evaluation_per_scene_psnr_matched"],
-            **_scores(result["evaluation"], model.method, "_published")}, images
+            **restorer_scores(result["evaluation"], model.method, "_published")}, images
 
 
 def _hparams(writer, cfg, metrics: dict, method: str | None = None) -> None:

@@ -23,6 +23,19 @@ def paired_difference(learned: list[float], published: list[float]) -> tuple[flo
     return statistics.mean(d), float(t.ppf(0.975, len(d) - 1)) * statistics.stdev(d) / math.sqrt(len(d))
 
 
+def restorer_scores(evaluation: dict, method: str, suffix: str = "") -> dict:
+    """psnr / ssim (plain, and _matched: after the gain/offset match) of the restorer's restorations (column
+    ``method``), the mean over the conditions and per condition, keys ending in ``suffix`` ("_published": the
+    published system's)."""
+    out = {}
+    for metric in ("psnr", "ssim", "psnr_matched", "ssim_matched"):
+        vals = {cond: t[method][metric] for cond, t in evaluation.items()}
+        out[f"{metric}{suffix}"] = float(np.mean(list(vals.values())))
+        for cond, v in vals.items():
+            out[f"{metric}{suffix}_{cond}"] = v
+    return out
+
+
 def verdict(m: dict, method: str, condition: str = VERDICT_CONDITION) -> str:
     """One line: the learned system's PSNR (after the gain/offset match) against the published one at
     ``condition``, and whether the difference is outside the 95 % interval of the per-scene differences. One run
