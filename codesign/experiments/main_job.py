@@ -26,6 +26,7 @@ import json
 import logging
 import shutil
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -92,6 +93,8 @@ class Progress:
         self.train_seconds, self.trained = 0.0, 0
 
     def start(self, k: int, stage: str, what: str) -> None:
+        """Log the start of stage ``stage`` (number ``k``, ``what`` it does) with the training time left at the rate
+        so far."""
         left = sum(n for s, n in self.steps.items() if STAGES.index(s) >= STAGES.index(stage))
         rate = self.train_seconds / self.trained if self.trained else None
         eta = f"about {left * rate / 60:.1f} min of training left" if rate else "time left: after the first stage"
@@ -99,13 +102,82 @@ class Progress:
                  (time.perf_counter() - self.t0) / 60, eta)
 
     def done(self, stage: str, seconds: float) -> None:
+        """Count a finished training stage's ``seconds`` and steps into the rate."""
         if self.steps.get(stage):
             self.train_seconds += seconds
             self.trained += self.steps[stage]
 
 
 def run_protocol(cfg: DictConfig, run_dir: Path, device: torch.device, train) -> float:
-    """The stages above; ``train(cfg, run_dir, device, evaluate)``: one single joint run (joint.run_single)."""
+    """The stages above; ``train(cfg, run_dir, device, evaluate)``: one single joint run (joint.run_single). Steps:
+    build (every setting checked, the published mask's certified peak and the ceiling from it), design, train the
+    restorer stages and the arms, report."""
+    job = _build(cfg, run_dir, device)
+    designed_cfg, design = _design_stage(job)
+    _train_stages(job, designed_cfg, train)
+    return _report(job, design)
+
+
+@dataclass
+class _Job:
+    """What the main job's stages share: its settings (the config with init.checkpoint resolved), the published
+    system and the LSR ceiling, the stage folders, the progress line and the stages' wall seconds."""
+
+    cfg: DictConfig
+    run_dir: Path
+    device: torch.device
+    seed: int
+    cs: CodesignSpec
+    spec: TrainerSpec
+    init: InitSpec
+    asked: str | None  # init.checkpoint as given (auto before it was resolved)
+    search: SearchSpec | None
+    mask_cfg: dict
+    published_cfg: dict
+    system: OpticalSystem | None = None
+    published: object = None
+    published_peak: float = float("nan")
+    lsr_max: float = float("nan")
+    lsr_max_from: str = ""
+    stages: dict = field(default_factory=dict)
+    same: bool = False  # no design stage from the published mask: the published system is the designed one
+    progress: Progress | None = None
+    seconds_file: Path | None = None
+    seconds: dict = field(default_factory=dict)
+
+
+def _build(cfg: DictConfig, run_dir: Path, device: torch.device) -> _Job:
+    """Every setting checked before any work, the published mask's certified peak (the worst line's with
+    codesign.lsr_over=wavelengths), the ceiling from it, the stage folders and the progress line."""
+    job = _check(cfg, device)
+    job.run_dir = run_dir
+    cs = job.cs
+    job.system = system = OpticalSystem(OpticsSpec.from_config(to_container(job.cfg.optics)), device=device)
+    job.published = published = published_reference(job.mask_cfg, system)
+    lines = run_lines(job.cfg, system, "codesign.lsr_over" if cs.lsr_over == "wavelengths" else None)
+    with torch.no_grad():
+        if cs.lsr_over == "wavelengths":  # the worst line's certified peak (the joint stage's guard: the design line's)
+            phase = {"published": published.phase().detach()}
+            job.published_peak = lines_summary(lines, phase, published.plate_cell_m)["published"]["lsr_worst"]
+        else:
+            job.published_peak = system.continuous_lsr(published.phase(), published.plate_cell_m)
+    job.lsr_max, job.lsr_max_from = cs.lsr_max_value(lambda: job.published_peak, measure="certified peak",
+                                                     default_share=DEFAULT_SHARE if cs.design is not None else 1.0)
+    job.stages = {s: run_dir / s for s in STAGES}
+    job.same = cs.design is None and job.mask_cfg == job.published_cfg
+    pub_steps = (0, 0) if job.same else (job.spec.steps, cs.finetune_steps)
+    job.progress = Progress({"restorer": job.spec.steps, "published_restorer": pub_steps[0],
+                             "designed": cs.finetune_steps, "codesigned": cs.finetune_steps,
+                             "published": pub_steps[1]})
+    job.seconds_file = run_dir / "stage_seconds.json"  # each stage's wall seconds, kept across a resumed run
+    job.seconds = json.loads(job.seconds_file.read_text()) if job.seconds_file.is_file() else {}
+    return job
+
+
+def _check(cfg: DictConfig, device: torch.device) -> _Job:
+    """Every setting of the protocol checked before any work (init.checkpoint=auto resolved once: every stage then
+    starts from the same weights); a warm start that does not fit, or a batch this machine cannot hold, refused
+    now, not after the design stage."""
     seed = check_seed(cfg)
     cs = CodesignSpec.from_config(to_container(cfg.get("codesign")) or {})
     if distributed.current().enabled:  # its search and its folders are one process's
@@ -114,56 +186,43 @@ def run_protocol(cfg: DictConfig, run_dir: Path, device: torch.device, train) ->
     spec = TrainerSpec.from_config(to_container(cfg.trainer))
     init = InitSpec.from_config(to_container(cfg.get("init")) or {})
     asked = init.checkpoint
-    if init.checkpoint == "auto":  # resolved once: every stage then starts from the same weights
+    if init.checkpoint == "auto":
         cfg = OmegaConf.create(to_container(cfg))
         cfg.init.checkpoint = initial_checkpoint(init.checkpoint, cfg)
         init = InitSpec.from_config(to_container(cfg.init))
-    eval_settings(cfg)  # every setting checked before any work
+    eval_settings(cfg)
     mask_cfg = to_container(cfg.mask)
-    designing = cs.design is not None
-    search = _check_search(cfg) if designing else None
-    metrics_spec(cfg)  # checked before any work
+    search = _check_search(cfg) if cs.design is not None else None
+    metrics_spec(cfg)
     published_cfg = published_mask_config(mask_cfg)
-    # a warm start that does not fit, or a batch this machine cannot hold, is refused now, not after the design stage
     probe, model = _stage_cfg(cfg, published_cfg), build_model(cfg)
     if init.checkpoint:
         load_initial_weights(model, init.checkpoint, cfg)
     check_training_fits(model, SimulatedData(probe, device, seed), spec, device, "joint")
-    system = OpticalSystem(OpticsSpec.from_config(to_container(cfg.optics)), device=device)
-    published = published_reference(mask_cfg, system)
-    lines = run_lines(cfg, system, "codesign.lsr_over" if cs.lsr_over == "wavelengths" else None)
-    with torch.no_grad():
-        if cs.lsr_over == "wavelengths":  # the worst line's certified peak (the joint stage's guard: the design line's)
-            phase = {"published": published.phase().detach()}
-            published_peak = lines_summary(lines, phase, published.plate_cell_m)["published"]["lsr_worst"]
-        else:
-            published_peak = system.continuous_lsr(published.phase(), published.plate_cell_m)
-    lsr_max, lsr_max_from = cs.lsr_max_value(lambda: published_peak, measure="certified peak",
-                                             default_share=DEFAULT_SHARE if designing else 1.0)
-    stages = {s: run_dir / s for s in STAGES}
-    same = not designing and mask_cfg == published_cfg  # the published system is then the designed one
-    pub_steps = (0, 0) if same else (spec.steps, cs.finetune_steps)
-    progress = Progress({"restorer": spec.steps, "published_restorer": pub_steps[0], "designed": cs.finetune_steps,
-                         "codesigned": cs.finetune_steps, "published": pub_steps[1]})
-    seconds_file = run_dir / "stage_seconds.json"  # each stage's wall seconds, kept across a resumed run
-    seconds: dict[str, float] = json.loads(seconds_file.read_text()) if seconds_file.is_file() else {}
+    return _Job(cfg, Path(), device, seed, cs, spec, init, asked, search, mask_cfg, published_cfg)
 
-    # (a) the design stage
-    progress.start(1, "design", f"{cs.design or 'none'} family, certified-peak LSR <= {lsr_max:.4g} ({lsr_max_from})")
+
+def _design_stage(job: _Job) -> tuple[dict, dict | None]:
+    """Stage (a), or the configured mask as the start without one (codesign.design=null): (the designed mask's
+    config, the search's metrics or None)."""
+    cs = job.cs
+    job.progress.start(1, "design", f"{cs.design or 'none'} family, certified-peak LSR <= {job.lsr_max:.4g} "
+                                    f"({job.lsr_max_from})")
     t = time.perf_counter()
-    if designing:
-        designed_cfg, design = _design(cfg, search, cs, lsr_max, stages["design"], device)
+    if cs.design is not None:
+        designed_cfg, design = _design(job.cfg, job.search, cs, job.lsr_max, job.stages["design"], job.device)
     else:
-        designed_cfg, design = mask_cfg, None
+        designed_cfg, design = job.mask_cfg, None
         log.info("main job: no design stage (codesign.design=null): the configured %s mask is the start",
-                 mask_cfg["kind"])
-    _note_seconds(seconds_file, seconds, "design", time.perf_counter() - t)
+                 job.mask_cfg["kind"])
+    _note_seconds(job.seconds_file, job.seconds, "design", time.perf_counter() - t)
+    return designed_cfg, design
 
-    # (b) the restorer on the designed mask and on the published one, from the same weights
-    if init.checkpoint:
-        log.info("main job: the restorer starts from %s (init.checkpoint)", init.checkpoint)
-    else:
-        log.info("main job: no pretrained restorer (init.checkpoint=%s): the restorer trains from scratch", asked)
+
+def _plan(job: _Job, designed_cfg: dict) -> list[tuple]:
+    """The training stages in order: (stage, its mask config, its dotted changes, whether it is evaluated, the
+    stage whose checkpoint it starts from)."""
+    cs, spec, published_cfg = job.cs, job.spec, job.published_cfg
     frozen = {"codesign.mask_lr": 0.0}
     plan = [
         ("restorer", designed_cfg, {**frozen, "trainer.steps": spec.steps}, False, None),
@@ -171,37 +230,52 @@ def run_protocol(cfg: DictConfig, run_dir: Path, device: torch.device, train) ->
         ("designed", designed_cfg, {**frozen, "trainer.steps": cs.finetune_steps}, True, "restorer"),
         # (c) joint: the network already restores this mask, so the mask moves from the first step (no warm-up)
         ("codesigned", designed_cfg, {"trainer.steps": cs.finetune_steps, "codesign.warmup_fraction": 0.0,
-                                      "codesign.peak_max": lsr_max}, True, "restorer"),
+                                      "codesign.peak_max": job.lsr_max}, True, "restorer"),
         # (d) the published system: the same restorer, the same steps, the published mask frozen
         ("published", published_cfg, {**frozen, "trainer.steps": cs.finetune_steps}, True, "published_restorer"),
     ]
-    if same:  # no design stage from the published mask: its arms are the designed ones
-        stages.update(published_restorer=stages["restorer"], published=stages["designed"])
+    if job.same:  # no design stage from the published mask: its arms are the designed ones
+        job.stages.update(published_restorer=job.stages["restorer"], published=job.stages["designed"])
         plan = [step for step in plan if not step[0].startswith("published")]
         log.info("main job: the start mask is the published one: its restorer and frozen arm serve as the published "
                  "system's")
-    for k, (stage, mask, changes, evaluate, start) in enumerate(plan, start=2):
-        folder = stages[stage]
-        warm = {"init.checkpoint": str(stages[start] / "checkpoint.pt")} if start else {}
-        progress.start(k, stage, f"{mask['kind']} mask, {changes['trainer.steps']} steps" +
-                       (f", from {start}/" if start else ""))
+    return plan
+
+
+def _train_stages(job: _Job, designed_cfg: dict, train) -> None:
+    """(b) the restorer on the designed mask and on the published one, from the same weights, then the arms (c, d);
+    a stage whose metrics.json exists is not run again."""
+    if job.init.checkpoint:
+        log.info("main job: the restorer starts from %s (init.checkpoint)", job.init.checkpoint)
+    else:
+        log.info("main job: no pretrained restorer (init.checkpoint=%s): the restorer trains from scratch", job.asked)
+    for k, (stage, mask, changes, evaluate, start) in enumerate(_plan(job, designed_cfg), start=2):
+        folder = job.stages[stage]
+        warm = {"init.checkpoint": str(job.stages[start] / "checkpoint.pt")} if start else {}
+        job.progress.start(k, stage, f"{mask['kind']} mask, {changes['trainer.steps']} steps" +
+                           (f", from {start}/" if start else ""))
         t = time.perf_counter()
         if not (folder / "metrics.json").is_file():
             folder.mkdir(parents=True, exist_ok=True)
-            train(_stage_cfg(cfg, mask, **changes, **warm), folder, device, evaluate)
-            _note_seconds(seconds_file, seconds, stage, time.perf_counter() - t)
-            progress.done(stage, seconds[stage])
+            train(_stage_cfg(job.cfg, mask, **changes, **warm), folder, job.device, evaluate)
+            _note_seconds(job.seconds_file, job.seconds, stage, time.perf_counter() - t)
+            job.progress.done(stage, job.seconds[stage])
         else:
             log.info("main job: %s done before (%s)", stage, folder / "metrics.json")
 
+
+def _report(job: _Job, design: dict | None) -> float:
+    """summary.txt, metrics.json and systems.png of the evaluated stages; returns the co-designed system's PSNR
+    after the gain/offset match at alpha_l = 1e6."""
+    stages, run_dir = job.stages, job.run_dir
     metrics = {s: json.loads((stages[s] / "metrics.json").read_text()) for s in EVALUATED}
-    record = summary_record(metrics, design, lsr_max, lsr_max_from, published_peak, seed,
-                            {"trainer_steps": spec.steps, "finetune_steps": cs.finetune_steps}, seconds)
+    record = summary_record(metrics, design, job.lsr_max, job.lsr_max_from, job.published_peak, job.seed,
+                            {"trainer_steps": job.spec.steps, "finetune_steps": job.cs.finetune_steps}, job.seconds)
     record["checkpoint"] = str(stages["codesigned"] / "checkpoint.pt")
     shutil.copyfile(stages["codesigned"] / "learned_mask.json", run_dir / "learned_mask.json")
     images = {s: torch.load(stages[s] / IMAGES_FILE) for s in EVALUATED if (stages[s] / IMAGES_FILE).is_file()}
     if len(images) == len(EVALUATED):
-        arrays = _mask_arrays(system, cfg, stages, published)
+        arrays = _mask_arrays(job.system, job.cfg, stages, job.published)
         io.save_figure(run_dir / "systems.png", systems_figure(arrays, images, record))
     text = protocol_summary(record)
     io.write_json(run_dir / "metrics.json", record)
