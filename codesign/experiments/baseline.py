@@ -39,6 +39,35 @@ EXPERIMENT = Experiment(
 
 
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
+    """Train the configured restorer with the configured mask frozen (or over the pool of data.masks), resuming a
+    killed run from its checkpoint, then evaluate it on the held-out scenes against the sensor image and classical
+    Wiener; writes checkpoint.pt, metrics.json, the evaluation tables and TensorBoard events; returns the
+    restorer's PSNR at alpha_l = 1e6. Steps: build, train, evaluate, report."""
+    job = _build(cfg, run_dir, device)
+    trainer = job["trainer"]
+    history = trainer.fit(job["log_every"])
+    fitted = trainer.calibrate()  # before the final scores and the evaluation, into the checkpoint (level_head)
+    seconds = trainer.train_seconds  # the whole run's, across resumes
+    if not job["ctx"].is_main:  # rank 0 evaluates and writes
+        return None
+    first, last = (history[0], history[-1]) if history else ({}, {})
+    metrics = {**job["common"], **job["sampling"], **job["warm"], **job["memory"], **distributed_metrics(trainer),
+               "steps": trainer.step, "seconds": seconds,
+               "skipped_updates": trainer.skipped, "undone_updates": trainer.rollbacks, **trainer.divergence(),
+               "vgg_loss": trainer.model.loss_status,
+               "loss_first": first, "loss_last": last, **trainer.last_val, **fitted,
+               "checkpoint": str(run_dir / CHECKPOINT_NAME)}
+    if trainer.data.pool is not None:
+        metrics["mask_pool"] = trainer.data.pool.report()
+    metrics.update(run_evaluation(job["ev"], trainer.model, trainer.restoring_modules(), trainer.data, run_dir,
+                                  job["seed"]))
+    return _report(run_dir, trainer, metrics, job["common"])
+
+
+def _build(cfg: DictConfig, run_dir: Path, device: torch.device) -> dict:
+    """Every setting checked, the restorer with its starting weights (fresh, or init.checkpoint's), the data (the
+    mask pool of data.masks), the reports made before any training, and the trainer, resumed when its run
+    directory holds a checkpoint, with its TensorBoard writer."""
     seed = check_seed(cfg)
     spec = TrainerSpec.from_config(to_container(cfg.trainer))
     ev = eval_settings(cfg)  # every evaluation setting checked before training starts
@@ -64,31 +93,21 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
              "VGG loss %s", common["network"], common["variant"], common["size"], common["parameters_generators"] / 1e6,
              common["parameters_critics"] / 1e6, spec.steps, int(cfg.data.batch_size), data.image_size,
              data.padded_size, model.loss_status)
-    history = trainer.fit(log_every)
-    fitted = trainer.calibrate()  # before the final scores and the evaluation, into the checkpoint (level_head)
-    seconds = trainer.train_seconds  # the whole run's, across resumes
-    if not ctx.is_main:  # rank 0 evaluates and writes
-        return None
-    first, last = (history[0], history[-1]) if history else ({}, {})
-    metrics = {**common, **sampling, **warm, **memory, **distributed_metrics(trainer), "steps": trainer.step,
-               "seconds": seconds,
-               "skipped_updates": trainer.skipped, "undone_updates": trainer.rollbacks, **trainer.divergence(),
-               "vgg_loss": model.loss_status,
-               "loss_first": first, "loss_last": last, **trainer.last_val, **fitted,
-               "checkpoint": str(run_dir / CHECKPOINT_NAME)}
-    if data.pool is not None:
-        metrics["mask_pool"] = data.pool.report()
-    metrics.update(run_evaluation(ev, model, trainer.restoring_modules(), data, run_dir, seed))
+    return {"seed": seed, "ev": ev, "log_every": log_every, "warm": warm, "ctx": ctx, "sampling": sampling,
+            "memory": memory, "trainer": trainer, "common": common}
+
+
+def _report(run_dir: Path, trainer, metrics: dict, common: dict) -> float:
+    """metrics.json and the hyper-parameter table of the TensorBoard events; returns the restorer's PSNR at
+    alpha_l = 1e6."""
     io.write_json(run_dir / "metrics.json", metrics)
     writer = trainer.writer
+    method = trainer.model.method
     if writer is not None:
-        method = model.method
         writer.add_hparams({"network": common["network"], "variant": common["variant"], "size": common["size"],
                             "steps": trainer.step},
                            {f"hparam/{k}": v for k, v in metrics.items()
                             if k.startswith((f"psnr_{method}", f"ssim_{method}")) and isinstance(v, float)},
                            run_name="hparams")
         writer.close()
-    return metrics.get(f"psnr_{model.method}_laser_1e6", float("nan"))
-
-
+    return metrics.get(f"psnr_{method}_laser_1e6", float("nan"))

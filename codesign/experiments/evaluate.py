@@ -94,6 +94,8 @@ class CheckedRestorer:
         return getattr(self._model, name)
 
     def restore(self, *args, **kwargs) -> dict:
+        """The model's restoration, refused (ConfigError naming the checkpoint) when any output holds a non-finite
+        value."""
         out = self._model.restore(*args, **kwargs)
         for name, value in out.items():
             bad = nonfinite_summary(value) if torch.is_tensor(value) else None
@@ -117,6 +119,10 @@ def refuse_other_model(cfg: DictConfig, ckpt_cfg: DictConfig, typed: frozenset[s
 
 
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
+    """A trained checkpoint (checkpoint=PATH, or pretrained) evaluated on held-out scenes simulated through its own
+    physics (its learned mask, unless a mask is typed here), against the sensor image and classical Wiener; writes
+    metrics.json, the evaluation tables and panels; returns the restorer's PSNR at alpha_l = 1e6. Steps: load
+    (the checkpoint and the merged configuration), build (the simulated data), evaluate, report."""
     path = cfg.get("checkpoint")
     if not path:
         raise ConfigError("checkpoint", path, "give the trained model: +experiment=evaluate checkpoint=PATH")

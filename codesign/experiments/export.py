@@ -76,9 +76,12 @@ def _line_outputs(run_dir: Path, metrics: dict, system, lines, mask, plate, mate
 
 
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
+    """The design as a plate (heights in the material, quantized to export.levels, on the export.pitch_m grid),
+    the ideal design and the plate seen again by the pupil grid scored side by side (and at every laser line when
+    configured); writes the height files, export.json, report.png and metrics.json; returns the exported plate's
+    LSR. Steps: build, score, write the plate, report."""
     spec, ex, material, mask_cfg, dtype = setup(cfg)
     ms = metrics_spec(cfg)
-    band, p = ms.mtf_band, ms.lsr_p
     material.check_wavelength(spec.wavelength_m)
     system = OpticalSystem(spec, dtype=dtype, device=device)
     mask = build_mask(mask_cfg, system.grid, spec.aperture_diameter_m).freeze()
@@ -88,50 +91,79 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
              f"{ex.levels} levels" if ex.levels else "continuous heights")
     plate = make_plate(mask_cfg, spec, ex, material)
     surface = PlatePhase(plate.pupil_phase(system.grid, dtype=dtype).to(device))
+    values, arrays = _score(cfg, system, ms, {"ideal": mask, "exported": surface})
+    sidecar = plate_sidecar(plate, ex, material, mask_cfg, spec)
+    metrics = _metrics(values, sidecar, mask_cfg["kind"], dtype)
+    lines = run_lines(cfg, system)
+    if lines is not None:
+        _line_outputs(run_dir, metrics, system, lines, mask, plate, material, mask_cfg["kind"], dtype)
+    _write_plate(run_dir, plate, sidecar)
+    io.save_figure(run_dir / "report.png", _report_figure(system, plate, sidecar, values, arrays, ex, material,
+                                                          mask_cfg["kind"], ms.mtf_band))
+    io.write_json(run_dir / "metrics.json", metrics)
+    _log_result(values, metrics, sidecar, plate)
+    log.info("wrote %s", run_dir)
+    return values["exported"]["lsr"]
 
-    limit = MTFLimit(system, band)
-    rest = restorability_tools(cfg, system, mask, None)
+
+def _score(cfg: DictConfig, system, ms, designs: dict) -> tuple[dict, dict]:
+    """Every figure of merit of each design (name -> mask), its limit and restorability: (values, arrays) by
+    name."""
+    limit = MTFLimit(system, ms.mtf_band)
+    rest = restorability_tools(cfg, system, designs["ideal"], None)
     values, arrays = {}, {}
-    for name, design in (("ideal", mask), ("exported", surface)):
-        v, arr = evaluate_mask(system, design, band, p, ms.lsr_grids)
+    for name, design in designs.items():
+        v, arr = evaluate_mask(system, design, ms.mtf_band, ms.lsr_p, ms.lsr_grids)
         v["lsr_limit"] = limit.lsr_limit(v["mtf_mean"], v["psf_energy_in_window"])
         v["lsr_over_limit"] = v["lsr"] / v["lsr_limit"]
         v["restorability"] = rest.score(design)
         values[name], arrays[name] = v, arr
+    return values, arrays
+
+
+def _metrics(values: dict, sidecar: dict, kind: str, dtype) -> dict:
+    """metrics.json's entries: the ideal and exported figures, their changes and the plate's description."""
     ideal, exported = values["ideal"], values["exported"]
-    sidecar = plate_sidecar(plate, ex, material, mask_cfg, spec)
-    metrics = {
+    return {
         **{f"{side}_{k}": values[side][k] for side in ("ideal", "exported") for k in FIGURES},
         "lsr_change": exported["lsr"] / ideal["lsr"] - 1,
         "mtf_mean_change": exported["mtf_mean"] / ideal["mtf_mean"] - 1,
         "restorability_change_db": exported["restorability"] - ideal["restorability"],
         **{k: sidecar[k] for k in ("pitch_m", "n", "size_m", "levels", "level_step_m", "material",
                                    "refractive_index", "wavelength_m", "full_wave_depth_m", "max_depth_m")},
-        "mask_kind": mask_cfg["kind"], "precision": str(dtype).replace("torch.", ""),
+        "mask_kind": kind, "precision": str(dtype).replace("torch.", ""),
     }
 
-    lines = run_lines(cfg, system)
-    if lines is not None:
-        _line_outputs(run_dir, metrics, system, lines, mask, plate, material, mask_cfg["kind"], dtype)
+
+def _write_plate(run_dir: Path, plate, sidecar: dict) -> None:
+    """The plate's heights [m] as .npy, 16-bit PNG and TIFF, and its description (export.json)."""
     height = plate.height.cpu().numpy()
     io.save_npy(run_dir / "height_m.npy", height)
     write_height_png(run_dir / "height.png", height, sidecar["metres_per_count"], sidecar)
     write_height_tiff(run_dir / "height.tif", height, sidecar["metres_per_count"], plate.pitch, sidecar)
     io.write_json(run_dir / "export.json", sidecar)
+
+
+def _report_figure(system, plate, sidecar: dict, values: dict, arrays: dict, ex, material, kind: str, band):
+    """report.png: the heights, the ideal and the exported PSF, their radial MTFs and the phase difference."""
+    spec = system.spec
     f, rad_ideal, rad0 = arrays["ideal"]["mtf_radial"].cpu().numpy()
     rad_exp = arrays["exported"]["mtf_radial"][1].cpu().numpy()
     label = f"{ex.levels} levels" if ex.levels else "continuous"
-    fig = export_figure(
-        height, plate.inside.cpu().numpy(), plate.pitch,
-        {f"ideal PSF, LSR {ideal['lsr']:.4g}": arrays["ideal"]["psf"].cpu().numpy(),
-         f"exported PSF ({label}), LSR {exported['lsr']:.4g}": arrays["exported"]["psf"].cpu().numpy()},
+    return export_figure(
+        plate.height.cpu().numpy(), plate.inside.cpu().numpy(), plate.pitch,
+        {f"ideal PSF, LSR {values['ideal']['lsr']:.4g}": arrays["ideal"]["psf"].cpu().numpy(),
+         f"exported PSF ({label}), LSR {values['exported']['lsr']:.4g}": arrays["exported"]["psf"].cpu().numpy()},
         spec.focal_pitch_m, {"ideal": rad_ideal, f"exported ({label})": rad_exp, "uncoded": rad0}, f, band,
         phase_difference(arrays["exported"]["phase"], arrays["ideal"]["phase"], system.grid.aperture),
         spec.pupil_pitch_m,
-        f"{mask_cfg['kind']} design in {material.name} at {spec.wavelength_m * 1e9:.4g} nm: max depth "
+        f"{kind} design in {material.name} at {spec.wavelength_m * 1e9:.4g} nm: max depth "
         f"{sidecar['max_depth_m'] * 1e6:.3f} um, pitch {plate.pitch * 1e6:.3g} um")
-    io.save_figure(run_dir / "report.png", fig)
-    io.write_json(run_dir / "metrics.json", metrics)
+
+
+def _log_result(values: dict, metrics: dict, sidecar: dict, plate) -> None:
+    """The ideal and the exported design's figures, one line each."""
+    ideal, exported = values["ideal"], values["exported"]
     log.info("ideal: LSR %.4g, mtf_mean %.4g, %.2fx the limit, restorability %.2f dB", ideal["lsr"],
              ideal["mtf_mean"], ideal["lsr_over_limit"], ideal["restorability"])
     log.info("exported: LSR %.4g (%+.2f%%), mtf_mean %.4g (%+.2f%%), %.2fx the limit, restorability %.2f dB "
@@ -139,5 +171,3 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
              exported["mtf_mean"], 100 * metrics["mtf_mean_change"], exported["lsr_over_limit"],
              exported["restorability"], metrics["restorability_change_db"], sidecar["max_depth_m"] * 1e6,
              plate.full_wave_depth_m * 1e6)
-    log.info("wrote %s", run_dir)
-    return exported["lsr"]

@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import io as _stringio
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -16,7 +17,7 @@ from codesign.config.runtime import resolve_dtype, to_container
 from codesign.design.check import report_sampling, sampling_of, sampling_report, verify_design
 from codesign.design.tradeoff_figures import evaluations_figure
 from codesign.design.limits import MTFLimit
-from codesign.design.merit import MaskMonitor, metrics_spec, published_reference
+from codesign.design.merit import MaskMonitor, MetricsSpec, metrics_spec, published_reference
 from codesign.design.problem import DesignProblem, Limits
 from codesign.optics.masks.base import PhaseFitSpec
 from codesign.optics.masks.records import write_record
@@ -28,7 +29,7 @@ from codesign.errors import ConfigError
 from codesign.fab.laser_lines import lines_summary, log_lines, run_lines, surface_name
 from codesign.io import files as io, plots
 from codesign.io.tensorboard import open_writer, tensorboard_enabled
-from codesign.optics import OpticalSystem, OpticsSpec, build_mask, circular_mtf, metrics
+from codesign.optics import OpticalSystem, OpticsSpec, RadialMTF, build_mask, circular_mtf, metrics
 from codesign.optics.lines import smooth_lsr
 from codesign.experiments.protocol import Experiment
 from codesign.signals import Interrupted
@@ -51,57 +52,103 @@ PARTIAL_RECORD = "best_mask.partial.json"
 
 
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
+    """The search of search.* over the configured mask family's parameter vector, from the published mask's
+    figures as the baseline; then the best design measured, re-checked and written (best_mask.json, metrics.json,
+    evaluations.csv, figures); an interrupted search keeps its best point as a partial record. Returns the best
+    design's certified LSR (NaN when infeasible). Steps: build, search, report."""
+    job = _build(cfg, run_dir, device)
+    search = job.search
+    try:
+        main = search.run()
+        out = _outputs(job, main)
+    except Interrupted as stop:
+        raise _interrupted(stop, run_dir, search, job.mask, job.system.spec) from None
+    finally:
+        if search.writer is not None:
+            search.writer.close()
+    return out["lsr"] if out["feasible"] else float("nan")
+
+
+@dataclass
+class _Job:
+    """A search and what its report needs: settings, optics, the searched mask, the published mask with its
+    figures (the baseline), the MTF limit, the restorability tools, the laser lines (or None)."""
+
+    s: SearchSpec
+    ms: MetricsSpec
+    run_dir: Path
+    device: torch.device
+    system: OpticalSystem
+    mask: object
+    published: object
+    lines: object
+    base: dict
+    base_arr: dict
+    limit: MTFLimit
+    rest: object
+    radial: RadialMTF
+    search: MaskSearch | None = None
+
+
+def _build(cfg: DictConfig, run_dir: Path, device: torch.device) -> _Job:
+    """Settings, optics and mask, the published baseline and the search with its limits and starts."""
     s = SearchSpec.from_config(to_container(cfg.get("search")))
     ms = metrics_spec(cfg)
     spec = OpticsSpec.from_config(to_container(cfg.optics))
     mask_cfg = to_container(cfg.mask)
     system = OpticalSystem(spec, dtype=resolve_dtype("search.precision", s.precision), device=device)
     mask = build_mask(mask_cfg, system.grid, spec.aperture_diameter_m)
-    n = mask.vector_size
     published = published_reference(mask_cfg, system)  # the same conventions: only the parameters differ
     lines = run_lines(cfg, system, "search.lsr_over" if s.lsr_over == "wavelengths" else None)
     monitor = MaskMonitor(system, published, ms.mtf_band, ms.lsr_p, ms.lsr_grids)
-    base, base_arr = monitor.measure(published, refine=True)
-    if s.lsr_over == "wavelengths":  # a ceiling "published" is the published mask's worst sampled line
-        _, worst_sampled = smooth_lsr(system, published.phase().detach(), None, ms.lsr_p, ms.lsr_grids,
-                                      published.plate_cell_m, lines)
-        base["lsr_sampled"] = float(worst_sampled)
+    base, base_arr = _published_figures(s, ms, monitor, published, lines)
     limit = MTFLimit(system, ms.mtf_band)
-    needs_restorability = s.objective == "restorability" or s.restorability_floor is not None
     rest = restorability_tools(cfg, system, mask, s.restorability_alpha_l)  # reported for every design
     base["restorability"] = rest.score(published)
-    limits = search_limits(s, mask, base, base_arr, limit, ms.lsr_p)
-    init = start_init(s.init, mask)
+    job = _Job(s, ms, run_dir, device, system, mask, published, lines, base, base_arr, limit, rest, monitor.radial)
     defocus = s.defocus_rad if s.defocus_rad is not None else mask_cfg.get("defocus_rad", PhaseFitSpec.defocus_rad)
-    init_x = start_vector(init, mask, published, defocus)
+    job.search = _search(job, open_writer(run_dir, tensorboard_enabled(cfg)), defocus)
+    return job
+
+
+def _published_figures(s: SearchSpec, ms, monitor, published, lines) -> tuple[dict, dict]:
+    """The published mask's refined figures and arrays: the search's baseline (with search.lsr_over=wavelengths
+    its sampled LSR is the worst line's, what a ceiling "published" means)."""
+    base, base_arr = monitor.measure(published, refine=True)
+    if s.lsr_over == "wavelengths":  # a ceiling "published" is the published mask's worst sampled line
+        _, worst_sampled = smooth_lsr(monitor.system, published.phase().detach(), None, ms.lsr_p, ms.lsr_grids,
+                                      published.plate_cell_m, lines)
+        base["lsr_sampled"] = float(worst_sampled)
+    return base, base_arr
+
+
+def _search(job: _Job, writer, defocus: float) -> MaskSearch:
+    """The MaskSearch of the job: its limits from the baseline, its start points, one DesignProblem per floor."""
+    s, ms, system, mask, lines = job.s, job.ms, job.system, job.mask, job.lines
+    n = mask.vector_size
+    needs_restorability = s.objective == "restorability" or s.restorability_floor is not None
+    limits = search_limits(s, mask, job.base, job.base_arr, job.limit, ms.lsr_p)
+    init = start_init(s.init, mask)
+    init_x = start_vector(init, mask, job.published, defocus)
     schedule = s.schedule(n, ms.lsr_p)
     lower, upper = (b.numpy() for b in mask.bounds())
     starts = start_points(init_x, init, s.resolved_starts(n), mask.random_vector, s.seed)
-    radial = monitor.radial
+    radial = job.radial
 
     def make_problem(lim: Limits) -> DesignProblem:
         return DesignProblem(system, mask, radial, ms.mtf_band, s.objective, lim,
-                             rest.pair if needs_restorability else None, lsr_grids=ms.lsr_grids,
+                             job.rest.pair if needs_restorability else None, lsr_grids=ms.lsr_grids,
                              lines=lines if s.lsr_over == "wavelengths" else None)
 
-    search = MaskSearch(s, n, limits, make_problem, starts, mask.random_vector, (lower, upper), schedule,
-                        open_writer(run_dir, tensorboard_enabled(cfg)))
+    search = MaskSearch(s, n, limits, make_problem, starts, mask.random_vector, (lower, upper), schedule, writer)
     log.info("%s search of a %s mask, %d parameters: %s, %d start(s) x %d evaluations, p %s; objective %s; "
              "constraints %s; published LSR %.4g, mtf_mean %.4g; pupil %d, window %d, %s%s", s.objective, mask.kind,
              n, search.algorithm, len(starts), search.max_evals, list(schedule), s.objective,
-             {k: getattr(limits, k) for k in limits.active}, base["lsr"], base["mtf_mean"], spec.grid_n, spec.focal_n,
-             system.dtype, "" if s.lsr_over == "design" else f"; LSR: the worst of the lines "
-             f"{[round(w * 1e9, 1) for w in lines.wavelengths]} nm ({surface_name(lines.wrap)})")
-    try:
-        main = search.run()
-        out = _outputs(run_dir, s, ms, system, mask, published, base, base_arr, limit, rest, search, main, device,
-                       lines)
-    except Interrupted as stop:
-        raise _interrupted(stop, run_dir, search, mask, spec) from None
-    finally:
-        if search.writer is not None:
-            search.writer.close()
-    return out["lsr"] if out["feasible"] else float("nan")
+             {k: getattr(limits, k) for k in limits.active}, job.base["lsr"], job.base["mtf_mean"],
+             system.spec.grid_n, system.spec.focal_n, system.dtype, "" if s.lsr_over == "design" else
+             f"; LSR: the worst of the lines {[round(w * 1e9, 1) for w in lines.wavelengths]} nm "
+             f"({surface_name(lines.wrap)})")
+    return search
 
 
 def _interrupted(stop: Interrupted, run_dir: Path, search: MaskSearch, mask, spec) -> Interrupted:
@@ -153,33 +200,64 @@ def _measure(monitor, limit, rest, mask) -> tuple[dict, dict]:
     return values, arrays
 
 
-def _outputs(run_dir: Path, s: SearchSpec, ms, system, mask, published, base, base_arr, limit, rest, search, main,
-             device, lines=None) -> dict:
+def _outputs(job: _Job, main) -> dict:
     """Measure and re-check the best design, sweep front, files and figures; returns metrics.json's content."""
-    spec = system.spec
+    s, ms, system, mask, run_dir = job.s, job.ms, job.system, job.mask, job.run_dir
     monitor = MaskMonitor(system, None, ms.mtf_band, ms.lsr_p, ms.lsr_grids)
-    front = []
-    for sw in search.sweeps:
-        x, feasible = sw.problem.result_x()
-        if x is None:
-            continue
-        mask.set_vector(torch.from_numpy(x))
-        v, _ = _measure(monitor, limit, rest, mask)
-        front.append({"factor": sw.factor, "mtf_floor": sw.limits.mtf, "feasible": feasible, "evaluations":
-                      sw.problem.evaluations, "seconds": sw.seconds, **{k: v[k] for k in (
-                          "lsr", "lsr_smooth", "mtf_mean", "bsr", "window_energy", "lsr_limit", "lsr_over_limit",
-                          "restorability")}})
+    front = _front(job, monitor)
     x, feasible = main.problem.result_x()
     if x is None:
         raise ConfigError("search", s.objective, "no evaluation finished with finite figures: nothing to report")
     mask.set_vector(torch.from_numpy(x))
-    values, arrays = _measure(monitor, limit, rest, mask)
-    _add_limit(base, base_arr, limit)
+    values, arrays = _measure(monitor, job.limit, job.rest, mask)
+    _add_limit(job.base, job.base_arr, job.limit)
     if not feasible:
         log.error("NO FEASIBLE POINT in %d evaluations: the outputs describe the point closest to the constraints "
                   "(violation %.3g)", main.problem.evaluations, main.problem.least.violation,
                   extra={"smoke_expected": True})
-    check = verify_design(mask.freeze(), spec, ms.mtf_band, ms.recheck_tolerance) if s.check else None
+    check, sampling = _recheck(job, mask)
+    quantized = quantized_figures(mask, monitor, job.rest, (2, 4, 8, 16))
+    figures = {k: values[k] for k in ("lsr", "lsr_smooth", "lsr_sampled", "mtf_mean", "window_energy", "lsr_limit",
+                                      "lsr_over_limit", "restorability")}
+    write_record(run_dir / "best_mask.json", mask, system.spec, {**figures, "feasible": feasible,
+                                                                "check_agree": check["agree"] if check else None,
+                                                                "phase_resolved": sampling["phase_resolved"]})
+    job.search.record = run_dir / "best_mask.json"
+    (run_dir / PARTIAL_RECORD).unlink(missing_ok=True)  # an earlier interrupted run's: this search finished
+    _write_evaluations(run_dir / "evaluations.csv", job.search.sweeps, mask)
+    metrics = {**figures, "mtf_min": values["mtf_min"], "bsr": values["bsr"], "feasible": feasible,
+               "min_violation": 0.0 if feasible else main.problem.least.violation, **_record(job, main, values),
+               "check": check, **sampling, "quantized": quantized, "pareto": front}
+    if job.lines is not None:
+        _line_metrics(job, metrics)
+    io.write_json(run_dir / "metrics.json", metrics)
+    _figures(run_dir, system, mask, (values, arrays), (job.base, job.base_arr), job.limit, ms, monitor.radial,
+             job.search, front)
+    _log_best(job, main, values, check, feasible, metrics["evals_per_second"])
+    return metrics
+
+
+def _front(job: _Job, monitor) -> list[dict]:
+    """The best point of every floor of the sweep, measured: the front of pareto.png and metrics.json."""
+    front = []
+    for sw in job.search.sweeps:
+        x, feasible = sw.problem.result_x()
+        if x is None:
+            continue
+        job.mask.set_vector(torch.from_numpy(x))
+        v, _ = _measure(monitor, job.limit, job.rest, job.mask)
+        front.append({"factor": sw.factor, "mtf_floor": sw.limits.mtf, "feasible": feasible, "evaluations":
+                      sw.problem.evaluations, "seconds": sw.seconds, **{k: v[k] for k in (
+                          "lsr", "lsr_smooth", "mtf_mean", "bsr", "window_energy", "lsr_limit", "lsr_over_limit",
+                          "restorability")}})
+    return front
+
+
+def _recheck(job: _Job, mask) -> tuple[dict | None, dict]:
+    """The best design re-checked on a finer grid and a whole-PSF window (search.check), and its phase sampling:
+    (the check or None, the sampling report)."""
+    ms, spec = job.ms, job.system.spec
+    check = verify_design(mask.freeze(), spec, ms.mtf_band, ms.recheck_tolerance) if job.s.check else None
     if check is not None and not check["agree"]:
         log.warning("the best design does NOT survive the re-check: its LSR / mtf_mean on a pupil grid twice as "
                     "fine and a window twice as wide differ by up to %.1f%% (tolerance %.0f%%): part of its gain is "
@@ -187,49 +265,48 @@ def _outputs(run_dir: Path, s: SearchSpec, ms, system, mask, published, base, ba
                     100 * ms.recheck_tolerance, extra={"smoke_expected": True})
     sampling = report_sampling(sampling_of(check["design"], check["fine"]), log, "the best design") if check \
         else sampling_report(mask.freeze(), spec, ms.mtf_band, log, "the best design")
-    quantized = quantized_figures(mask, monitor, rest, (2, 4, 8, 16))
-    figures = {k: values[k] for k in ("lsr", "lsr_smooth", "lsr_sampled", "mtf_mean", "window_energy", "lsr_limit",
-                                      "lsr_over_limit", "restorability")}
-    write_record(run_dir / "best_mask.json", mask, spec, {**figures, "feasible": feasible,
-                                                         "check_agree": check["agree"] if check else None,
-                                                         "phase_resolved": sampling["phase_resolved"]})
-    search.record = run_dir / "best_mask.json"
-    (run_dir / PARTIAL_RECORD).unlink(missing_ok=True)  # an earlier interrupted run's: this search finished
-    _write_evaluations(run_dir / "evaluations.csv", search.sweeps, mask)
-    metrics = {
-        **figures, "mtf_min": values["mtf_min"], "bsr": values["bsr"], "feasible": feasible,
-        "min_violation": 0.0 if feasible else main.problem.least.violation, "mask_kind": mask.kind,
-        "parameters": mask.vector_size, **mask.summary(),
+    return check, sampling
+
+
+def _record(job: _Job, main, values: dict) -> dict:
+    """metrics.json's description of the design, the published baseline, the search and the optics."""
+    s, ms, mask, base, search, spec = job.s, job.ms, job.mask, job.base, job.search, job.system.spec
+    return {
+        "mask_kind": mask.kind, "parameters": mask.vector_size, **mask.summary(),
         **{f"{k}_published": base[k] for k in ("lsr", "lsr_smooth", "mtf_mean", "mtf_min", "bsr", "window_energy",
                                               "lsr_limit", "lsr_over_limit", "restorability")},
-        "lsr_vs_published": values["lsr"] / base["lsr"], "mtf_mean_uncoded": limit.uncoded_mtf_mean,
+        "lsr_vs_published": values["lsr"] / base["lsr"], "mtf_mean_uncoded": job.limit.uncoded_mtf_mean,
         "limits": {k: getattr(main.limits, k) for k in main.limits.active}, "objective": s.objective,
-        "check": check, **sampling, "quantized": quantized, "starts": main.starts, "pareto": front,
-        "evaluations": main.problem.evaluations, "evaluations_total": search.evaluations,
+        "starts": main.starts, "evaluations": main.problem.evaluations, "evaluations_total": search.evaluations,
         "seconds": main.seconds, "evals_per_second": main.problem.evaluations / max(main.seconds, 1e-12),
         "algorithm": search.algorithm, "lsr_p_schedule": list(search.schedule), "n_starts": len(main.starts),
         "max_evals": search.max_evals, "seed": s.seed, "lsr_p": ms.lsr_p, "mtf_band_low": ms.mtf_band[0],
         "mtf_band_high": ms.mtf_band[1], "pupil_n": spec.grid_n, "pupil_pitch_m": spec.pupil_pitch_m,
-        "focal_n": spec.focal_n, "focal_pitch_m": spec.focal_pitch_m, "propagator": system.method,
-        "precision": s.precision, "device": str(device), "threads": torch.get_num_threads()}
-    if lines is not None:
-        metrics["lsr_over"] = s.lsr_over
-        metrics["laser_lines"] = summary = lines_summary(lines, {"best": mask.phase().detach(), "published":
-                                                                 published.phase().detach()}, mask.plate_cell_m)
-        for name, label in (("best", f"best {mask.kind}"), ("published", "published mask")):
-            log_lines(summary, name, label)
-            metrics[f"lsr_worst_line{'' if name == 'best' else '_published'}"] = summary[name]["lsr_worst"]
-    io.write_json(run_dir / "metrics.json", metrics)
-    _figures(run_dir, system, mask, (values, arrays), (base, base_arr), limit, ms, monitor.radial, search, front)
+        "focal_n": spec.focal_n, "focal_pitch_m": spec.focal_pitch_m, "propagator": job.system.method,
+        "precision": s.precision, "device": str(job.device), "threads": torch.get_num_threads()}
+
+
+def _line_metrics(job: _Job, metrics: dict) -> None:
+    """The best and the published mask at every laser line, into ``metrics`` (laser_lines, lsr_worst_line*)."""
+    mask = job.mask
+    metrics["lsr_over"] = job.s.lsr_over
+    metrics["laser_lines"] = summary = lines_summary(job.lines, {"best": mask.phase().detach(), "published":
+                                                                 job.published.phase().detach()}, mask.plate_cell_m)
+    for name, label in (("best", f"best {mask.kind}"), ("published", "published mask")):
+        log_lines(summary, name, label)
+        metrics[f"lsr_worst_line{'' if name == 'best' else '_published'}"] = summary[name]["lsr_worst"]
+
+
+def _log_best(job: _Job, main, values: dict, check: dict | None, feasible: bool, rate: float) -> None:
+    """The search's one closing line: the best design against the published one, the re-check, the cost."""
+    base = job.base
     log.info("best %s: LSR %.4g (published %.4g, %.2fx the limit %.4g), mtf_mean %.4g, window energy %.4f, "
              "restorability %.2f dB (published %.2f)%s; %d evaluations in %.0f s (%.2f/s); wrote %s",
              "design" if feasible else "INFEASIBLE point", values["lsr"], base["lsr"], values["lsr_over_limit"],
              values["lsr_limit"], values["mtf_mean"], values["window_energy"], values["restorability"],
              base["restorability"], "" if check is None else f"; re-check {'agrees' if check['agree'] else 'FAILS'} "
              f"(max deviation {100 * check['max_deviation']:.2f}%)", main.problem.evaluations, main.seconds,
-             metrics["evals_per_second"], run_dir,
-             extra={"smoke_expected": not feasible or (check is not None and not check["agree"])})
-    return metrics
+             rate, job.run_dir, extra={"smoke_expected": not feasible or (check is not None and not check["agree"])})
 
 
 def _write_evaluations(path: Path, sweeps, mask) -> None:

@@ -87,69 +87,123 @@ def warn_laser_off_sensor(angle: list[float], focal_length_m: float, side_m: flo
 
 
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
-    sim_spec = SimulateSpec.from_config(to_container(cfg.get("simulate")) or {})
+    """Test scenes through the configured camera at each of simulate.laser_strengths: the 16-bit captures (in
+    captures/), their grid figures, example arrays, the simulator's throughput on a training-like batch and
+    metrics.json; returns the seconds per simulated image. Steps: build, simulate, time, report."""
+    s = SimulateSpec.from_config(to_container(cfg.get("simulate")) or {})
     dtype = resolve_dtype("precision", cfg.get("precision"))
-    alphas, n_scenes, angle = sim_spec.laser_strengths, sim_spec.scenes, list(sim_spec.laser_angle_rad)
-    repeats, fixed = sim_spec.timing_repeats, sim_spec.params
+    camera, names, scenes, reports = _build(cfg, s, device, dtype)
+    optics = camera.frozen_optics()
+    seed = check_seed(cfg)
+    with torch.no_grad():
+        grid, metrics = _simulate(run_dir, camera.simulator, optics, scenes, names, s, seed, device, dtype)
+        seconds, batch = _throughput(cfg, camera.simulator, optics, scenes, s.timing_repeats, seed, device, dtype)
+    _report(cfg, run_dir, camera, optics.state, grid, names, s.laser_strengths, metrics, reports, dtype, device,
+            {"seconds_per_image": seconds, "images_per_second": 1.0 / seconds, "batch_size": batch})
+    log.info("scenes %s; saturated fraction per alpha_l: %s; %.4f s/image (%.1f images/s, batch %d, %s path)",
+             ", ".join(names), ", ".join(f"{alpha_tag(a)}: {metrics[f'saturated_fraction_alpha_l_{alpha_tag(a)}']:.4f}"
+                                         for a in s.laser_strengths), seconds, 1 / seconds, batch,
+             camera.simulator.sensor.path)
+    return seconds
+
+
+def _build(cfg: DictConfig, s: SimulateSpec, device, dtype) -> tuple:
+    """The camera, the test scenes (names, tensor) and the reports made before any work (phase sampling, a laser
+    beyond the sensor, a measured PSF): (camera, names, scenes, reports)."""
     source = build_scene_source(cfg.data)
     camera = build_camera(cfg, device, dtype)
     sim = camera.simulator
-    names = source.split_names("test")[:n_scenes]
-    if len(names) < n_scenes:
-        names = source.split_names("all")[:n_scenes]
+    names = source.split_names("test")[:s.scenes]
+    if len(names) < s.scenes:
+        names = source.split_names("all")[:s.scenes]
     scenes = source.fixed_batch(names, sim.scene_size).to(device=device, dtype=dtype)
     log.info("sensor path %s: %d x %d network pixels of %.3g m (bin %.3f), scene crop %d, PSF kernel %d",
              sim.sensor.path, sim.sensor.image_size, sim.sensor.image_size, sim.sensor.coarse_pitch_m,
              sim.sensor.bin_factor, sim.scene_size, sim.coarse.ksize)
     sampling = camera_sampling_report(camera, cfg, log)
-    off_sensor = warn_laser_off_sensor(angle, sim.optics.focal_length_m, sim.sensor.side_m, camera.halo_on)
+    off_sensor = warn_laser_off_sensor(list(s.laser_angle_rad), sim.optics.focal_length_m, sim.sensor.side_m,
+                                       camera.halo_on)
     curves: dict = {}
     measured = measured_psf_report(camera, cfg, log, curves)
-    optics = camera.frozen_optics()
-    state, key = optics.state, optics.key
-    seed = check_seed(cfg)
-    grid = np.zeros((len(names), len(alphas), sim.sensor.image_size, sim.sensor.image_size))
+    return camera, names, scenes, {"sampling": sampling, "off_sensor": off_sensor, "measured": measured,
+                                   "curves": curves}
+
+
+def _simulate(run_dir: Path, sim, optics, scenes, names: list[str], s: SimulateSpec, seed: int, device,
+              dtype) -> tuple[np.ndarray, dict]:
+    """The scenes at every laser strength (noise seed ``seed`` + its index): the captures written, the example
+    arrays of the last; returns (the captures in DN, (scenes, strengths, H, W); saturation and laser peak per
+    strength)."""
+    alphas, size = s.laser_strengths, sim.sensor.image_size
+    grid = np.zeros((len(names), len(alphas), size, size))
     metrics = {}
-    with torch.no_grad():
-        for j, a in enumerate(alphas):
-            params = fixed_scene_params(len(names), dtype=dtype, device=device, alpha_l=a,
-                                        laser_angle_rad=angle, **fixed)
-            out = sim(scenes, params, state, seed=seed + j, mask_key=key)
-            dn = out["sensor_dn"][:, 0].cpu().numpy()
-            grid[:, j] = dn
-            metrics[f"saturated_fraction_alpha_l_{alpha_tag(a)}"] = float(out["saturated"].float().mean())
-            metrics[f"laser_peak_alpha_l_{alpha_tag(a)}"] = float(out["laser"].max())
-            for i, name in enumerate(names):
-                save_png16(run_dir / CAPTURES / f"sensor_{name}_alpha_l_{alpha_tag(a)}.png", dn[i])
-            if j == len(alphas) - 1:
-                io.save_npy(run_dir / "example_sensor.npy", out["sensor"][0, 0])
-                io.save_npy(run_dir / "example_irradiance_target.npy", out["irradiance"][0, 0])
-                io.save_npy(run_dir / "example_scene_target.npy", out["scene"][0, 0])
-        # throughput on a training-like batch (random Sec. 6.2 parameters)
-        gen = torch.Generator().manual_seed(seed)
-        batch = int(cfg.data.batch_size)
-        side_m = sim.sensor.side_m
-        sp = sample_scene_params(batch, gen, cfg.data.params, sensor_width_m=side_m, sensor_height_m=side_m,
-                                 focal_length_m=sim.optics.focal_length_m)
-        sp = sp.to(device, dtype)
-        idx = torch.arange(batch) % scenes.shape[0]
-        bscenes = scenes[idx]
-        sim(bscenes, sp, state, seed=seed, mask_key=key)  # warm-up (fills the kernel cache)
-        t0 = time.perf_counter()
-        for r in range(repeats):
-            sim(bscenes, sp, state, seed=seed + r, mask_key=key)
-        seconds = (time.perf_counter() - t0) / (repeats * batch)
+    for j, a in enumerate(alphas):
+        params = fixed_scene_params(len(names), dtype=dtype, device=device, alpha_l=a,
+                                    laser_angle_rad=list(s.laser_angle_rad), **s.params)
+        out = sim(scenes, params, optics.state, seed=seed + j, mask_key=optics.key)
+        dn = out["sensor_dn"][:, 0].cpu().numpy()
+        grid[:, j] = dn
+        metrics[f"saturated_fraction_alpha_l_{alpha_tag(a)}"] = float(out["saturated"].float().mean())
+        metrics[f"laser_peak_alpha_l_{alpha_tag(a)}"] = float(out["laser"].max())
+        for i, name in enumerate(names):
+            save_png16(run_dir / CAPTURES / f"sensor_{name}_alpha_l_{alpha_tag(a)}.png", dn[i])
+        if j == len(alphas) - 1:
+            io.save_npy(run_dir / "example_sensor.npy", out["sensor"][0, 0])
+            io.save_npy(run_dir / "example_irradiance_target.npy", out["irradiance"][0, 0])
+            io.save_npy(run_dir / "example_scene_target.npy", out["scene"][0, 0])
+    return grid, metrics
+
+
+def _throughput(cfg: DictConfig, sim, optics, scenes, repeats: int, seed: int, device, dtype) -> tuple[float, int]:
+    """Seconds per image of the simulator on a training-like batch (random Sec. 6.2 parameters, data.batch_size),
+    after one warm-up that fills the kernel cache: (seconds, batch size)."""
+    gen = torch.Generator().manual_seed(seed)
+    batch = int(cfg.data.batch_size)
+    side_m = sim.sensor.side_m
+    sp = sample_scene_params(batch, gen, cfg.data.params, sensor_width_m=side_m, sensor_height_m=side_m,
+                             focal_length_m=sim.optics.focal_length_m)
+    sp = sp.to(device, dtype)
+    idx = torch.arange(batch) % scenes.shape[0]
+    bscenes = scenes[idx]
+    sim(bscenes, sp, optics.state, seed=seed, mask_key=optics.key)  # warm-up (fills the kernel cache)
+    t0 = time.perf_counter()
+    for r in range(repeats):
+        sim(bscenes, sp, optics.state, seed=seed + r, mask_key=optics.key)
+    return (time.perf_counter() - t0) / (repeats * batch), batch
+
+
+def _report(cfg: DictConfig, run_dir: Path, camera, state, grid: np.ndarray, names: list[str], alphas, metrics: dict,
+            reports: dict, dtype, device, timing: dict) -> None:
+    """The grid figures (linear, log), the measured PSF's figure, metrics.json and the TensorBoard events."""
+    sim = camera.simulator
     full = sim.sensor.gain_dn_per_e * sim.sensor.full_well_e
     io.save_figure(run_dir / "sensor_grid_linear.png", _grid_figure(grid, names, alphas, False, full))
     io.save_figure(run_dir / "sensor_grid_log.png", _grid_figure(grid, names, alphas, True, full))
+    measured = reports["measured"]
     if measured:
         io.save_figure(run_dir / "measured_psf.png", measured_psf_figure(
-            curves, f"measured PSF {Path(measured['measured_psf']).name} against the design {camera.mask.kind} mask"))
+            reports["curves"], f"measured PSF {Path(measured['measured_psf']).name} against the design "
+            f"{camera.mask.kind} mask"))
+    metrics.update({**reports["sampling"], **measured, **timing,
+                    **_camera_figures(sim, state, reports["off_sensor"], len(names)),
+                    "precision": str(dtype).replace("torch.", ""), "device": str(device),
+                    "threads": torch.get_num_threads()})
+    io.write_json(run_dir / "metrics.json", metrics)
+    writer = open_writer(run_dir, tensorboard_enabled(cfg))
+    if writer is not None:
+        for j, a in enumerate(alphas):  # log10 counts, full scale = 1: the laser structure stays visible
+            img = np.log10(np.maximum(grid[:, j], 1.0))[:, None] / np.log10(full)
+            writer.add_images(f"sensor_log10/alpha_l_{alpha_tag(a)}", img.astype(np.float32), 0)
+    log_summary(writer, {"sensor_path": sim.sensor.path, "image_size": sim.sensor.image_size}, metrics)
+
+
+def _camera_figures(sim, state, off_sensor: bool, scenes: int) -> dict:
+    """What metrics.json records of the camera: its sampled LSR (at the design line and the laser's), BSR, window
+    energy, the sensor's geometry and saturation irradiance [W/m^2]."""
     lsr = float(state.psf.max()) / state.uncoded_peak
     laser = state.laser or state  # the laser's own PSF when it shines at another line than the scene
     bsr_window = float(state.psf.sum()) / state.uncoded_energy
-    metrics.update({
-        **sampling, **measured, "seconds_per_image": seconds, "images_per_second": 1.0 / seconds, "batch_size": batch,
+    return {
         "sensor_path": sim.sensor.path, "lsr_sampled": lsr, "laser_off_sensor": off_sensor,
         "laser_wavelength_m": sim.sensor.wavelength_laser_m,
         "lsr_sampled_laser_line": float(laser.psf.max()) / laser.uncoded_peak,
@@ -160,18 +214,6 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         "background_veil": sim.sensor.background_veil,
         "image_size": sim.sensor.image_size, "padded_size": sim.sensor.padded_size,
         "network_pixel_pitch_m": sim.sensor.coarse_pitch_m, "sensor_resolution": sim.sensor.resolution,
-        "scene_size": sim.scene_size, "psf_kernel_size": sim.coarse.ksize, "scenes": len(names),
+        "scene_size": sim.scene_size, "psf_kernel_size": sim.coarse.ksize, "scenes": scenes,
         "saturation_irradiance_w_m2": sim.sensor.saturation_irradiance(sim.sensor.wavelength_laser_m),
-        "precision": str(dtype).replace("torch.", ""), "device": str(device), "threads": torch.get_num_threads(),
-    })
-    io.write_json(run_dir / "metrics.json", metrics)
-    writer = open_writer(run_dir, tensorboard_enabled(cfg))
-    if writer is not None:
-        for j, a in enumerate(alphas):  # log10 counts, full scale = 1: the laser structure stays visible
-            img = np.log10(np.maximum(grid[:, j], 1.0))[:, None] / np.log10(full)
-            writer.add_images(f"sensor_log10/alpha_l_{alpha_tag(a)}", img.astype(np.float32), 0)
-    log_summary(writer, {"sensor_path": sim.sensor.path, "image_size": sim.sensor.image_size}, metrics)
-    log.info("scenes %s; saturated fraction per alpha_l: %s; %.4f s/image (%.1f images/s, batch %d, %s path)",
-             ", ".join(names), ", ".join(f"{alpha_tag(a)}: {metrics[f'saturated_fraction_alpha_l_{alpha_tag(a)}']:.4f}"
-                                         for a in alphas), seconds, 1 / seconds, batch, sim.sensor.path)
-    return seconds
+    }

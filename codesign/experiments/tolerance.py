@@ -108,6 +108,10 @@ def _interrupted(stop: Interrupted, run_dir: Path, rows, progress: _Progress) ->
 
 
 def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
+    """The plate of the configured design under fabrication and assembly errors: each source alone, then every
+    source at once (Monte Carlo of tolerance.*), the LSR and mtf_mean of each sample; writes samples.csv,
+    tolerance.png and metrics.json (an interrupted run keeps the finished sources in samples.partial.csv); returns
+    the yield (the share of plates with LSR under the ceiling). Steps: build, Monte Carlo, report."""
     spec, ex, material, mask_cfg, dtype = setup(cfg)
     ts = ToleranceSpec.from_config(to_container(cfg.get("tolerance")))
     band = metrics_spec(cfg).mtf_band
@@ -117,12 +121,22 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     gen = torch.Generator().manual_seed(ts.seed)
     evaluate = PlateEvaluator(plate, system, material, band, gen, ts.batch)
     active = tuple(s for s in SOURCES if ts.sigma(s) > 0)
-    nominal_lsr, nominal_mtf = (float(v[0]) for v in evaluate(Errors.zeros(1, plate.n_levels)))
-    ceiling = ts.ceiling(nominal_lsr)
+    nominal = tuple(float(v[0]) for v in evaluate(Errors.zeros(1, plate.n_levels)))
+    ceiling = ts.ceiling(nominal[0])
     log.info("plate %d x %d at %.3g m (%s); nominal LSR %.4g (sampled peak), mtf_mean %.4g; yield ceiling LSR "
              "<= %.4g; sources: %s", plate.n, plate.n, plate.pitch,
-             f"{plate.n_levels} levels" if plate.n_levels else "continuous", nominal_lsr, nominal_mtf, ceiling,
+             f"{plate.n_levels} levels" if plate.n_levels else "continuous", nominal[0], nominal[1], ceiling,
              ", ".join(f"{s} {ts.sigma(s):.3g}" for s in active) or "none")
+    rows, per_source, dist, overall, progress = _monte_carlo(run_dir, ts, active, plate, evaluate, gen, ceiling)
+    _report(run_dir, ts, plate, material, mask_cfg["kind"], nominal, ceiling, rows, dist, per_source, overall,
+            active, progress)
+    return overall["yield"]
+
+
+def _monte_carlo(run_dir: Path, ts, active: tuple, plate, evaluate, gen, ceiling: float) -> tuple:
+    """Each active source alone (samples_per_source), then every source at once (samples), drawn from ``gen``:
+    (rows of samples.csv, the per-source statistics, the LSR distributions, the overall statistics, the progress);
+    an interrupt keeps the sources that finished."""
     progress = _Progress(ts.samples_per_source * len(active) + ts.samples)
     rows, per_source, dist = [], {}, {}  # filled source by source: what an interrupt keeps
     try:
@@ -133,20 +147,24 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         raise _interrupted(stop, run_dir, rows, progress) from None
     dist["all sources"] = lsr_all.numpy()
     rows.append(("all", combined, lsr_all, mtf_all))
-    overall = _stats(lsr_all, mtf_all, ceiling)
+    return rows, per_source, dist, _stats(lsr_all, mtf_all, ceiling), progress
 
+
+def _report(run_dir: Path, ts, plate, material, kind: str, nominal: tuple[float, float], ceiling: float, rows,
+            dist: dict, per_source: dict, overall: dict, active: tuple, progress) -> None:
+    """samples.csv, tolerance.png, metrics.json and the log's table of the sources."""
+    nominal_lsr, nominal_mtf = nominal
     _write_samples(run_dir / "samples.csv", rows)
     (run_dir / PARTIAL_SAMPLES).unlink(missing_ok=True)  # an earlier interrupted run's: this one finished
     io.save_figure(run_dir / "tolerance.png", tolerance_figure(
-        dist, nominal_lsr, ceiling, f"{mask_cfg['kind']} plate, {material.name}: LSR under fabrication and assembly "
+        dist, nominal_lsr, ceiling, f"{kind} plate, {material.name}: LSR under fabrication and assembly "
         f"errors (nominal {nominal_lsr:.4g})", sigmas={**{src: sigma_text(src, ts.sigma(src)) for src in active},
                                                       "all sources": "every source at its sigma"},
         ceiling_rule="1.2 x nominal" if ts.lsr_ceiling == "auto" else "tolerance.lsr_ceiling"))
     metrics = {"nominal_lsr": nominal_lsr, "nominal_mtf_mean": nominal_mtf, "lsr_ceiling": ceiling,
                "yield": overall["yield"], "samples": ts.samples, "samples_per_source": ts.samples_per_source,
                "all_sources": overall, "sources": per_source, "levels": plate.n_levels, "pitch_m": plate.pitch,
-               "material": material.name, "mask_kind": mask_cfg["kind"], "seconds": time.perf_counter()
-               - progress.t0}
+               "material": material.name, "mask_kind": kind, "seconds": time.perf_counter() - progress.t0}
     io.write_json(run_dir / "metrics.json", metrics)
     for source, v in per_source.items():
         log.info("%-12s sigma %-9.3g LSR mean %.4g std %.3g p95 %.4g; at +1 sigma %s; yield %.1f%%", source,
@@ -157,4 +175,3 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     log.info("all sources at once (%d samples): LSR mean %.4g, p95 %.4g; yield %.1f%% at LSR <= %.4g; %.0f s",
              ts.samples, overall["lsr_mean"], overall["lsr_p95"], 100 * overall["yield"], ceiling, metrics["seconds"])
     log.info("wrote %s", run_dir)
-    return overall["yield"]
