@@ -59,6 +59,8 @@ Other flags:
 
 
 def main() -> None:
+    """The console command (``codesign``, ``python -m codesign``): --version and --help answered here, a renamed key
+    refused, anything else run by the Hydra entry point on the command line's overrides."""
     from codesign.config.runtime import renamed_key_error
     from codesign.train import distributed
 

@@ -35,6 +35,7 @@ def require_number(key: str, value: Any, *, lo: float | None = None, hi: float |
 
 
 def require_choice(key: str, value: Any, choices: tuple[str, ...]) -> str:
+    """``value`` when it is one of ``choices``, else ConfigError naming ``key`` and the choices."""
     if value not in choices:
         raise ConfigError(key, value, f"must be one of {', '.join(choices)}")
     return value

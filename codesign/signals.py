@@ -35,6 +35,7 @@ class Interrupted(BaseException):
 
     @property
     def name(self) -> str:
+        """The signal's name (SIGINT, SIGTERM)."""
         return signal.Signals(self.signum).name
 
 

@@ -12,6 +12,7 @@ class SpecMixin:
     whose last field is ``prefix``, the config path used in error messages."""
 
     def replace(self, **changes: Any):
+        """A copy of the spec with ``changes`` (field name -> value), validated again."""
         values = {f.name: getattr(self, f.name) for f in fields(self)}
         values.update(changes)
         return type(self)(**values)

@@ -175,6 +175,7 @@ def _yaml_group_section(group: str, cls: type) -> list[str]:
 
 
 def generate() -> str:
+    """The text of docs/config.md: every config group's keys with their defaults and their specs' explanations."""
     groups = _registered()
     lines = [
         "# Configuration reference",
@@ -274,6 +275,7 @@ def _lookup(node: dict, dotted: str):
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Write docs/config.md (``--check``: only say whether it is current, exit 1 when not); returns the exit status."""
     argv = sys.argv[1:] if argv is None else argv
     text = generate()
     if "--check" in argv:

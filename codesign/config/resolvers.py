@@ -37,6 +37,7 @@ def main_only(value):
 
 
 def register() -> None:
+    """Register this module's OmegaConf resolvers (codesign_stamp, codesign_rank_suffix, codesign_main_only) once."""
     for name, fn in (("codesign_stamp", run_stamp), ("codesign_rank_suffix", rank_suffix),
                      ("codesign_main_only", main_only)):
         if not OmegaConf.has_resolver(name):

@@ -133,6 +133,8 @@ def resolve_device(name: str, local_rank: int | None = None) -> torch.device:
 
 
 def set_threads(threads) -> int:
+    """Set torch's intra-op threads to ``threads`` (checked: 1..1024; None leaves torch's choice); returns the number
+    in use."""
     if threads is not None:
         torch.set_num_threads(require_number("threads", threads, lo=1, hi=1024, integer=True))
     return torch.get_num_threads()
@@ -158,6 +160,7 @@ def set_deterministic(mode: bool | str, device: torch.device) -> bool:
 
 
 def resolve_dtype(key: str, name: str) -> torch.dtype:
+    """The torch dtype of a precision setting ``name`` (float32 or float64); ConfigError naming ``key`` otherwise."""
     return {"float32": torch.float32, "float64": torch.float64}[require_choice(key, name, ("float32", "float64"))]
 
 

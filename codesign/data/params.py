@@ -90,6 +90,7 @@ class SceneParams:
 
     @property
     def batch_size(self) -> int:
+        """The number of scenes the parameters describe (B)."""
         return int(self.alpha_l.shape[0])
 
     def __len__(self) -> int:
@@ -273,6 +274,7 @@ PRESETS: dict[str, dict[str, float]] = {
 
 
 def preset_names() -> tuple[str, ...]:
+    """The names of the fixed evaluation conditions (PRESETS), in order."""
     return tuple(PRESETS)
 
 

@@ -79,6 +79,7 @@ def upscale_to_fit(img: torch.Tensor, size: int) -> torch.Tensor:
 
 
 def centre_crop(img: torch.Tensor, size: int) -> torch.Tensor:
+    """The central ``size`` x ``size`` pixels of an (H, W) image."""
     h, w = img.shape
     top, left = (h - size) // 2, (w - size) // 2
     return img[top:top + size, left:left + size]
@@ -149,6 +150,7 @@ class SceneSource:
     # -- queries -----------------------------------------------------------------------------------------
     @property
     def names(self) -> list[str]:
+        """Every scene's name, in the source's order."""
         return list(self.entries)
 
     def __len__(self) -> int:

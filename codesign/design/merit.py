@@ -144,6 +144,7 @@ class MaskMonitor:
         self.reference = None if reference is None else self.measure(reference)
 
     def measure(self, mask, refine: bool = False) -> tuple[dict, dict]:
+        """(scalars, arrays) of ``mask`` (mask_figures_of_merit; ``refine``: the certified continuous peak too)."""
         return mask_figures_of_merit(self.system, mask, self.radial, self.band, self.p, refine, self.grids)
 
     def log(self, writer, step: int, mask, images: bool = True, prefix: str = "mask", params: bool = True) -> dict:

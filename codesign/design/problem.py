@@ -43,6 +43,7 @@ class Evaluation:
 
     @property
     def violation(self) -> float:
+        """The largest constraint value above 0 (0 when every constraint holds)."""
         return max([0.0] + [v for v in self.constraints.values()])
 
     def score(self, objective: str) -> float:
@@ -107,6 +108,7 @@ class DesignProblem:
 
     @property
     def size(self) -> int:
+        """The length of the searched parameter vector (the mask's vector_size)."""
         return self.mask.vector_size
 
     # ---- one evaluation -------------------------------------------------------------------------------------------

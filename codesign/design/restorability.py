@@ -172,4 +172,5 @@ def restorability_for(camera, scenes: torch.Tensor | None = None, spectrum: Scen
 
 
 def psnr_of_mse(mse: float) -> float:
+    """PSNR [dB] of a mean squared error on images in [0, 1]."""
     return -10.0 * math.log10(mse)

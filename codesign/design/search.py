@@ -133,6 +133,7 @@ class MaskSearch:
 
     @property
     def evaluations(self) -> int:
+        """Evaluations made so far, over every floor of the sweep."""
         return sum(sw.problem.evaluations for sw in self.sweeps)
 
     def position(self) -> str:

@@ -23,6 +23,7 @@ class RestorabilityTools:
 
     @property
     def pair(self) -> tuple:
+        """(restorability module, camera): what a DesignProblem takes to score restorability."""
         return self.module, self.camera
 
     @torch.no_grad()

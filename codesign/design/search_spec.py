@@ -148,15 +148,23 @@ class SearchSpec(SpecMixin):
 
     # ---- what "auto" means for a mask of ``n`` parameters ---------------------------------------------------------
     def resolved_algorithm(self, n: int) -> str:
+        """The nlopt algorithm for ``n`` parameters: the configured one, or with auto LN_COBYLA up to DERIVATIVE_FREE
+        parameters and AL_LBFGS beyond."""
         return self.algorithm if self.algorithm != "auto" else ("LN_COBYLA" if n <= DERIVATIVE_FREE else "AL_LBFGS")
 
     def resolved_starts(self, n: int) -> int:
+        """The number of starts for ``n`` parameters: the configured one, or 4 for small vectors and 1 for large
+        ones."""
         return self.starts if self.starts is not None else (4 if n <= SMALL else 1)
 
     def resolved_max_evals(self, n: int) -> int:
+        """The evaluations per start for ``n`` parameters: the configured number, or 150 for small vectors and 2400
+        for large ones."""
         return self.max_evals if self.max_evals is not None else (150 if n <= SMALL else 2400)
 
     def schedule(self, n: int, lsr_p: float) -> tuple[float, ...]:
+        """The smooth LSR's p at each stage of a start: the configured schedule, or with auto DEFAULT_SCHEDULE for
+        gradient algorithms and ``lsr_p`` alone otherwise."""
         if self.lsr_p_schedule != "auto":
             return tuple(self.lsr_p_schedule)
         return DEFAULT_SCHEDULE if self.resolved_algorithm(n).startswith(("LD", "GD", "AL")) else (lsr_p,)

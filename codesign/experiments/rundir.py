@@ -66,6 +66,7 @@ def _put_back(path: Path, data: bytes | None) -> None:
 
 
 def existed_before(run_dir: Path) -> bool:
+    """Whether ``run_dir`` existed before this run started (a folder being resumed)."""
     return Path(run_dir).absolute() in EARLIER
 
 
@@ -252,6 +253,8 @@ except ImportError:  # pragma: no cover - Hydra < 1.1
 
 class OutputDirCheck(Callback):
     def on_run_start(self, config, **kwargs) -> None:
+        """Hydra callback before a single run: the run directory checked and what it held recorded (rank 0), then
+        every rank waits."""
         from codesign.train import distributed
 
         ctx = distributed.current()
@@ -261,6 +264,7 @@ class OutputDirCheck(Callback):
         distributed.barrier(ctx)
 
     def on_multirun_start(self, config, **kwargs) -> None:  # runs before Hydra builds the launcher
+        """Hydra callback before a sweep: the launcher and the sweep directory checked."""
         _check_launcher(config)
         _check(config, "hydra.sweep.dir")
 

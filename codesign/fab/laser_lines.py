@@ -44,6 +44,8 @@ def lines_summary(lines: LaserLines, phases: dict, cell_m: float | None = None) 
 
 
 def log_lines(summary: dict, name: str, label: str) -> None:
+    """One log line of a ``lines_summary`` entry ``name``: the LSR at every laser line and the worst, under
+    ``label``."""
     rows = summary[name]["lines"]
     log.info("%s at the laser lines (%s): %s; worst %.4g at %.0f nm", label, surface_name(summary["wrap_waves"]),
              ", ".join(f"{r['wavelength_m'] * 1e9:.0f} nm LSR {r['lsr']:.4g}" for r in rows),
@@ -51,6 +53,7 @@ def log_lines(summary: dict, name: str, label: str) -> None:
 
 
 def surface_name(wrap_waves: int | None) -> str:
+    """How a surface of ``wrap_waves`` (optics.wrap_waves) is called in logs and figures."""
     return "continuous surface" if wrap_waves is None else ("2 pi-wrapped plate" if wrap_waves == 1 else
                                                           f"{wrap_waves}-wave multi-order plate")
 

@@ -152,6 +152,7 @@ class Plate:
 
     @property
     def n(self) -> int:
+        """The plate's samples across (its height map is n x n)."""
         return self.height.shape[-1]
 
     @property
@@ -211,6 +212,7 @@ class PlatePhase:
         self._phase = phase
 
     def phase(self) -> torch.Tensor:
+        """The fixed pupil phase [rad], (n, n)."""
         return self._phase
 
 

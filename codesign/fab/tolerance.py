@@ -71,9 +71,11 @@ class ToleranceSpec(SpecMixin):
         object.__setattr__(self, "seed", require_number(f"{p}.seed", self.seed, lo=0, hi=2**63 - 1, integer=True))
 
     def sigma(self, source: str) -> float:
+        """The 1-sigma error of ``source`` (one of SOURCES), in that source's unit."""
         return float(getattr(self, _SIGMA_KEYS[source]))
 
     def ceiling(self, nominal_lsr: float) -> float:
+        """The yield's LSR ceiling: 1.2 x ``nominal_lsr`` with lsr_ceiling auto, else the given value."""
         return 1.2 * nominal_lsr if self.lsr_ceiling == "auto" else float(self.lsr_ceiling)
 
 
@@ -94,6 +96,7 @@ class Errors:
 
     @classmethod
     def zeros(cls, b: int, n_levels: int | None) -> "Errors":
+        """``b`` samples with every error zero (the nominal plate; ``n_levels``: its etch levels, or None)."""
         z = torch.zeros(b, dtype=torch.float64)
         level = None if n_levels is None else torch.zeros(b, n_levels, dtype=torch.float64)
         return cls(z, level, z.clone(), z.clone(), z.clone(), z.clone(), z.clone(), z.clone())
@@ -102,6 +105,7 @@ class Errors:
         return self.depth.numel()
 
     def take(self, idx) -> "Errors":
+        """The samples at ``idx`` (an index or a slice along B)."""
         return Errors(*(None if v is None else v[idx] for v in self.__dict__.values()))
 
     def columns(self) -> dict[str, torch.Tensor]:

@@ -138,6 +138,7 @@ def write_json(path: Path, data: dict[str, Any]) -> Path:
 
 
 def save_npy(path: Path, array: Any) -> Path:
+    """Write an array (or tensor, moved to the CPU) as .npy, atomically; returns ``path``."""
     arr = np.asarray(array.detach().cpu().numpy() if hasattr(array, "detach") else array)
 
     def w(tmp: str) -> None:

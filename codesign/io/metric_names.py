@@ -60,6 +60,8 @@ def read_metrics(path: Path) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Rename the old metric names in the given JSON files (``--check``: only list them, exit 1 if any); returns the
+    exit status."""
     ap = argparse.ArgumentParser(prog="python -m codesign.io.metric_names", description=__doc__.split("\n\n")[0])
     ap.add_argument("files", nargs="+", type=Path, help="JSON files (metrics.json, results files)")
     ap.add_argument("--check", action="store_true", help="list what would be renamed; exit 1 if anything would")

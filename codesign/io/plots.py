@@ -14,6 +14,7 @@ def window_extent_mm(m: int, pitch_m: float) -> np.ndarray:
 
 
 def phase_figure(phase: np.ndarray, aperture: np.ndarray, pitch_m: float, title: str):
+    """The pupil phase [rad] on the aperture (NaN outside), axes in mm from ``pitch_m`` [m]."""
     ext = window_extent_mm(phase.shape[0], pitch_m)
     shown = np.where(aperture > 1e-3, phase, np.nan)
     fig, ax = plt.subplots(figsize=(5, 4.2))
@@ -57,12 +58,14 @@ def psf_figure(psf: np.ndarray, psf0: np.ndarray, pitch_m: float, title: str):
 
 
 def mtf_figure(freqs: np.ndarray, curves: dict[str, np.ndarray], band: tuple[float, float], title: str):
+    """Radial MTF curves (name -> values at ``freqs``, normalized to the cutoff) with the summary ``band`` shaded."""
     fig, ax = plt.subplots(figsize=(6, 4))
     mtf_panel(ax, freqs, curves, band, title)
     return fig
 
 
 def mtf2d_figure(mtf2d_shifted: np.ndarray, freq_step_norm: float, title: str):
+    """The 2-D MTF (DC centred) in log10, axes in units of the cutoff (``freq_step_norm``: one bin's step)."""
     m = mtf2d_shifted.shape[0]
     ext = np.array([-m / 2, m / 2, -m / 2, m / 2]) * freq_step_norm
     fig, ax = plt.subplots(figsize=(5, 4.2))

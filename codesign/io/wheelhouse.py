@@ -166,6 +166,8 @@ def plan(python_version: str, have: set[str], with_torch: bool, root: str = "cod
 
 
 def build(out: Path, python_version: str, platforms: tuple[str, ...], have: set[str], with_torch: bool) -> dict:
+    """Fetch every wheel of the plan (for ``python_version`` on ``platforms``, without the ``have`` packages, with
+    torch when ``with_torch``) into ``out`` and write its wheelhouse.json; returns that manifest."""
     what = plan(python_version, have, with_torch)
     out.mkdir(parents=True, exist_ok=True)
     how = {}
@@ -185,6 +187,7 @@ def build(out: Path, python_version: str, platforms: tuple[str, ...], have: set[
 
 
 def main(argv=None) -> None:
+    """``python -m codesign.io.wheelhouse OUT``: build the wheelhouse a GPU node without a registry installs from."""
     ap = argparse.ArgumentParser(prog="python -m codesign.io.wheelhouse", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("out", type=Path, help="folder for the wheels (created; earlier wheels in it are kept)")

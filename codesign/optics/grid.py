@@ -53,6 +53,8 @@ class PupilGrid:
 
     @classmethod
     def from_spec(cls, spec: OpticsSpec, dtype=torch.float32, device=None) -> "PupilGrid":
+        """The pupil grid of an OpticsSpec: grid_n x grid_n samples at pupil_pitch_m [m], its aperture support and
+        exact distinct radii, in ``dtype`` on ``device``."""
         n, d = spec.grid_n, spec.pupil_pitch_m
         # Integer offsets make the set of distinct radii exact: rho^2 = (di^2 + dj^2) * d^2.
         k = torch.arange(n, device=device, dtype=torch.int64) - n // 2

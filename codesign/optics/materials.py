@@ -94,6 +94,7 @@ class Material(SpecMixin):
                         "extrapolation", self.name, lam, *self.valid_um, self.source, self.index(wavelength_m))
 
     def summary(self, wavelength_m: float) -> dict:
+        """The material's name, formula, source and refractive index at ``wavelength_m`` [m], for metrics.json."""
         return {"material": self.name, "material_formula": self.formula, "material_source": self.source,
                 "refractive_index": self.index(wavelength_m)}
 

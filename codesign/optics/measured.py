@@ -106,6 +106,7 @@ class MeasuredPSF:
 
     @property
     def shape(self) -> tuple[int, int]:
+        """The frame's (rows, columns)."""
         return self.frame.shape
 
     def place(self, spec, design_psf: np.ndarray | None = None) -> Placement:

@@ -71,6 +71,7 @@ def czt_cost(pupil_n: int, window_n: int) -> float:
 
 
 def fft_cost(fft_n: int) -> float:
+    """Real flops of a 2-D FFT propagation on an ``fft_n`` x ``fft_n`` grid (5 N log2 N)."""
     return 5.0 * fft_n**2 * math.log2(max(fft_n**2, 2))
 
 

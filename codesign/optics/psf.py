@@ -84,6 +84,7 @@ class OpticalSystem(torch.nn.Module):
 
     @property
     def method(self) -> str:
+        """The propagator in use (mft, czt or fft: optics.propagator, auto resolved by modelled cost)."""
         return self.propagator.method
 
     def field(self, phase: torch.Tensor) -> torch.Tensor:

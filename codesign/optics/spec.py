@@ -245,6 +245,7 @@ class OpticsSpec(SpecMixin):
 
     @property
     def samples_per_lambda_f_over_d(self) -> float:
+        """Focal samples per lambda f / D (the diffraction-limited spot's scale)."""
         return self.lambda_f_over_d / self.focal_pitch_m
 
     @property
@@ -254,19 +255,23 @@ class OpticsSpec(SpecMixin):
 
     @property
     def min_pupil_n(self) -> int:
+        """The smallest even pupil grid that holds the aperture support with a sample to spare on each side."""
         n = math.ceil(2 * self.aperture_support_radius_m / self.pupil_pitch_m) + 2
         return n + n % 2
 
     @property
     def grid_n(self) -> int:
+        """The pupil grid's samples across: pupil_n, or min_pupil_n when it is null."""
         return self.pupil_n if self.pupil_n is not None else self.min_pupil_n
 
     @property
     def samples_across_aperture(self) -> float:
+        """Pupil samples across the aperture diameter (W_a / pupil pitch)."""
         return self.aperture_diameter_m / self.pupil_pitch_m
 
     @property
     def focal_extent_m(self) -> float:
+        """The focal window's width [m]: focal_n x focal_pitch_m."""
         return self.focal_n * self.focal_pitch_m
 
     @property

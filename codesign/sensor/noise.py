@@ -46,14 +46,17 @@ class NoiseStreams:
 
     # Draws are made in float64 and cast, so a float32 run and its float64 reference see the same noise.
     def normal(self, term: str, like: torch.Tensor) -> torch.Tensor:
+        """Standard normal draws of noise ``term``, shaped and typed like ``like`` (drawn in float64)."""
         return self._draw(term, like, lambda shape, g: torch.randn(
             shape, generator=g, dtype=torch.float64, device=like.device)).to(like.dtype)
 
     def uniform(self, term: str, like: torch.Tensor) -> torch.Tensor:
+        """Uniform draws in [-0.5, 0.5) of noise ``term``, shaped and typed like ``like`` (drawn in float64)."""
         return (self._draw(term, like, lambda shape, g: torch.rand(
             shape, generator=g, dtype=torch.float64, device=like.device)) - 0.5).to(like.dtype)
 
     def poisson(self, term: str, rate: torch.Tensor) -> torch.Tensor:
+        """Poisson counts of mean ``rate`` from noise ``term``'s stream (per sample when seeded per sample)."""
         if not self.per_sample:
             return torch.poisson(rate, generator=self.gens[term][0])
         if rate.shape[0] != len(self.gens[term]):

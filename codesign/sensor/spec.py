@@ -107,6 +107,7 @@ class SensorSpec(SpecMixin):
 
     @property
     def coarse_pitch_m(self) -> float:
+        """The network pixel's pitch [m]: the sensor pixel pitch times bin_factor."""
         return self.pixel_pitch_m * self.bin_factor
 
     def saturation_irradiance(self, wavelength_m: float, exposure_s: float | None = None) -> float:

@@ -39,10 +39,12 @@ class DistContext:
 
     @property
     def enabled(self) -> bool:
+        """Whether more than one process trains (under torchrun)."""
         return self.world > 1
 
     @property
     def is_main(self) -> bool:
+        """Whether this process is rank 0 (the one that logs, evaluates and writes)."""
         return self.rank == 0
 
     def shard(self, n: int) -> slice:
@@ -96,6 +98,7 @@ def launch_setup(argv: list[str]) -> DistContext:
 
 
 def finish() -> None:
+    """Destroy the process group, when one was started."""
     if dist.is_available() and dist.is_initialized():
         dist.destroy_process_group()
 
@@ -164,6 +167,7 @@ def replica_divergence(params: list[torch.Tensor], ctx: DistContext, resync: boo
 
 
 def backend_name() -> str:
+    """The torch.distributed backend in use (none without a process group)."""
     return dist.get_backend() if dist.is_available() and dist.is_initialized() else "none"
 
 
@@ -188,5 +192,6 @@ def settle(ctx: DistContext, seconds: float = 30.0) -> None:
 
 
 def barrier(ctx: DistContext) -> None:
+    """Wait for every rank (nothing to wait for in one process)."""
     if ctx.enabled:
         dist.barrier()

@@ -179,6 +179,8 @@ class Evaluator:
     # ---- scoring --------------------------------------------------------------------------------------------
     @torch.no_grad()
     def restore_all(self, batch: dict) -> dict:
+        """Every method's restoration of ``batch``, with the tuned nsr and gain/offset, clamped to [0, 1]: name ->
+        (B, 1, n, n)."""
         raw = self._outputs(self._network(batch), self.calib["nsr"])
         out = {}
         for name in self.methods:
@@ -252,6 +254,7 @@ def evaluate(evaluator: Evaluator, scenes: torch.Tensor, names: list[str], prese
 
 
 def write_csv(path: Path, rows: list[dict]) -> None:
+    """Rows (dicts with the same keys) as CSV, floats at 6 significant digits, atomically."""
     keys = list(rows[0]) if rows else []
     buf = _io.StringIO()
     w = csv.DictWriter(buf, fieldnames=keys)

@@ -161,11 +161,13 @@ def _as_list(value) -> list:
 
 
 def snapshot(mask) -> list[torch.Tensor]:
+    """Copies of the mask's parameters (to restore after a rejected update)."""
     return [p.detach().clone() for p in mask.parameters()]
 
 
 @torch.no_grad()
 def restore(mask, values: list[torch.Tensor]) -> None:
+    """Write ``values`` (a ``snapshot``) back into the mask's parameters."""
     for p, v in zip(mask.parameters(), values):
         p.copy_(v)
 
@@ -193,6 +195,8 @@ class LSRConstraint:
 
     @torch.no_grad()
     def measure(self, mask) -> float:
+        """The smooth LSR of ``mask``'s current parameters (over the lines when constrained over them), without
+        gradient."""
         phase = mask.phase()
         return float(self.smooth_lsr(self.system.psf(phase, mask.plate_cell_m), phase, mask.plate_cell_m))
 
@@ -202,6 +206,7 @@ class LSRConstraint:
         return self.system.continuous_lsr(mask.phase(), mask.plate_cell_m)
 
     def penalty(self, lsr: torch.Tensor) -> torch.Tensor:
+        """The penalty on a smooth LSR ``lsr``: penalty_weight x relu(lsr / lsr_max - (1 - margin))^2."""
         excess = torch.relu(lsr / self.lsr_max - (1.0 - self.spec.margin))
         return self.spec.penalty_weight * excess.square()
 

@@ -52,6 +52,7 @@ class MaskCodesign:
 
     # ---- the optimizer --------------------------------------------------------------------------------------------
     def param_group(self) -> dict:
+        """The mask's Adam parameter group (codesign.mask_lr, mask_betas), named mask."""
         return {"params": self.params, "lr": self.spec.mask_lr, "betas": self.spec.mask_betas, "name": "mask"}
 
     def lr_factor(self, network_factor):
@@ -65,6 +66,7 @@ class MaskCodesign:
 
     # ---- the step ------------------------------------------------------------------------------------------------
     def begin_step(self, active: bool) -> None:
+        """Before a step: the camera's mask trainable when ``active``, its parameters kept for the guard."""
         self.camera.set_trainable(active)
         self._before = snapshot(self.mask)
         self.kept = None
@@ -100,6 +102,8 @@ class MaskCodesign:
             self.camera.invalidate()
 
     def scalars(self) -> dict:
+        """The constraint's scalars (smooth LSR, ceiling, guard counts, the peak when held) and the mask's
+        parameters, for TensorBoard."""
         c = self.constraint
         out = {"constraint/lsr_smooth": self.lsr, "constraint/lsr_max": c.lsr_max,
                "constraint/lsr_over_max": self.lsr / c.lsr_max, "constraint/guard_shortened": c.shortened,
@@ -111,6 +115,7 @@ class MaskCodesign:
         return {**out, **{f"mask_params/{k}": v for k, v in self.mask.summary().items()}}
 
     def progress(self) -> str:
+        """The mask's part of the progress line: its smooth LSR and its share of the ceiling."""
         return f"  LSR {self.lsr:.4g} ({self.lsr / self.constraint.lsr_max:.3f} of max)"
 
     def validate(self, writer, step: int, images: bool) -> dict:
@@ -128,6 +133,7 @@ class MaskCodesign:
 
     # ---- checkpoints ----------------------------------------------------------------------------------------------
     def state_dict(self) -> dict:
+        """What a checkpoint keeps of the mask: its parameters, the constraint's state and the laser halo's."""
         c = self.constraint
         return {"mask": self.mask.state_dict(),
                 "constraint": {"lsr_max": c.lsr_max, "lsr": self.lsr, "shortened": c.shortened, "undone": c.undone,
@@ -135,6 +141,7 @@ class MaskCodesign:
                 "laser_halo": self.camera.halo_state()}  # the far PSF's refresh schedule and source values
 
     def load_state_dict(self, state: dict) -> None:
+        """Restore a ``state_dict`` (a resumed run), the camera's cached optics refreshed."""
         self.mask.load_state_dict(state["mask"])
         c = state["constraint"]
         self.lsr = float(c["lsr"])

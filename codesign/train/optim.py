@@ -48,6 +48,7 @@ def adam(groups: list[dict], betas, device: torch.device) -> torch.optim.Adam:
 
 
 def set_requires_grad(modules, flag: bool) -> None:
+    """Switch the gradients of every parameter of ``modules`` (modules or parameter lists) on or off."""
     for m in modules:
         for p in (m.parameters() if isinstance(m, nn.Module) else m):
             p.requires_grad_(flag)
@@ -72,9 +73,11 @@ class EMA:
                 bs.copy_(b)
 
     def state_dict(self) -> list[dict]:
+        """The averaged copies' states, one per generator."""
         return [s.state_dict() for s in self.shadow]
 
     def load_state_dict(self, states: list[dict]) -> None:
+        """Restore the averaged copies from an ``EMA.state_dict()``."""
         for s, st in zip(self.shadow, states):
             s.load_state_dict(st)
 

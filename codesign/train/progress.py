@@ -48,6 +48,7 @@ class LossRecord:
         return {"diverged": int(growth > DIVERGED_FACTOR), "loss_growth": growth, "loss_growth_term": worst}
 
     def warn_if_diverged(self) -> None:
+        """One console warning when the training diverged (``divergence``)."""
         d = self.divergence()
         if d["diverged"]:
             k = d["loss_growth_term"]
@@ -57,8 +58,10 @@ class LossRecord:
                         self.lowest.get(k, math.nan))
 
     def state_dict(self) -> dict:
+        """The first and the lowest logged terms (what a resumed run's divergence check needs)."""
         return {"first_terms": self.first, "lowest_terms": self.lowest}
 
     def load_state_dict(self, record: dict) -> None:
+        """Restore a ``state_dict`` (absent entries: empty)."""
         self.first = dict(record.get("first_terms", {}) or {})
         self.lowest = dict(record.get("lowest_terms", {}) or {})

@@ -160,6 +160,8 @@ class Trainer(TrainContext):
 
     # ---- what the restorer's losses ask of the trainer (TrainContext) ------------------------------------------
     def gradient_penalty(self, critic, real, fake, cond=None):
+        """The critic's gradient penalty between ``real`` and ``fake`` (WGAN-GP), its interpolation weights drawn for
+        the whole global batch so that any number of ranks draws the same."""
         # the interpolation weights of the whole global batch, then this rank's share: the same draws whatever the
         # number of processes
         b = real.shape[0]
@@ -191,6 +193,7 @@ class Trainer(TrainContext):
         return self.guard.undone
 
     def divergence(self) -> dict:
+        """Whether the training diverged, and by how much (LossRecord.divergence)."""
         return self.losses.divergence()
 
     @property
@@ -295,6 +298,8 @@ class Trainer(TrainContext):
 
     # ---- checkpoints ----------------------------------------------------------------------------------------------
     def state_dict(self) -> dict:
+        """The checkpoint: model, optimizers, schedules, step, EMA, every random state, the data's position, the
+        config and the record."""
         return {
             "model": self.model.state_dict(), "opt_g": self.opt_g.state_dict(), "step": self.step,
             "opt_d": self.opt_d.state_dict() if self.opt_d is not None else None,
@@ -324,9 +329,12 @@ class Trainer(TrainContext):
         return facts
 
     def save(self, path: Path | None = None) -> Path:
+        """Write the checkpoint to ``path`` (default: the run directory's checkpoint.pt), atomically; returns its
+        path."""
         return save_checkpoint(path or self.run_dir / CHECKPOINT_NAME, self.state_dict())
 
     def load_state_dict(self, state: dict) -> None:
+        """Resume from a ``state_dict``: model, optimizers, schedules, step, record, EMA and random states."""
         self.model.load_state_dict(state["model"])
         self.opt_g.load_state_dict(state["opt_g"])
         self.sched_g.load_state_dict(state["sched_g"])

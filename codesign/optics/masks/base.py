@@ -161,6 +161,7 @@ class Mask(torch.nn.Module):
         return None
 
     def support_phase(self) -> torch.Tensor:  # pragma: no cover - abstract
+        """The phase [rad] at the grid's support samples, shape (n_support,): what each family implements."""
         raise NotImplementedError
 
     def phase(self) -> torch.Tensor:
@@ -179,6 +180,8 @@ class Mask(torch.nn.Module):
         """Clamp parameters to the buildable set (default: nothing to clamp)."""
 
     def freeze(self) -> "Mask":
+        """Stop every parameter's gradient (a fixed mask: a reference, a re-check, an exported design); returns the
+        mask."""
         for p in self.parameters():
             p.requires_grad_(False)
         return self
@@ -206,6 +209,7 @@ class Mask(torch.nn.Module):
 
     @property
     def vector_size(self) -> int:
+        """The number of free parameters: the length of ``to_vector()``."""
         return sum(p.numel() for p in self.parameters())
 
     def bounds(self) -> tuple[torch.Tensor, torch.Tensor]:

@@ -293,48 +293,60 @@ class HalfRingMask(Mask):
         return q0_s, im
 
     def support_phase(self) -> torch.Tensor:
+        """The phase [rad] at the support samples: the argument of the half rings' Fourier-Bessel field, by the
+        mask's convention (atan2, or the published atan of the ratio)."""
         q0, im = self.field_parts()
         return torch.atan2(im, q0) if self.convention == "atan2" else atan_of_ratio(im, q0)
 
     @torch.no_grad()
     def project(self) -> None:
+        """Clamp the radii r_n into r_bounds (units of lambda f / W_a) and wrap the angles theta_n into [0, 2 pi)."""
         self.r.clamp_(*self.r_bounds)
         self.theta.remainder_(2 * math.pi)
 
     def summary(self) -> dict[str, float]:
+        """The parameters as scalars: r_1.. (lambda f / W_a) and theta_1.. [rad]."""
         out = {f"r_{i + 1}": float(v) for i, v in enumerate(self.r.detach().cpu())}
         out.update({f"theta_{i + 1}": float(v) for i, v in enumerate(self.theta.detach().cpu())})
         return out
 
     # ---- the family interface -------------------------------------------------------------------------------------
     def bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(lower, upper) of (r_1.., theta_1..): r_bounds for the radii, [0, 2 pi] rad for the angles (float64)."""
         n = self.r.numel()
         lo = torch.tensor([self.r_bounds[0]] * n + [0.0] * n, dtype=torch.float64)
         hi = torch.tensor([self.r_bounds[1]] * n + [2 * math.pi] * n, dtype=torch.float64)
         return lo, hi
 
     def vector_names(self) -> list[str]:
+        """r_1.., then theta_1.., in ``to_vector`` order."""
         n = self.r.numel()
         return [f"r_{i + 1}" for i in range(n)] + [f"theta_{i + 1}" for i in range(n)]
 
     @property
     def m_range(self) -> tuple[int, int]:
+        """(m_min, m_max): the harmonics whose Bessel orders m_o = 2m + 1 the series holds."""
         return (int(self.orders[0]) - 1) // 2, (int(self.orders[-1]) - 1) // 2
 
     def settings(self) -> dict[str, Any]:
+        """Convention, harmonic sign, harmonic range and radius bounds: what fixes the phase besides r and theta."""
         return {"convention": self.convention, "harmonic_sign": self.harmonic_sign, "m_range": list(self.m_range),
                 "r_bounds": list(self.r_bounds)}
 
     def parameter_values(self) -> dict[str, Any]:
+        """The radii r (lambda f / W_a) and angles theta [rad], JSON-ready."""
         return {"r": [float(v) for v in self.r.detach().cpu()], "theta": [float(v) for v in self.theta.detach().cpu()]}
 
     def on_grid(self, grid: PupilGrid, aperture_diameter_m: float) -> "HalfRingMask":
+        """The same mask on another pupil grid (the "exact" strategy), frozen."""
         v = self.parameter_values()
         return HalfRingMask(grid, aperture_diameter_m, v["r"], v["theta"], self.m_range, self.convention,
                             self.harmonic_sign, "exact", self.table_size, self.r_bounds, levels=self.levels).freeze()
 
     @classmethod
     def check_record(cls, record: Mapping[str, Any], prefix: str) -> None:
+        """Check a half-ring record (mask.init=PATH) under ``prefix``: rings, harmonic range, convention, sign and
+        radius bounds; ConfigError naming the key otherwise."""
         check_rings(record["r"], record["theta"], prefix)
         if "m_range" in record:
             check_m_range(record["m_range"], prefix)

@@ -62,29 +62,36 @@ class PixelPhaseMask(Mask):
 
     @property
     def plate_cell_m(self) -> float:
+        """The plate's cell width [m]: one pupil sample (the phase is constant over each)."""
         return self.grid.pitch
 
     def support_phase(self) -> torch.Tensor:
+        """The phase [rad] of every support sample: the parameters themselves."""
         return self.values
 
     @torch.no_grad()
     def project(self) -> None:
+        """Wrap every sample's phase into [-pi, pi) (the plate holds it modulo 2 pi)."""
         self.values.add_(math.pi).remainder_(2 * math.pi).sub_(math.pi)
 
     @torch.no_grad()
     def fit_phase(self, phase: torch.Tensor) -> None:
+        """Take a full-grid (n, n) phase [rad] at the support samples as the parameters."""
         self.values.copy_(phase.detach().reshape(-1)[self.grid.support].to(self.values))
 
     # ---- the family interface -------------------------------------------------------------------------------------
     def bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(lower, upper): +-1e4 rad for every sample (float64)."""
         # the phase is periodic: any box works; a finite one keeps every nlopt algorithm's move limits defined
         n = self.vector_size
         return torch.full((n,), -1e4, dtype=torch.float64), torch.full((n,), 1e4, dtype=torch.float64)
 
     def parameter_values(self) -> dict[str, Any]:  # 125k numbers: float32 precision is what the plate holds
+        """The samples' phases [rad] at 7 significant digits, JSON-ready."""
         return {"values": [float(f"{v:.7g}") for v in self.values.detach().cpu().tolist()]}
 
     def settings(self) -> dict[str, Any]:
+        """The plate's grid: its samples across (grid_n) and pitch [m]."""
         return {"grid_n": self.grid.n, "pitch_m": self.grid.pitch}
 
     def max_step(self) -> float:
@@ -101,11 +108,14 @@ class PixelPhaseMask(Mask):
         return worst
 
     def on_grid(self, grid: PupilGrid, aperture_diameter_m: float) -> "PixelPhaseMask":
+        """The same plate resampled onto another pupil grid, frozen."""
         return PixelPhaseMask(grid, resample_plate(self.phase().detach(), self.grid, grid),
                               levels=self.levels).freeze()
 
     @classmethod
     def check_record(cls, record: Mapping[str, Any], prefix: str) -> None:
+        """Check a pixel record (mask.init=PATH) under ``prefix``: its grid and values; ConfigError naming the key
+        otherwise."""
         check_plate(record, prefix)
 
     @classmethod

@@ -75,37 +75,47 @@ class SpiralMask(Mask):
         self.coeffs = torch.nn.Parameter(torch.tensor(values, dtype=dtype, device=device))
 
     def support_phase(self) -> torch.Tensor:
+        """The phase [rad] at the support samples: charge, axicon and defocus coefficients times their basis."""
         return self.coeffs @ self.basis
 
     @torch.no_grad()
     def project(self) -> None:
+        """Clamp each coefficient into its bounds."""
         lo, hi = self.bounds()
         self.coeffs.copy_(torch.maximum(torch.minimum(self.coeffs, hi.to(self.coeffs)), lo.to(self.coeffs)))
 
     # ---- the family interface -------------------------------------------------------------------------------------
     def bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(lower, upper) of (charge, axicon, defocus): the configured bounds (float64)."""
         return (torch.tensor([b[0] for b in self.box], dtype=torch.float64),
                 torch.tensor([b[1] for b in self.box], dtype=torch.float64))
 
     def vector_names(self) -> list[str]:
+        """The coefficients' names, in ``to_vector`` order."""
         return list(NAMES)
 
     def summary(self) -> dict[str, float]:
+        """The coefficients as scalars, by name."""
         return dict(zip(NAMES, (float(v) for v in self.coeffs.detach().cpu())))
 
     def settings(self) -> dict[str, Any]:
+        """The coefficients' bounds: what fixes the phase besides their values."""
         return {"charge_bounds": list(self.box[0]), "axicon_bounds": list(self.box[1]),
                 "defocus_bounds": list(self.box[2])}
 
     def parameter_values(self) -> dict[str, Any]:
+        """The coefficients by name, JSON-ready."""
         return self.summary()
 
     def on_grid(self, grid: PupilGrid, aperture_diameter_m: float) -> "SpiralMask":
+        """The same mask on another pupil grid, frozen."""
         return SpiralMask(grid, aperture_diameter_m, *self.coeffs.detach().tolist(), bounds=tuple(self.box),
                           levels=self.levels).freeze()
 
     @classmethod
     def check_record(cls, record: Mapping[str, Any], prefix: str) -> None:
+        """Check a spiral record (mask.init=PATH) under ``prefix``: its coefficients and bounds; ConfigError naming
+        the key otherwise."""
         for k in NAMES:
             require_number(f"{prefix}.{k}", record[k], lo=-1e4, hi=1e4)
         for key in BOUND_KEYS:
@@ -115,6 +125,8 @@ class SpiralMask(Mask):
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any], grid: PupilGrid, aperture_diameter_m: float,
                     record: dict | None = None, prefix: str = "mask") -> "SpiralMask":
+        """The mask of a config block (its coefficients from ``record`` when given, else from the block; the bounds
+        from the block)."""
         src = record if record is not None else cfg
         bounds = tuple(cfg.get(k, getattr(SpiralSpec, k)) for k in BOUND_KEYS)
         return cls(grid, aperture_diameter_m, *(src.get(k, getattr(SpiralSpec, k)) for k in NAMES), bounds=bounds,

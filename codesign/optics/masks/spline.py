@@ -86,6 +86,7 @@ class SplineMask(Mask):
         self.controls = torch.nn.Parameter(c)
 
     def support_phase(self) -> torch.Tensor:
+        """The phase [rad] at the support samples: the bicubic B-spline surface of the control values."""
         full = self.b @ self.controls @ self.b.T  # rows v, columns u: the grid is square and shares u, v
         return full.reshape(-1)[self.grid.support]
 
@@ -116,6 +117,7 @@ class SplineMask(Mask):
         self.controls.copy_(c.to(self.controls))
 
     def fit_phase(self, phase: torch.Tensor) -> None:
+        """Fit the control values to a full-grid (n, n) phase [rad] (least squares on the support: ``fit``)."""
         self.fit(phase)
 
     @torch.no_grad()
@@ -137,20 +139,26 @@ class SplineMask(Mask):
 
     # ---- the family interface -------------------------------------------------------------------------------------
     def bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(lower, upper): +-1e4 rad for every control value (float64)."""
         n = self.vector_size
         return torch.full((n,), -1e4, dtype=torch.float64), torch.full((n,), 1e4, dtype=torch.float64)
 
     def settings(self) -> dict[str, Any]:
+        """The control grid: its pitch [m] and half width (in controls)."""
         return {"control_pitch_m": self.control_pitch_m, "control_half": self.half}
 
     def parameter_values(self) -> dict[str, Any]:
+        """The control values [rad] at 9 significant digits, JSON-ready."""
         return {"controls": [float(f"{v:.9g}") for v in self.controls.detach().reshape(-1).cpu().tolist()]}
 
     def on_grid(self, grid: PupilGrid, aperture_diameter_m: float) -> "SplineMask":
+        """The same surface on another pupil grid, frozen."""
         return SplineMask(grid, self.control_pitch_m, self.half, self.controls.detach(), levels=self.levels).freeze()
 
     @classmethod
     def check_record(cls, record: Mapping[str, Any], prefix: str) -> None:
+        """Check a spline record (mask.init=PATH) under ``prefix``: its control grid and values; ConfigError naming
+        the key otherwise."""
         _, half = check_control_grid(record["control_pitch_m"], record["control_half"], prefix)
         controls, size = record["controls"], 2 * half + 1
         if len(controls) != size * size:

@@ -99,6 +99,7 @@ class ZernikeMask(Mask):
         self.coeffs = torch.nn.Parameter(c)
 
     def support_phase(self) -> torch.Tensor:
+        """The phase [rad] at the support samples: the coefficients times the Zernike basis."""
         return self.coeffs @ self.basis
 
     def fit(self, phase: torch.Tensor, weight: torch.Tensor | None = None) -> None:
@@ -112,35 +113,45 @@ class ZernikeMask(Mask):
 
     @torch.no_grad()
     def project(self) -> None:
+        """Clamp every coefficient into [-max_coeff_rad, max_coeff_rad]."""
         self.coeffs.clamp_(-self.max_coeff_rad, self.max_coeff_rad)
 
     def summary(self) -> dict[str, float]:
+        """The coefficients as scalars: zernike_1.. [rad]."""
         return {f"zernike_{j + 1}": float(v) for j, v in enumerate(self.coeffs.detach().cpu())}
 
     # ---- the family interface -------------------------------------------------------------------------------------
     def fit_phase(self, phase: torch.Tensor) -> None:
+        """Fit the coefficients to a full-grid (n, n) phase [rad] (aperture-weighted least squares: ``fit``)."""
         self.fit(phase)
 
     def bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(lower, upper): +-max_coeff_rad for every coefficient (float64)."""
         n = self.coeffs.numel()
         return (torch.full((n,), -self.max_coeff_rad, dtype=torch.float64),
                 torch.full((n,), self.max_coeff_rad, dtype=torch.float64))
 
     def vector_names(self) -> list[str]:
+        """zernike_1.., in ``to_vector`` order."""
         return [f"zernike_{j + 1}" for j in range(self.coeffs.numel())]
 
     def settings(self) -> dict[str, Any]:
+        """The number of terms and the coefficients' bound [rad]."""
         return {"n_terms": self.coeffs.numel(), "max_coeff_rad": self.max_coeff_rad}
 
     def parameter_values(self) -> dict[str, Any]:
+        """The coefficients [rad], JSON-ready."""
         return {"coeffs": [float(v) for v in self.coeffs.detach().cpu()]}
 
     def on_grid(self, grid: PupilGrid, aperture_diameter_m: float) -> "ZernikeMask":
+        """The same mask on another pupil grid, frozen."""
         return ZernikeMask(grid, aperture_diameter_m, self.coeffs.numel(), self.coeffs.detach(), self.max_coeff_rad,
                            levels=self.levels).freeze()
 
     @classmethod
     def check_record(cls, record: Mapping[str, Any], prefix: str) -> None:
+        """Check a Zernike record (mask.init=PATH) under ``prefix``: its number of terms, coefficients and bound;
+        ConfigError naming the key otherwise."""
         coeffs = record["coeffs"]
         n_terms = require_number(f"{prefix}.n_terms", record.get("n_terms", len(coeffs)), lo=1, hi=1000, integer=True)
         if len(coeffs) != n_terms:
