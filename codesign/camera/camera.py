@@ -140,6 +140,14 @@ class Camera(torch.nn.Module):
         """The mask's values changed: recompute the cached optics on next use."""
         self._frozen = None
 
+    def release_simulation_cache(self) -> None:
+        """Drop the simulator's kept kernels and PSF spectra, and a laser line's, keeping the optics (PSF, OTF) and
+        the laser halo: a camera that is not imaging for a while holds tens of MB less (a restorer's pool of many)."""
+        self.simulator.release_cache()
+        laser = self._frozen.state.laser if self._frozen is not None else None
+        if laser is not None:
+            laser.kernels.clear()
+
     def use_mask(self, mask: Mask) -> None:
         """Image through ``mask`` from now on, frozen; a mask built on another pupil grid (a search on a coarser
         one) is sampled onto this camera's by its family (Mask.on_grid)."""

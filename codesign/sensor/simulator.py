@@ -162,6 +162,11 @@ class SensorSimulator(torch.nn.Module):
             self._cache[ck] = out
         return out
 
+    def release_cache(self) -> None:
+        """Forget the kept kernels and float64 PSF spectra (tens of MB per PSF state; recomputed, identical, on next
+        use): what a pool of many cameras does for the ones not in use."""
+        self._cache, self._cache_key = {}, None
+
     def kernel(self, state: PSFState, level: str = "coarse", key=None) -> torch.Tensor:
         """The pixel-integrated PSF kernel (ksize x ksize energy fractions) the simulator convolves with.
 

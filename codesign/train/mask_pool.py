@@ -122,6 +122,7 @@ class MaskPool:
 
     def __init__(self, names: list[str], cameras: list[Camera], every: int, seed: int):
         self.names, self.cameras, self.every, self.seed = names, cameras, every, seed
+        self._active: Camera | None = None  # the member imaging now: the only one whose kernels are kept
 
     def index(self, step: int) -> int:
         """The member serving training step ``step``: drawn from (seed, step // every) alone (resumes exactly)."""
@@ -129,7 +130,14 @@ class MaskPool:
         return int(torch.randint(len(self.cameras), (1,), generator=gen))
 
     def camera(self, step: int) -> Camera:
-        return self.cameras[self.index(step)]
+        """The member of step ``step``; the one before it, when another, releases its kernels and PSF spectra
+        (tens of MB each: a pool of 150 cameras would otherwise keep gigabytes; recomputed, identical, when it
+        serves again). Optics, OTF and laser halo stay."""
+        cam = self.cameras[self.index(step)]
+        if self._active is not None and self._active is not cam:
+            self._active.release_simulation_cache()
+        self._active = cam
+        return cam
 
     def lsr(self) -> list[float]:
         """Each member's sampled LSR (window PSF peak / unmasked peak; the certified peak is a search's job)."""
@@ -208,6 +216,8 @@ def build_mask_pool(cfg: DictConfig, base: Camera, seed: int) -> MaskPool | None
                                             if n))
     pool = MaskPool(names, cameras, settings["every"], seed)
     lsr = pool.lsr()
+    for cam in cameras:  # computing the optics kept every member's spectra: only the imaging one keeps them
+        cam.release_simulation_cache()
     log.info("data.masks: %d cameras (%d listed masks, %d draws each at jitter %g; %s; %d laser line(s)), a new "
              "one every %d steps; sampled LSR %.3g to %.3g", len(cameras), len(settings["masks"]), settings["draws"],
              settings["jitter"], "pixel scales " + ", ".join(map(str, scales)) if scales[0] is not None else

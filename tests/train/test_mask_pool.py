@@ -203,3 +203,24 @@ def test_the_pool_shines_its_lasers_at_every_configured_line():
     scenes = data.sampler.sample(None, red.scene_size)
     params = preset_params("laser_1e6", scenes.shape[0])
     assert not torch.equal(red(scenes, params, 3)["sensor"], green(scenes, params, 3)["sensor"])
+
+
+def test_a_released_member_images_the_same_when_it_serves_again():
+    """Only the imaging member keeps its kernels and PSF spectra (tens of MB each); the others drop them and
+    recompute them, identical, when drawn again."""
+    from codesign.data.params import preset_params
+
+    cfg = tiny_cfg(POOL, "data.mask_every=1")
+    data = SimulatedData(cfg, CPU, 0)
+    pool = build_mask_pool(cfg, data.camera, 0)
+    assert all(not c.simulator._cache for c in pool.cameras)  # released after the pool's optics were computed
+    first = pool.cameras[pool.index(0)]
+    other = next(s for s in range(1, 50) if pool.cameras[pool.index(s)] is not first)
+    scenes = data.sampler.sample(None, first.scene_size)
+    params = preset_params("laser_1e6", scenes.shape[0])
+    before = pool.camera(0)(scenes, params, 3)["sensor"]
+    assert first.simulator._cache
+    pool.camera(other)
+    assert not first.simulator._cache
+    again = pool.camera(0)(scenes, params, 3)["sensor"]
+    assert torch.equal(before, again)
