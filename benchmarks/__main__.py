@@ -28,8 +28,8 @@ from pathlib import Path
 
 from benchmarks.common import RESULTS, SCALES, Report, machine, write_json, write_text
 
-BENCHMARKS = ("psf", "optics", "mask", "sensor", "laser_halo", "restoration", "joint", "train_options", "scaling",
-              "accuracy", "design", "peers")
+BENCHMARKS = ("psf", "optics", "mask", "sensor", "laser_halo", "restoration", "capture", "joint", "train_options",
+              "scaling", "accuracy", "design", "peers")
 DOCS_DIR = Path(__file__).resolve().parent.parent / "docs"
 
 
