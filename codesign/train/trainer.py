@@ -27,6 +27,7 @@ from codesign.models import losses
 from codesign.models.quality import psnr, ssim
 from codesign.models.restorer import Restorer, TrainContext
 from codesign.train import distributed
+from codesign.train.evaluation import affine_match
 from codesign.train.checkpoint import CHECKPOINT_NAME, rng_state, save_checkpoint, set_rng_state
 from codesign.train.gan_update import GANUpdate
 from codesign.train.optim import EMA, GuardedUpdate, adam, param_groups
@@ -252,7 +253,10 @@ class Trainer(TrainContext):
         n = self.data.image_size
         crop = lambda x: field_of_view(x, n).clamp(0, 1)  # noqa: E731
         b, t = crop(out["restored"]), crop(batch["scene"])
-        metrics = {"val/psnr": float(psnr(b, t).mean()), "val/ssim": float(ssim(b, t).mean())}
+        metrics = {"val/psnr": float(psnr(b, t).mean()), "val/ssim": float(ssim(b, t).mean()),
+                   # after the per-image gain and offset (the scene's level is not in the image: held to the
+                   # exposure, a restorer's plain PSNR says little of its progress)
+                   "val/psnr_matched": float(psnr(affine_match(field_of_view(out["restored"], n), t), t).mean())}
         if "i_b" in out:  # a restorer with a pre-restored irradiance (the SGAN's G1)
             metrics["val/psnr_i_b"] = float(psnr(crop(out["i_b"]), crop(batch["irradiance"])).mean())
         if self.writer is not None:
