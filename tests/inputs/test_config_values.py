@@ -69,15 +69,19 @@ ROWS = [
     ("simulate", "+simulate.foo=1",
      "simulate.foo = 1: unknown key; allowed: laser_angle_rad, laser_strengths, params, scenes, timing_repeats"),
     ("simulate", "+data.foo=1", "data.foo = 1: unknown key; allowed: batch_size, cache_mb, flips, folder, "
-     "image_size, mask_draws, mask_every, mask_jitter, masks, padded_size, params, scenes, split_seed, "
-     "test_fraction"),
+     "image_size, mask_draws, mask_every, mask_jitter, mask_lsr, masks, padded_size, params, scales, scenes, "
+     "split_seed, test_fraction"),
     # ---- data.masks: a restorer trained over a pool of masks ------------------------------------------------
     ("baseline", "data.masks=published", "data.masks = 'published': must be a list of masks, each 'published', "
-     "'defocus:R' (R in rad, 0 < R <= 200) or the path of a mask record (best_mask.json, learned_mask.json), or "
-     "null for the configured mask alone"),
-    ("baseline", "data.masks=[]", "data.masks = []: must be a non-empty list of masks, each 'published', 'defocus:R' (R in "
-     "rad, 0 < R <= 200) or the path of a mask record (best_mask.json, learned_mask.json), or null for the "
-     "configured mask alone"),
+     "'defocus:R' (R in rad, 0 < R <= 200), 'random:FAMILY' or 'random:FAMILY:N' (N random masks of a family) or "
+     "the path of a mask record (best_mask.json, learned_mask.json), or null for the configured mask alone"),
+    ("baseline", "data.masks=[]", "data.masks = []: must be a non-empty list of masks, each 'published', "
+     "'defocus:R' (R in rad, 0 < R <= 200), 'random:FAMILY' or 'random:FAMILY:N' (N random masks of a family) or "
+     "the path of a mask record (best_mask.json, learned_mask.json), or null for the configured mask alone"),
+    ("baseline", "data.scales=[96,96]", "data.scales = [96, 96]: must be a non-empty list of integer pixel scales "
+     "in [8, sensor.resolution], or null (each scale once)"),
+    ("baseline", "data.mask_lsr=[0.1,0.01]", "data.mask_lsr = [0.1, 0.01]: must be [lo, hi] with 0 < lo < hi <= 1 "
+     "(the sampled LSR of the random pool members)"),
     ("baseline", "data.masks=[published,defocus:0]", "data.masks[1] = 'defocus:0': a defocus member is "
      "'defocus:R' with R a number of rad in (0, 200]"),
     ("baseline", "data.masks=[defocus:abc]", "data.masks[0] = 'defocus:abc': a defocus member is 'defocus:R' with "
