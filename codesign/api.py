@@ -201,13 +201,13 @@ def restore(input: str | Path, checkpoint: str | Path, *overrides: str,
 
 
 def restore_image(counts, checkpoint: str | Path = "pretrained", mask: Mask | None = None, bin: float | None = None,
-                  input_bin: float = 1.0, tile: int | None = None, device: str | torch.device = "cpu"
+                  input_bin: float | None = None, tile: int | None = None, device: str | torch.device = "cpu"
                   ) -> torch.Tensor:
     """Restore one capture held in memory, no files: ``counts`` (H, W) or (C, H, W) sensor counts [DN] of any size
     from a sensor of the checkpoint's pitch (e.g. ``sensor_image(...)["sensor_dn"][0, 0]``), through ``mask`` (any
     Mask, e.g. a search's design, sampled onto the checkpoint's pupil grid; default: the checkpoint's own mask), binned to
     ``bin`` sensor pixels per network pixel (default: the network's finest trained scale; ``input_bin``: sensor
-    pixels per capture pixel, 1 for a raw capture, sensor.resolution / data.image_size for a capture simulated at
+    pixels per capture pixel, None or 1 for a raw capture, sensor.resolution / data.image_size for a capture simulated at
     the network resolution as sensor_image makes them), decoded in tiles of
     ``tile`` px (default: whole up to 1536^2 px). checkpoint: 'pretrained' (the shipped restorer for any mask and
     size) or a checkpoint.pt of a network that takes any size (model=wiener_naf). Returns (h, w) (or (C, h, w))
@@ -215,7 +215,8 @@ def restore_image(counts, checkpoint: str | Path = "pretrained", mask: Mask | No
     from codesign.models.capture import RestoreSpec, capture_factor, capture_geometry, restore_capture
     from codesign.train.resume import apply_checkpoint_mask, load_trained
 
-    spec = RestoreSpec(bin=bin, input_bin=input_bin, tile=tile, prefix="restore_image")
+    given = {} if input_bin is None else {"input_bin": input_bin}  # None: RestoreSpec's default, a raw capture
+    spec = RestoreSpec(bin=bin, tile=tile, prefix="restore_image", **given)
     x = torch.as_tensor(counts, dtype=torch.float64)
     if x.dim() not in (2, 3) or min(x.shape[-2:]) < 8 or not bool(torch.isfinite(x).all()) or float(x.min()) < 0:
         raise ConfigError("restore_image counts", tuple(x.shape), "must be (H, W) or (C, H, W) finite counts >= 0 "
