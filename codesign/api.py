@@ -190,9 +190,9 @@ def checkpoint_config(checkpoint: str | Path) -> DictConfig:
 def restore(input: str | Path, checkpoint: str | Path, *overrides: str,
             run_dir: str | Path | None = None) -> dict[str, Any]:
     """Restore 16-bit sensor captures with a trained checkpoint (``+experiment=restore``). input: one 16-bit
-    PNG/TIFF of sensor counts (DN) at the checkpoint's data.image_size, or a folder of them; checkpoint: a
-    checkpoint.pt of baseline / joint (e.g. benchmarks/results/gpu/checkpoint.pt, 256 px), or 'pretrained' (the
-    shipped restorer for any mask, 96 px: codesign/models/pretrained/README.md). Writes
+    PNG/TIFF of sensor counts (DN) at the checkpoint's data.image_size, or a folder of them; checkpoint:
+    ``"pretrained"`` (the shipped restorer for any mask, 96 px: codesign/models/pretrained/README.md) or a
+    checkpoint.pt written by baseline / joint. Writes
     restored_<name>.png (radiance 0..1 as 0..65535) into run_dir; returns metrics.json (``outputs``,
     ``seconds_per_image``, ...) with ``run_dir``."""
     named = str(checkpoint) in PRETRAINED  # a shipped checkpoint's name stays a name
