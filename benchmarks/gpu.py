@@ -603,7 +603,8 @@ setuptools (the build backend of the editable install). On the node, from the ch
 Everything it measures lands in benchmarks/results/gpu/ (gpu.json, tests.log, train.log, evaluate.log, the
 figures, and checkpoint.pt: the trained network's weights and config, 10.4 MiB at the cpu width) and this page;
 gpu.json is written after every step, so a campaign cut short keeps what it measured. The repository keeps gpu.json,
-the figures, notes.md and profile_sgan_f.txt, not the logs; gpu.json records paths relative to the checkout.
+the figures, notes.md and profile_sgan_f.txt, not the logs nor the checkpoint (the shipped restorer is
+`checkpoint=pretrained`); gpu.json records paths relative to the checkout.
 `python -m benchmarks.gpu --dry-run --out DIR` rehearses every step at tiny sizes on a CPU (tests/test_gpu_campaign.py
 runs it).
 
