@@ -39,7 +39,7 @@ def restorer_scores(evaluation: dict, method: str, suffix: str = "") -> dict:
 def verdict(m: dict, method: str, condition: str = VERDICT_CONDITION) -> str:
     """One line: the learned system's PSNR (after the gain/offset match) against the published one at
     ``condition``, and whether the difference is outside the 95 % interval of the per-scene differences. One run
-    is one seed: the seed-to-seed spread is not in it (benchmarks/codesign_study.py measures that)."""
+    is one seed: the seed-to-seed spread is not in it (runs of other ``seed=`` values measure it)."""
     learned = m["evaluation_per_scene_psnr_matched"][condition][method]
     published = m["evaluation_per_scene_psnr_matched_published"][condition][method]
     mean, noise = paired_difference(learned, published)
@@ -49,7 +49,7 @@ def verdict(m: dict, method: str, condition: str = VERDICT_CONDITION) -> str:
             f"light through; at alpha_l = {alpha} its restoration is {mean:+.2f} dB against the published system's")
     if noise is None:
         return head + f" ({len(learned)} scene: no noise estimate; evaluate more scenes to judge)"
-    judged = "beyond the scene noise (one seed: python -m benchmarks.codesign_study measures the seed spread)" \
+    judged = "beyond the scene noise (one seed: runs with other seed= values measure the seed spread)" \
         if abs(mean) > noise else "within noise"
     return head + f" ({len(learned)} scenes; 95 % interval of the per-scene differences +-{noise:.2f} dB): {judged}"
 
