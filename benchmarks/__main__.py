@@ -11,9 +11,8 @@ from what it measured (machine, threads, torch version and date included). Share
 benchmarks/common.py. Beside the suite, not part of it: the GPU campaign (gpu.py, ``python -m benchmarks.gpu``,
 docs/gpu.md); the check of the docs' quoted figures against their results files (doc_figures.py); and the commands
 that made figures the docs still show: every restorer side by side (restorer_table.py), the shipped restorer's
-training and its evaluation mask by mask (pretrain.py, pretrained_eval.py), the main job over seeds
-(main_job_seeds.py) and the stored designs' certified peaks and laser lines (design_peaks.py). Studies that ran
-once left the folder; docs/results_log.md names the commit that has each. benchmarks/results/ keeps what the docs
+training and its evaluation mask by mask (pretrain.py, pretrained_eval.py). Studies that ran once left the folder;
+docs/results_log.md names the commit that has each. benchmarks/results/ keeps what the docs
 quote and what a benchmark compares against. Benchmarks are measurements, not tests: nothing here asserts a time.
 """
 from __future__ import annotations

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import datetime
 import json
+import math
 import os
 import platform
 import resource
@@ -136,9 +137,6 @@ def time_error_plot(path: Path, series: dict[str, list[tuple[float, float, str]]
 
 def timeit(fn, repeats: int, warmup: int = 1, sync=None) -> float:
     """Median seconds of ``repeats`` calls after ``warmup`` calls (``sync()`` before each clock read on GPU)."""
-    import statistics
-    import time
-
     for _ in range(warmup):
         fn()
     times = []
@@ -183,8 +181,6 @@ def write_json(path: Path, data: dict) -> Path:
 
 def fit_exponent(xs: list[float], ys: list[float]) -> float:
     """Least-squares slope of log y against log x: cost ~ x^k."""
-    import math
-
     lx, ly = [math.log(x) for x in xs], [math.log(y) for y in ys]
     mx, my = sum(lx) / len(lx), sum(ly) / len(ly)
     return sum((a - mx) * (b - my) for a, b in zip(lx, ly)) / sum((a - mx) ** 2 for a in lx)
@@ -295,63 +291,3 @@ def keep_weights(src: Path, dst: Path) -> dict:
     state = load_checkpoint(src)
     save_checkpoint(dst, {k: state[k] for k in (*TRAINED_ENTRIES, "mask") if k in state})
     return {"checkpoint": dst.name, "checkpoint_mib": round(dst.stat().st_size / 2**20, 2)}
-
-
-# ---- the main job over seeds (main_job_seeds.py) -----------------------------------------------------------
-JOINT_GOAL_DB = 0.5  # issue 36: the joint stage at least +0.5 dB over its frozen arm at alpha_l = 1e6
-
-
-class Runner:
-    """Runs a study's commands one after another with their logs beside their outputs, skipping finished runs,
-    and prints a line per run with the time left (each kind of run at its own mean duration so far)."""
-
-    def __init__(self, counts: dict[str, int], name: str = "main_job_seeds"):
-        self.name = name  # the study's name in an error
-        self.left = dict(counts)
-        self.total, self.done = sum(counts.values()), 0
-        self.seconds: dict[str, list[float]] = {k: [] for k in counts}
-        self.spent = 0.0  # wall seconds of every run, this invocation's and earlier ones' (their .seconds files)
-
-    def eta_minutes(self) -> float:
-        every = [x for v in self.seconds.values() for x in v]
-        mean = lambda k: statistics.mean(self.seconds[k] or every)  # noqa: E731
-        return sum(n * mean(k) for k, n in self.left.items() if n) / 60 if every else float("nan")
-
-    def __call__(self, kind: str, label: str, run_dir: Path, args: list[str], timeout: float = 7200) -> dict:
-        metrics = run_dir / "metrics.json"
-        self.done += 1
-        self.left[kind] -= 1
-        if not metrics.is_file():
-            print(f"[{self.done}/{self.total}] {label} ...", flush=True)
-            run_dir.mkdir(parents=True, exist_ok=True)
-            cmd = [sys.executable, "-m", "codesign", *args, f"hydra.run.dir={run_dir}"]
-            rc, sec = run_logged(cmd, run_dir.with_suffix(".log"), timeout)
-            if rc != 0:
-                raise SystemExit(f"{self.name}: {label} failed (exit {rc}); its log: {run_dir.with_suffix('.log')}"
-                                 f"\n  command: {' '.join(cmd)}")
-            self.seconds[kind].append(sec)
-            run_dir.with_suffix(".seconds").write_text(f"{sec:.1f}\n")
-            print(f"[{self.done}/{self.total}] {label}: {sec:.0f} s; about {self.eta_minutes():.0f} min left",
-                  flush=True)
-        else:
-            print(f"[{self.done}/{self.total}] {label}: done before ({metrics})", flush=True)
-        stamp = run_dir.with_suffix(".seconds")
-        self.spent += float(stamp.read_text()) if stamp.is_file() else 0.0
-        return json.loads(metrics.read_text())
-
-
-def _spread(values: list[float]) -> float:
-    return statistics.stdev(values) if len(values) > 1 else float("nan")
-
-
-def paired_gain(arm: dict[int, dict], against: dict[int, dict], key: str) -> dict:
-    """``arm`` minus ``against`` (seed -> figures) in ``key``, paired by seed: the mean gain and the standard
-    deviation of the paired gains; the seed spread, taken as the larger standard deviation of the two arms (stricter
-    than the paired one: it counts the seed-to-seed swing that both arms share; NaN below 2 seeds); significant when
-    |mean gain| > 2 x the spread; the number of seeds paired."""
-    common = sorted(set(arm) & set(against))
-    gains = [arm[s][key] - against[s][key] for s in common]
-    spread = max(_spread([arm[s][key] for s in sorted(arm)]), _spread([against[s][key] for s in sorted(against)]))
-    mean = statistics.mean(gains)
-    return {"gain": mean, "gain_std": statistics.stdev(gains) if len(gains) > 1 else 0.0, "spread": spread,
-            "significant": abs(mean) > 2 * spread, "seeds": len(common)}

@@ -81,8 +81,8 @@ def _padding_row(filled: dict, key: str) -> tuple[str, ...]:
 
 
 def _seeds_text(res: dict, start: str = "| seed") -> str:
-    """benchmarks.main_job_seeds' rendering stored in its seeds.json, from ``start`` (its table, or its verdicts)
-    on."""
+    """The rendering stored in a seeds.json (by the retired main_job_seeds study, docs/results_log.md), from
+    ``start`` (its table, or its verdicts) on."""
     text = res["markdown"]
     return text[text.index(start):].rstrip("\n")
 
@@ -273,7 +273,7 @@ QUOTES: list[Quote] = [
     *(Quote("docs/codesign.md", f"| published/8, seed {k} | {{}} | {{}} | {{}} | {{}} |",
             f"benchmarks/results/main_job/eighth/{sub}metrics.json", _seed_row)
       for k, sub in ((0, ""), (1, "seed1/"), (2, "seed2/"))),
-    # ... and the joint stage over the seeds (benchmarks.main_job_seeds): the moonshot's table, the quarter's verdict
+    # ... and the joint stage over the seeds (seeds.json): the moonshot's table, the quarter's verdict
     Quote("docs/codesign.md", "{}", "benchmarks/results/main_job/eighth/seeds.json", lambda d: (_seeds_text(d),)),
     Quote("docs/codesign.md", "{}", "benchmarks/results/main_job/steps240/seeds.json",
           lambda d: (_seeds_text(d, "- main-job goal"),)),
