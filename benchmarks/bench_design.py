@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.common import CONF, Report, markdown_table, write_json
+from benchmarks.common import Report, compose, markdown_table, write_json
 
 FAMILIES = ("halfring", "spiral", "zernike", "spline", "pixel")
 # evaluations per start of the main floor, the sweep's factors and its evaluations per (warm) start
@@ -43,10 +43,7 @@ WHOLE = "spline, 1280 window, 512 across"
 
 
 def _cfg(overrides: list[str]):
-    from hydra import compose, initialize_config_dir
-
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return compose("config", overrides=["+experiment=mask_search", "logging.tensorboard=false", *overrides])
+    return compose(["+experiment=mask_search", "logging.tensorboard=false", *overrides])
 
 
 def _search(run_dir: Path, overrides: list[str]) -> dict:
@@ -179,8 +176,9 @@ def _camera(mask_cfg: dict, vector=None):
 class WienerReference:
     """The tuned Wiener filters the prediction is validated against, on simulated captures (figure settings,
     laser off): the classical filter with the model's scene spectrum, nsr(f) = g N / S(f), and the Evaluator's
-    constant-nsr filter; each tuned (g, resp. nsr) on the built-in training scenes, then scored (affine-matched
-    PSNR over the field) on the evaluation scenes."""
+    constant-nsr filter; each tuned (g over GAINS, resp. nsr over NSR_GRID) on the built-in training scenes by the
+    evaluation's one tuning (codesign.train.evaluation.tune_nsr), then scored (affine-matched PSNR over the field)
+    on the evaluation scenes."""
 
     def __init__(self, module, tuning: torch.Tensor, scenes: torch.Tensor):
         self.module, self.tuning, self.scenes = module, tuning, scenes
@@ -217,14 +215,15 @@ class WienerReference:
     @torch.no_grad()
     def __call__(self, camera) -> dict:
         from codesign.models import quality
-        from codesign.train.evaluation import NSR_GRID, affine_match
+        from codesign.train.evaluation import NSR_GRID, affine_match, tune_nsr
 
         def score(x, target):
             return float(quality.psnr(affine_match(x, target), target).mean())
 
+        n = camera.image_size
         y, target = self._capture(camera, self.tuning, 11)
-        gain = max(GAINS, key=lambda g: score(self._spectral(camera, y, g), target))
-        nsr = max(NSR_GRID, key=lambda k: score(self._constant(camera, y, k), target))
+        gain = tune_nsr((self._spectral(camera, y, g) for g in GAINS), target, n, GAINS)
+        nsr = tune_nsr((self._constant(camera, y, k) for k in NSR_GRID), target, n)
         y, target = self._capture(camera, self.scenes, 12)
         return {"spectral_db": score(self._spectral(camera, y, gain), target),
                 "constant_db": score(self._constant(camera, y, nsr), target)}

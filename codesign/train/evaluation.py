@@ -21,7 +21,7 @@ import io as _io
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Sequence
 
 import numpy as np
 import torch
@@ -83,11 +83,13 @@ def affine_match(x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return (a * (x - xm) + tm).clamp(0, 1)
 
 
-def tune_nsr(outputs: Iterable[torch.Tensor], target: torch.Tensor, size: int) -> float:
-    """The noise-to-signal ratio of NSR_GRID whose Wiener output restores ``target`` best: the one Wiener nsr tuning
-    of the evaluation's baselines and of a restorer's Wiener base (codesign/train/base_tuning.py).
+def tune_nsr(outputs: Iterable[torch.Tensor], target: torch.Tensor, size: int,
+             grid: Sequence[float] = NSR_GRID) -> float:
+    """The noise-to-signal ratio of ``grid`` (default NSR_GRID) whose Wiener output restores ``target`` best: the one
+    Wiener nsr tuning of the evaluation's baselines, of a restorer's Wiener base (codesign/train/base_tuning.py) and
+    of the design benchmark's Wiener references (a noise gain on a spectral nsr there).
 
-    ``outputs``: one restoration per nsr of NSR_GRID, in its order, (B, 1, H, W) each (an iterable: each may be
+    ``outputs``: one restoration per value of ``grid``, in its order, (B, 1, H, W) each (an iterable: each may be
     computed when asked); ``target``: the scenes' central ``size`` x ``size`` pixels, (B, 1, size, size). Tuned for
     structure (per-image gain/offset matched): a global gain fitted across images of unknown alpha_b shrinks every
     candidate towards the mean and would make the choice arbitrary. The criterion is the images' pooled squared
@@ -95,7 +97,7 @@ def tune_nsr(outputs: Iterable[torch.Tensor], target: torch.Tensor, size: int) -
     its near-unbounded PSNR would weigh most.
     """
     errors = [float((affine_match(centre(x, size), target) - target).square().mean()) for x in outputs]
-    return NSR_GRID[int(np.argmin(errors))]
+    return grid[int(np.argmin(errors))]
 
 
 class Evaluator:
