@@ -26,8 +26,8 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from benchmarks.common import (Report, compose, cuda_sync, machine, markdown_table, peak_cuda_mib, restorer,
-                               time_error_plot, timeit, write_json)
+from benchmarks.common import (Report, compose, cuda_sync, device, fresh_model, machine, markdown_table, peak_cuda_mib,
+                               restorer, time_error_plot, timeit, write_json)
 
 METHODS = ("sgan_b", "sgan_e", "sgan_f", "wiener_unet")  # model=<name>; each trained with the same budget
 ALPHAS = (0.0, 1e6)
@@ -57,19 +57,12 @@ def _config(method: str, size: str, p: dict, steps: int):
 
 def _train(cfg, data, start: dict, dev: torch.device):
     """(model, generators, steps, seconds): the baseline experiment's model + trainer, no TensorBoard."""
-    from codesign.config.runtime import to_container
-    from codesign.train.model_setup import build_model
-    from codesign.train.spec import TrainerSpec
-    from codesign.train.optim import init_weights
-    from codesign.train.trainer import Trainer
+    from codesign.train.model_setup import build_trainer
 
-    torch.manual_seed(0)
-    model = build_model(cfg)
-    init_weights(model)
+    model = fresh_model(cfg)
     data.load_state_dict(start)  # every method sees the same training batches
     with tempfile.TemporaryDirectory() as tmp:  # the trainer's final checkpoint is not kept
-        trainer = Trainer(model=model, data=data, spec=TrainerSpec.from_config(to_container(cfg.trainer)),
-                          run_dir=Path(tmp), device=dev, config={}, seed=0)
+        trainer = build_trainer(cfg, model, data, Path(tmp), dev, 0)
         t0 = time.perf_counter()
         trainer.fit(progress_every=10**9)
         seconds = time.perf_counter() - t0
@@ -109,7 +102,7 @@ def measure(scale: str) -> dict:
     from codesign.train.data import SimulatedData
     from codesign.models import classical_wiener, otf_from_kernel, parameter_count
 
-    dev = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    dev = device()
     p = plan(scale, dev)
     data = SimulatedData(_config("sgan_b", "tiny", p, 1), dev, 0)  # physics + scenes: the same for all
     start = data.state_dict()

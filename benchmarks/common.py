@@ -246,25 +246,32 @@ def builtin_scenes(batch: int, size: int, names: list[str] | None = None) -> tor
     return src.fixed_batch([names[i % len(names)] for i in range(batch)], size)
 
 
-def bench_trainer(cfg, dev: torch.device, run_dir: Path, codesign=None, **options):
-    """A Trainer of ``cfg`` as a run builds it (seed 0, weights initialised as in a run), no validation,
-    checkpoints or images; ``codesign``: called with the data and the trainer spec, it returns the MaskCodesign (None:
-    the mask stays frozen); ``options``: further TrainerSpec fields (amp, channels_last, compile)."""
-    from codesign.config.runtime import to_container
-    from codesign.train.data import SimulatedData
+def fresh_model(cfg):
+    """The restorer of ``cfg`` with its weights initialised as a run initialises them, from seed 0."""
     from codesign.train.model_setup import build_model
     from codesign.train.optim import init_weights
-    from codesign.train.spec import TrainerSpec
-    from codesign.train.trainer import Trainer
 
     torch.manual_seed(0)
     model = build_model(cfg)
     init_weights(model)
+    return model
+
+
+def bench_trainer(cfg, dev: torch.device, run_dir: Path, codesign=None, **options):
+    """A Trainer of ``cfg`` as a run builds it (seed 0, fresh_model), no validation, checkpoints or images;
+    ``codesign``: called with the data and the trainer spec, it returns the MaskCodesign (None: the mask stays
+    frozen); ``options``: further TrainerSpec fields (amp, channels_last, compile)."""
+    from codesign.config.runtime import to_container
+    from codesign.train.data import SimulatedData
+    from codesign.train.model_setup import build_trainer
+    from codesign.train.spec import TrainerSpec
+
+    model = fresh_model(cfg)
     data = SimulatedData(cfg, dev, 0)
     spec = TrainerSpec.from_config(to_container(cfg.trainer)).replace(
         steps=10**6, val_every=0, checkpoint_every=0, image_every=0, **options)
-    return Trainer(model=model, data=data, spec=spec, run_dir=run_dir, device=dev, config={}, seed=0,
-                   codesign=codesign(data, spec) if codesign is not None else None)
+    return build_trainer(cfg, model, data, run_dir, dev, 0, spec=spec,
+                         codesign=codesign(data, spec) if codesign is not None else None)
 
 
 def joint_trainer(overrides: list[str], dev: torch.device, run_dir: Path, **options):
