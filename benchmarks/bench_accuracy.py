@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import Report, markdown_table, write_json
+from benchmarks.common import Report, finish, markdown_table
 
 F64, F32 = torch.float64, torch.float32
 
@@ -326,10 +326,7 @@ def table(rows: list[dict]) -> str:
 
 
 def run(scale: str, out: Path) -> Report:
-    from benchmarks.common import machine
-
     data = measure(scale)
-    write_json(out / "accuracy.json", {"machine": machine(), "scale": scale, **data})
     tables = [f"**{TITLES[a]}**\n\n" + table([r for r in data["rows"] if r["area"] == a]) for a in AREAS]
     failing = [r["check"] for r in data["rows"] if r["measured"] > r["tol"] or not math.isfinite(r["measured"])]
     notes = ["Largest error of each accuracy check next to the tolerance its test asserts (\"of tol\" = measured / "
@@ -337,9 +334,8 @@ def run(scale: str, out: Path) -> Report:
              "(atol + rtol |numerical|) over the whole Jacobian; noise rows: largest |z| of the sample mean and "
              "variance against the closed form. What each check means: [accuracy.md](accuracy.md).",
              "Every check within its tolerance." if not failing else "OUTSIDE TOLERANCE: " + "; ".join(failing)]
-    rep = Report("accuracy", "Accuracy checks: measured maxima against the tests' tolerances", tables, [], notes)
-    print("\n\n".join(rep.tables))
-    return rep
+    return finish(Report("accuracy", "Accuracy checks: measured maxima against the tests' tolerances", tables, [],
+                         notes), out, scale, data)
 
 
 if __name__ == "__main__":

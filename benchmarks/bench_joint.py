@@ -25,7 +25,7 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import Report, cuda_sync, device, joint_trainer, machine, markdown_table, write_json
+from benchmarks.common import Report, cuda_sync, device, finish, joint_trainer, markdown_table
 
 PLAN = {"quick": dict(warmup=1, repeats=3), "full": dict(warmup=2, repeats=5)}
 PARTS = [  # (key, what the table calls it)
@@ -179,10 +179,7 @@ def report(data: dict) -> Report:
 
 def run(scale: str, out: Path) -> Report:
     data = measure(scale)
-    write_json(out / "joint.json", {"machine": machine(), "scale": scale, **data})
-    rep = report(data)
-    print("\n\n".join(rep.tables))
-    return rep
+    return finish(report(data), out, scale, data)
 
 
 if __name__ == "__main__":

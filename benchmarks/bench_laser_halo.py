@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from benchmarks.common import Report, machine, markdown_table, write_json
+from benchmarks.common import Report, compose, machine, markdown_table, write_json
 from codesign.data.params import fixed_scene_params
 from codesign.optics.grid import axis_coords
 from codesign.optics.propagation import mft, mft_matrix
@@ -97,14 +97,9 @@ REFINE = {"quick": 4, "full": 8}
 
 def cameras(*overrides: str) -> tuple:
     """(camera, the same camera with sensor.laser_halo=false) of +experiment=simulate with ``overrides``."""
-    from hydra import compose, initialize_config_dir
-
     from codesign.camera.build import build_camera
 
-    conf = Path(__file__).resolve().parent.parent / "conf"
-    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        on = compose("config", overrides=["+experiment=simulate", *overrides])
-        off = compose("config", overrides=["+experiment=simulate", *overrides, "sensor.laser_halo=false"])
+    on, off = (compose(["+experiment=simulate", *overrides, *extra]) for extra in ((), ["sensor.laser_halo=false"]))
     return build_camera(on, "cpu"), build_camera(off, "cpu")
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import Report, markdown_table, time_error_plot, timeit, write_json
+from benchmarks.common import Report, finish, markdown_table, time_error_plot, timeit
 
 from codesign.design.merit import MetricsSpec
 
@@ -114,13 +114,8 @@ def report(rows: list[dict], out: Path) -> Report:
 
 
 def run(scale: str, out: Path) -> Report:
-    from benchmarks.common import machine
-
     rows = measure(scale)
-    write_json(out / "mask.json", {"machine": machine(), "scale": scale, "rows": rows})
-    rep = report(rows, out)
-    print(rep.tables[0])
-    return rep
+    return finish(report(rows, out), out, scale, {"rows": rows})
 
 
 if __name__ == "__main__":

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import Report, machine, markdown_table, write_json
+from benchmarks.common import Report, finish, markdown_table
 
 VARIANTS = [  # (convention, m_range, harmonic_sign); the first is the default
     ("atan2", (1, 17), "printed"), ("atan2", (0, 17), "printed"),
@@ -116,10 +116,7 @@ def report(rows: list[dict], out: Path) -> Report:
 
 def run(scale: str, out: Path) -> Report:
     rows = measure(SAMPLINGS[scale])
-    write_json(out / "optics.json", {"machine": machine(), "scale": scale, "rows": rows})
-    rep = report(rows, out)
-    print("\n\n".join(rep.tables))
-    return rep
+    return finish(report(rows, out), out, scale, {"rows": rows})
 
 
 if __name__ == "__main__":

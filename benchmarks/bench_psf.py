@@ -21,8 +21,8 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import (Report, fit_exponent, markdown_table, peak_cuda_mib, peak_rss_mb, run_isolated,
-                               time_error_plot, write_json)
+from benchmarks.common import (Report, finish, fit_exponent, markdown_table, peak_cuda_mib, peak_rss_mb,
+                               run_isolated, time_error_plot)
 
 GRIDS = {"quick": [192, 256, 384, 512, 768], "full": [192, 256, 320, 384, 512, 768, 1024, 1536]}
 REFERENCE = {"quick": 1024, "full": 2048}
@@ -176,15 +176,8 @@ def report(data: dict, out: Path) -> Report:
 
 
 def run(scale: str, out: Path) -> Report:
-    import torch
-
-    from benchmarks.common import machine
-
     data = measure(scale, torch.get_num_threads())
-    write_json(out / "psf.json", {"machine": machine(), "scale": scale, **data})
-    rep = report(data, out)
-    print(rep.tables[0])
-    return rep
+    return finish(report(data, out), out, scale, data)
 
 
 if __name__ == "__main__":

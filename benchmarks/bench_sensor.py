@@ -20,8 +20,8 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import (Report, builtin_scenes, machine, markdown_table, published_sensor, time_error_plot,
-                               timeit, write_json)
+from benchmarks.common import (Report, builtin_scenes, finish, markdown_table, published_sensor, time_error_plot,
+                               timeit)
 
 BATCHES = {"quick": [1, 8], "full": [1, 8, 16]}
 REPEATS = {"quick": 2, "full": 5}
@@ -244,10 +244,7 @@ def report(data: dict, out: Path) -> Report:
 
 def run(scale: str, out: Path) -> Report:
     data = measure(scale)
-    write_json(out / "sensor.json", {"machine": machine(), "scale": scale, **data})
-    rep = report(data, out)
-    print("\n\n".join(rep.tables))
-    return rep
+    return finish(report(data, out), out, scale, data)
 
 
 if __name__ == "__main__":

@@ -21,8 +21,8 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import (Report, bench_trainer, compose, cuda_sync, device, joint_trainer, machine,
-                               markdown_table, peak_cuda_mib, timeit, write_json)
+from benchmarks.common import (Report, bench_trainer, compose, cuda_sync, device, finish, joint_trainer,
+                               markdown_table, peak_cuda_mib, timeit)
 
 OPTIONS = {  # name -> trainer overrides
     "float32": {}, "bf16": {"amp": "bf16"}, "channels_last": {"channels_last": True},
@@ -221,10 +221,7 @@ def report(data: dict) -> Report:
 
 def run(scale: str, out: Path) -> Report:
     data = measure(scale)
-    write_json(out / "train_options.json", {"machine": machine(), "scale": scale, **data})
-    rep = report(data)
-    print("\n\n".join(rep.tables))
-    return rep
+    return finish(report(data), out, scale, data)
 
 
 if __name__ == "__main__":

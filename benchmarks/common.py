@@ -51,6 +51,16 @@ def machine() -> dict:
     }
 
 
+def gpu_driver() -> str | None:
+    """The NVIDIA driver's version as nvidia-smi reports it (the first GPU's), None where it cannot say."""
+    try:
+        q = subprocess.run(["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"],
+                           capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return q.stdout.strip().splitlines()[0] if q.returncode == 0 and q.stdout.strip() else None
+
+
 def peak_rss_mb() -> float:
     """Peak resident set size of this process [MiB] (Linux reports KiB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -177,6 +187,14 @@ def write_text(path: Path, text: str) -> Path:
 def write_json(path: Path, data: dict) -> Path:
     """Atomic JSON write."""
     return write_text(path, json.dumps(data, indent=2) + "\n")
+
+
+def finish(rep: Report, out: Path, scale: str, data: dict) -> Report:
+    """The end of an entry's run: ``data`` with the machine and the scale into out/<rep.name>.json, the report's
+    tables printed; returns ``rep``."""
+    write_json(out / f"{rep.name}.json", {"machine": machine(), "scale": scale, **data})
+    print("\n\n".join(rep.tables))
+    return rep
 
 
 def fit_exponent(xs: list[float], ys: list[float]) -> float:

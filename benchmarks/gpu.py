@@ -30,7 +30,6 @@ import os
 import platform
 import re
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -41,8 +40,8 @@ import torch
 from torch.autograd import DeviceType
 from torch.profiler import ProfilerActivity, profile
 
-from benchmarks.common import cuda_sync, keep_weights, machine, markdown_table, peak_cuda_mib, restorer, \
-    run_logged, timeit, write_json, write_text
+from benchmarks.common import cuda_sync, gpu_driver, keep_weights, machine, markdown_table, peak_cuda_mib, \
+    restorer, run_logged, timeit, write_json, write_text
 
 REPO = Path(__file__).resolve().parent.parent
 RESULTS = REPO / "benchmarks" / "results" / "gpu"
@@ -106,13 +105,8 @@ def gpu_facts(dev: torch.device) -> dict:
     if dev.type == "cuda":
         p = torch.cuda.get_device_properties(dev)
         info.update(gpu=p.name, gpu_memory_gib=round(p.total_memory / 2**30, 1), cuda_runtime=torch.version.cuda,
-                    cudnn=torch.backends.cudnn.version(), multiprocessors=p.multi_processor_count)
-        try:
-            q = subprocess.run(["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"],
-                               capture_output=True, text=True, timeout=30)
-            info["driver"] = q.stdout.strip().splitlines()[0] if q.returncode == 0 and q.stdout.strip() else None
-        except (OSError, subprocess.TimeoutExpired):
-            info["driver"] = None
+                    cudnn=torch.backends.cudnn.version(), multiprocessors=p.multi_processor_count,
+                    driver=gpu_driver())
     return info
 
 

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import HELDOUT_MASK, keep_weights
+from benchmarks.common import HELDOUT_MASK, gpu_driver, keep_weights
 
 ROOT = Path(__file__).resolve().parents[1]
 MASKS = "codesign/models/pretrained/masks"  # relative to the checkout, where the runs start
@@ -96,10 +96,7 @@ def device_facts(device: str) -> dict:
     facts = {"torch": torch.__version__, "python": platform.python_version(), "machine": platform.processor() or
              platform.machine(), "date": time.strftime("%Y-%m-%d")}
     if device.startswith("cuda") and torch.cuda.is_available():
-        facts.update(gpu=torch.cuda.get_device_name(0), cuda=torch.version.cuda)
-        q = subprocess.run(["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"], capture_output=True,
-                           text=True)
-        facts["driver"] = q.stdout.strip() if q.returncode == 0 else None
+        facts.update(gpu=torch.cuda.get_device_name(0), cuda=torch.version.cuda, driver=gpu_driver())
     return facts
 
 
