@@ -9,10 +9,6 @@ projection + LSR guard. The same trainer then runs the step with the mask frozen
 cached optics, no mask gradient). Median of the timed steps after warm-up steps; on a GPU every clock read waits
 for the device. Full scale on a GPU adds the paper's sizes (``preset=paper``).
 
-Formerly ``python -m benchmarks.codesign step`` (docs/codesign.md Sec. 6). Its ``table`` command, which tabulated
-metrics.json of separate joint runs, is gone: ``python -m codesign +experiment=joint`` writes that comparison
-into its own metrics.json.
-
     python -m benchmarks --only joint [--scale full]
 """
 from __future__ import annotations

@@ -6,9 +6,6 @@ The readings: the phase convention (atan2 as implemented by default, atan as pri
 Fourier series of a square wave would have them). For each sampling and reading: LSR (certified continuous peak),
 LSR on the grid, smooth LSR, BSR and the energy in the window, mtf_mean and mtf_min (docs/optics.md Sec. 5).
 
-Formerly ``python -m benchmarks.optics convergence``; its ``speed`` part (the default against the paper's
-4096-point FFT path, the MFT sweep, peak memory) is measured by bench_psf.
-
     python -m benchmarks --only optics [--scale full]
 """
 from __future__ import annotations

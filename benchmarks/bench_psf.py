@@ -5,10 +5,8 @@ clean peak-memory reading. Errors are against a float64 MFT at a sampling where 
 (docs/optics.md: within 0.21% from 1024 to 2048 samples across the aperture): relative error of the LSR (refined
 continuous peak) and of mtf_mean, and the relative L1 error of the PSF on the 640 x 640 sensor-pitch window.
 
-This entry also covers the former ``python -m benchmarks.optics speed`` (docs/optics.md Sec. 6): the default (MFT,
-float32, 384 samples across) against the paper's path (1024 across, 4096-point FFT resampled to the sensor pitch,
-full scale) and the MFT sweep over the sampling, with the peak resident memory of each process (``peak_rss_mb``,
-``baseline_rss_mb`` in psf.json) and the LSR error against the converged float64 value.
+At full scale also the paper's path (1024 across, 4096-point FFT resampled to the sensor pitch) against the default
+(docs/optics.md Sec. 6); peak resident memory of each process: ``peak_rss_mb``, ``baseline_rss_mb`` in psf.json.
 
     python -m benchmarks --only psf [--scale full]
 """

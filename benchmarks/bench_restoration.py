@@ -10,9 +10,7 @@ codesign/models/quality.py on the field of view).
 
 Inference time only (untrained networks, no PSNR), full scale: every network at the paper's geometry (input
 padded to 384, as 256 px images), cpu and paper widths on a CPU, the paper width on a GPU, and classical Wiener
-at the same size. This covers the former ``python -m benchmarks.restoration speed`` (docs/models.md Sec. 7). Its
-``quality`` command, which tabulated metrics.json of separate training runs, is gone: this entry trains and scores
-its own networks.
+at the same size (docs/models.md Sec. 7).
 
     python -m benchmarks --only restoration [--scale full]
 """

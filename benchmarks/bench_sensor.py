@@ -8,8 +8,7 @@ time with and without each skip (no laser, laser outside the field, zero noise t
 with the proof that the outputs are bit-identical (torch.equal); float32 against a float64 reference with the
 same noise at alpha_l from 0 to 1e8 (NaN/Inf, largest |DN_32 - DN_64| outside and inside the laser's PSF support).
 
-Folds in the former ``python -m benchmarks.sensor`` (paths and skips, docs/sensor.md Sec. 3-4) and
-``python -m benchmarks.sensor_safety`` (docs/sensor.md Sec. 5).
+docs/sensor.md Sec. 3-5 quotes it.
 
     python -m benchmarks --only sensor [--scale full]
 """
