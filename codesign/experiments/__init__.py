@@ -44,7 +44,7 @@ log = logging.getLogger("codesign")
 # keys it reads, the files it writes, whether it resumes, trains under torchrun or takes a measured PSF, where its
 # work starts, its debug=smoke shrink). Modules are imported only when their experiment runs (+experiment=psf never
 # loads networks or nlopt).
-_SUPPORT = ("main_job", "protocol", "rundir", "runlock")
+_SUPPORT = ("main_job", "protocol", "rundir", "runlinks", "runlock", "runstart", "sweepdir")
 EXPERIMENTS: tuple[str, ...] = tuple(sorted(m.name for m in pkgutil.iter_modules(__path__) if m.name not in _SUPPORT))
 
 
@@ -150,21 +150,39 @@ def _run_dir() -> Path:
 
 
 def _discard_empty_run_dir(run_dir: Path) -> None:
-    """Remove a run dir that this run created and that holds only Hydra's own files (a run that stopped before
-    writing anything). A run dir that existed before (hydra.run.dir of an earlier run, to resume it) is kept,
-    with the .hydra/ files of that earlier run put back."""
+    """Remove a run dir that this run created and that holds only what this run's start wrote (Hydra's .hydra/ and
+    log, the lock and marker): a run that stopped before writing anything. A run dir that existed before (recorded
+    by the guard: an earlier run's folder, to resume it) is kept, with what that earlier run left put back; a folder
+    holding anything older than this process (a user's app.log) is never removed."""
     if not run_dir.is_dir():
         return
     if rundir.existed_before(run_dir):
         rundir.restore_earlier(run_dir)
         return
-    ours = [p for p in run_dir.iterdir()
-            if p.name != ".hydra" and not p.name.endswith(".log") and not rundir.is_own(p.name)]
-    if not ours and run_dir.resolve() != Path.cwd().resolve():
-        shutil.rmtree(run_dir, ignore_errors=True)
-        parent = run_dir.parent  # outputs/<task>/ that this run may have created
-        if parent.is_dir() and not any(parent.iterdir()) and parent.resolve() != Path.cwd().resolve():
-            parent.rmdir()
+    made = [p for p in run_dir.iterdir() if _made_by_this_start(p)]
+    written = [p for p in run_dir.iterdir() if p not in made and _since_this_process(p)]
+    if written or run_dir.resolve() == Path.cwd().resolve():
+        return  # outputs of this run: kept with the record of how they were made
+    for path in made:  # what this run's start wrote; anything older (a user's app.log) stays, and the folder with it
+        shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
+    if any(run_dir.iterdir()):
+        return
+    run_dir.rmdir()
+    parent = run_dir.parent  # outputs/<task>/ that this run may have created
+    if parent.is_dir() and not any(parent.iterdir()) and parent.resolve() != Path.cwd().resolve():
+        parent.rmdir()
+
+
+def _made_by_this_start(path: Path) -> bool:
+    """Hydra's .hydra/ and log, the lock, the marker or a temp file, written since this process started (never a
+    link, nor an older file of the same name: someone else's)."""
+    if path.is_symlink() or not (path.name == ".hydra" or path.suffix == ".log" or rundir.is_own(path.name)):
+        return False
+    return _since_this_process(path)
+
+
+def _since_this_process(path: Path) -> bool:
+    return path.lstat().st_mtime >= _PROCESS_START - 1
 
 
 def run_experiment(cfg: DictConfig, run_dir: Path | None = None, exit_on_error: bool = True) -> float | None:

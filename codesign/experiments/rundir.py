@@ -1,11 +1,12 @@
 """The run directory before Hydra touches it: writable, free, locked, and what an earlier run left there kept safe.
 
 Hydra creates the run dir and writes .hydra/ and its log before our task function starts, so an unwritable
-hydra.run.dir would otherwise end in Hydra's own traceback. ``OutputDirCheck`` (registered in conf/config.yaml
-under hydra.callbacks) runs first, on the folder as the user left it: it refuses an unwritable folder, a folder
-another run is using (LOCK), a folder of the user's own files, and a folder that holds another experiment's
-results or a finished run of an experiment that does not resume (a rerun would overwrite it), before anything is
-written there. It remembers whether the run dir already existed, what its .hydra/ held and how long its logs were,
+hydra.run.dir would otherwise end in Hydra's own traceback. ``guard`` (called by the Hydra callbacks of
+runstart.py for a single run and every job of a sweep, and by codesign.run) runs first, on the folder as the user
+left it: it refuses an unwritable folder, a folder another run is using (LOCK), a symbolic link inside the folder,
+a folder of the user's own files, and a folder that holds another experiment's results or a finished run (a rerun
+would overwrite it; a resuming experiment's finished run only runs again with its very settings), before anything
+is written there. It remembers whether the run dir already existed, what its .hydra/ held and how long its logs were,
 so that a run stopped later by a configuration error leaves an earlier run's folder as it found it.
 
 Which earlier run is finished: STATE, written "running" when the work starts and "finished" after the experiment
@@ -19,13 +20,13 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import sys
 from pathlib import Path
 
 from omegaconf import OmegaConf
 
 from codesign.errors import ConfigError
 from codesign.io import files as io
+from codesign.experiments.runlinks import refuse_links
 from codesign.experiments.runlock import LOCK, acquire_lock, release_lock
 
 STATE = ".codesign-run.json"  # {"task", "state": "running" | "finished", "pid"}: "finished" is a run's last write
@@ -48,6 +49,9 @@ def remember(run_dir: Path) -> None:
             if hydra_dir.is_dir() else None
         EARLIER_LOGS[run_dir] = {f.name: f.stat().st_size for f in run_dir.glob("*.log") if f.is_file()}
         EARLIER_OWN[run_dir] = {n: _bytes(run_dir / n) for n in (LOCK, STATE)}
+    else:  # new now, whatever it was at an earlier run of this process (the Python API runs many)
+        for record in (EARLIER, EARLIER_LOGS, EARLIER_OWN):
+            record.pop(run_dir, None)
 
 
 def _bytes(path: Path) -> bytes | None:
@@ -109,7 +113,7 @@ def earlier_results(run_dir: Path) -> list[str]:
     return sorted(names, key=lambda n: n != "metrics.json")  # the file that says "results" first
 
 
-def _shown(names: list[str]) -> str:
+def shown_names(names: list[str]) -> str:
     return ", ".join(names[:4]) + (f" and {len(names) - 4} more" if len(names) > 4 else "")
 
 
@@ -142,10 +146,12 @@ def unfinished(run_dir: Path) -> str | None:
 
 
 def earlier_experiment(run_dir: Path) -> str | None:
-    """The experiment recorded in ``run_dir``/.hydra/config.yaml, or None without one."""
+    """The experiment recorded in ``run_dir``/.hydra/config.yaml (or, for a run without Hydra's record such as the
+    Python API's, in its STATE), or None without one."""
     recorded = Path(run_dir) / ".hydra" / "config.yaml"
     if not recorded.is_file():
-        return None
+        state = read_state(run_dir)
+        return str(state["task"]) if state and state.get("task") else None
     try:
         task = OmegaConf.load(recorded).get("task")
     except Exception:  # noqa: BLE001 - an unreadable record is treated as an unknown experiment's
@@ -153,36 +159,88 @@ def earlier_experiment(run_dir: Path) -> str | None:
     return str(task) if task is not None else None
 
 
-def check_earlier_run(run_dir: Path, task: str | None, key: str = "hydra.run.dir") -> str | None:
-    """ConfigError when ``run_dir`` holds files of the user's, another experiment's results, or a finished run of
-    ``task`` that cannot be resumed (a rerun would overwrite it). The same experiment continues where it defines
-    resume (a killed training run started again on its folder), and runs again in its own unfinished run's
+def check_earlier_run(run_dir: Path, task: str | None, key: str = "hydra.run.dir", config=None) -> str | None:
+    """ConfigError when ``run_dir`` holds a symbolic link, files of the user's, another experiment's results, or a
+    finished run of ``task`` (a rerun would overwrite it) other than a resumable one made with exactly the settings
+    of ``config`` (this run's composed config; None: unknown, so refused). The same experiment continues where it
+    defines resume (a killed training run started again on its folder), and runs again in its own unfinished run's
     folder: then the note to show. An empty folder is free."""
     from codesign.experiments import EXPERIMENTS, protocol
 
     run_dir = Path(run_dir).absolute()
     if task not in EXPERIMENTS or not run_dir.is_dir():
         return None  # no experiment: run_experiment names the choices
+    refuse_links(run_dir, key)
     earlier, results = earlier_experiment(run_dir), earlier_results(run_dir)
     choose = f"choose another folder with {key}=PATH (or leave {key} unset: every run gets a new one)"
     if earlier is None and not (run_dir / "metrics.json").is_file():
         theirs = sorted(p.name for p in run_dir.iterdir() if p.name != LOCK)
         if theirs:  # no run recorded its config here: the user's own files, never ours to replace
-            raise ConfigError(key, str(run_dir), f"holds files that no codesign run wrote ({_shown(theirs)}); "
+            raise ConfigError(key, str(run_dir), f"holds files that no codesign run wrote ({shown_names(theirs)}); "
                               f"+experiment={task} writes only into an empty folder or its own earlier run's, never "
                               f"over files of yours: {choose}")
         return None
     if earlier != task:
         found = f"+experiment={earlier}" if earlier not in (None, "unknown") else "an unknown experiment"
-        raise ConfigError(key, str(run_dir), f"holds the results of {found} ({_shown(results) or '.hydra/'}); "
+        raise ConfigError(key, str(run_dir), f"holds the results of {found} "
+                          f"({shown_names(results) or '.hydra/'}); "
                           f"+experiment={task} never writes into another experiment's folder: {choose}")
-    if protocol(task).resumes:
-        return None  # the experiment itself continues from its checkpoint
     why = unfinished(run_dir)
-    if why is None:
-        raise ConfigError(key, str(run_dir), f"holds a finished +experiment={task} run ({_shown(results)}); {task} "
-                          f"does not resume, and a rerun would overwrite it: {choose}")
-    return f"{key} = '{run_dir}': holds an unfinished +experiment={task} run ({why}); this run replaces its results"
+    if why is not None:
+        if protocol(task).resumes:
+            return None  # the experiment itself continues from its checkpoint
+        return f"{key} = '{run_dir}': holds an unfinished +experiment={task} run ({why}); this run replaces its results"
+    if not protocol(task).resumes:
+        raise ConfigError(key, str(run_dir), f"holds a finished +experiment={task} run "
+                          f"({shown_names(results)}); {task} does not resume, and a rerun would overwrite it: {choose}")
+    return _same_settings(run_dir, task, results, config, key, choose)
+
+
+# keys that change how a run is executed, never what it computes
+UNCOMPARED = ("hydra", "threads")
+
+
+def _flat(node, prefix: str = "") -> dict:
+    if isinstance(node, dict) and node:
+        return {k: v for key, value in node.items() for k, v in _flat(value, f"{prefix}{key}.").items()}
+    return {prefix[:-1]: node}
+
+
+def changed_settings(run_dir: Path, config) -> list[tuple[str, object, object]] | None:
+    """(key, value recorded in ``run_dir``'s .hydra/config.yaml, value in ``config``) for every setting that
+    differs; None when either is missing or unreadable (the run's settings cannot be told)."""
+    recorded = Path(run_dir) / ".hydra" / "config.yaml"
+    if config is None or not recorded.is_file():
+        return None
+    try:
+        old = _flat(OmegaConf.to_container(OmegaConf.load(recorded), resolve=False))
+    except Exception:  # noqa: BLE001 - an unreadable record tells no settings
+        return None
+    new = _flat(OmegaConf.to_container(config, resolve=False))
+    absent = "(absent)"
+    keys = sorted(k for k in set(old) | set(new) if k.split(".")[0] not in UNCOMPARED)
+    return [(k, old.get(k, absent), new.get(k, absent)) for k in keys if old.get(k, absent) != new.get(k, absent)]
+
+
+def _same_settings(run_dir: Path, task: str, results: list[str], config, key: str, choose: str) -> str:
+    """A finished run of a resuming experiment runs again in place only with the very settings it was made with
+    (its results come out the same: the checkpoint and finished stages are reused); else a ConfigError."""
+    differ = changed_settings(run_dir, config)
+    finished = f"holds a finished +experiment={task} run ({shown_names(results)})"
+    never = f"a finished run is never rewritten in place (to evaluate it otherwise: +experiment=evaluate " \
+            f"checkpoint={run_dir / 'checkpoint.pt'}): {choose}"
+    if differ is None:
+        why = "a sweep's job is composed only as it starts" if config is None else \
+            "no readable .hydra/config.yaml there"
+        raise ConfigError(key, str(run_dir), f"{finished} whose settings cannot be compared with this run's ({why}); "
+                          f"{never}")
+    if differ:
+        values = "; ".join(f"{k} = {old} there, {new} here" for k, old, new in differ[:3])
+        more = f" and {len(differ) - 3} more" if len(differ) > 3 else ""
+        raise ConfigError(key, str(run_dir), f"{finished} that was trained with different "
+                          f"{', '.join(k for k, _, _ in differ[:3])}{more}: {values}; {never}")
+    return f"{key} = '{run_dir}': holds a finished +experiment={task} run made with these same settings: it is " \
+           f"run again in place, its checkpoint and finished parts reused"
 
 
 # ---- the run's own marks: temps of a killed run removed, "finished" written last ------------------------------
@@ -203,95 +261,29 @@ def _write_state(run_dir: Path, task: str, state: str) -> None:
     io.write_json(Path(run_dir) / STATE, {"task": task, "state": state, "pid": os.getpid()})
 
 
-def _refuse(err: ConfigError) -> None:
-    print(f"codesign: configuration error: {err}", file=sys.stderr)
-    raise SystemExit(2) from None
-
-
-def _check(config, key: str) -> None:
-    folder = Path(str(OmegaConf.select(config, key)))
-    try:
-        io.check_writable_dir(folder, key)
-    except ConfigError as err:
-        _refuse(err)
-    remember(folder)
-    if key == "hydra.run.dir":
-        _check_run_dir(folder, OmegaConf.select(config, "task"), key)
-
-
-def _remove_if_empty(folder: Path) -> None:
+def remove_if_empty(folder: Path) -> None:
     try:
         folder.rmdir()
     except OSError:  # not empty: another run's now
         pass
 
 
-def _check_run_dir(folder: Path, task, key: str) -> None:
-    """Lock the run dir first (the folder is judged with no other run writing there), then judge what it holds;
-    a refusal puts back what the lock changed: the folder as it was, byte for byte."""
+def guard(folder: Path, task, key: str = "hydra.run.dir", config=None) -> list[str]:
+    """The one run-folder guard of every way a run starts (the command, each job of a sweep, codesign.run,
+    torchrun's rank 0): ``folder`` writable, what it holds recorded (a refused run puts it back), locked for this
+    process, then judged (check_earlier_run: links, the user's files, another experiment, a finished run). A
+    refusal is a ConfigError raised after the lock's changes are undone: the folder as it was, byte for byte.
+    Returns the notes to show."""
+    folder = Path(folder)
+    io.check_writable_dir(folder, key)
+    remember(folder)
     existed = existed_before(folder)
+    notes = [acquire_lock(folder, task, key)]  # first: the folder is judged with no other run writing there
     try:
-        notes = [acquire_lock(folder, task, key)]
-    except ConfigError as err:
-        _refuse(err)
-    try:
-        notes.append(check_earlier_run(folder, task, key))
-    except ConfigError as err:
+        notes.append(check_earlier_run(folder, task, key, config))
+    except ConfigError:
         release_lock(folder, EARLIER_OWN.get(folder.absolute(), {}).get(LOCK))
         if not existed:
-            _remove_if_empty(folder)  # made for the lock
-        _refuse(err)
-    for note in filter(None, notes):
-        print(f"codesign: note: {note}", file=sys.stderr)
-
-
-try:
-    from hydra.experimental.callback import Callback
-except ImportError:  # pragma: no cover - Hydra < 1.1
-    Callback = object
-
-
-class OutputDirCheck(Callback):
-    def on_run_start(self, config, **kwargs) -> None:
-        """Hydra callback before a single run: the run directory checked and what it held recorded (rank 0), then
-        every rank waits."""
-        from codesign.train import distributed
-
-        ctx = distributed.current()
-        if ctx.is_main:  # under torchrun rank 0 alone writes, so it alone checks and records what was there
-            _check(config, "hydra.run.dir")
-        # ... before any other rank's Hydra creates the shared folder (which would look like an earlier run's)
-        distributed.barrier(ctx)
-
-    def on_multirun_start(self, config, **kwargs) -> None:  # runs before Hydra builds the launcher
-        """Hydra callback before a sweep: the launcher and the sweep directory checked."""
-        _check_launcher(config)
-        _check(config, "hydra.sweep.dir")
-
-
-# launcher class -> the pip package that provides it (the optional extra: pip install '.[launchers]')
-LAUNCHER_PACKAGES = {"hydra_plugins.hydra_joblib_launcher": "hydra-joblib-launcher",
-                     "hydra_plugins.hydra_submitit_launcher": "hydra-submitit-launcher"}
-
-
-def _installed(module: str) -> bool:
-    import importlib.util
-
-    try:
-        return importlib.util.find_spec(module) is not None
-    except ModuleNotFoundError:  # the parent package (the hydra_plugins namespace) is missing too
-        return False
-
-
-def _check_launcher(config) -> None:
-    """A launcher config whose plugin is not installed: one line naming the package, not Hydra's traceback."""
-    target = str(OmegaConf.select(config, "hydra.launcher._target_") or "")
-    module = target.rsplit(".", 1)[0]
-    for prefix, package in LAUNCHER_PACKAGES.items():
-        if module.startswith(prefix) and not _installed(prefix):
-            choice = OmegaConf.select(config, "hydra.runtime.choices")
-            name = choice.get("hydra/launcher") if choice is not None else None
-            print(f"codesign: configuration error: hydra/launcher = {name or target}: needs the optional plugin "
-                  f"{package}: pip install {package} (or pip install '.[launchers]' in the repository)",
-                  file=sys.stderr)
-            raise SystemExit(2)
+            remove_if_empty(folder)  # made for the lock
+        raise
+    return [n for n in notes if n]

@@ -18,7 +18,7 @@ from omegaconf import OmegaConf
 
 import codesign.experiments as experiments
 from codesign.io import files as io
-from codesign.experiments import rundir
+from codesign.experiments import rundir, runstart
 from codesign.train.checkpoint import save_checkpoint
 from codesign.train.evaluation import write_csv
 from codesign.io.captures import save_png16
@@ -181,7 +181,7 @@ def test_hydra_callback_refuses_before_hydra_creates_the_dir(tmp_path, capsys):
     (tmp_path / "file").write_text("x")
     config = OmegaConf.create({"hydra": {"run": {"dir": str(tmp_path / "file" / "run")}}})
     with pytest.raises(SystemExit) as info:
-        rundir.OutputDirCheck().on_run_start(config)
+        runstart.OutputDirCheck().on_run_start(config)
     assert info.value.code == 2
     assert capsys.readouterr().err.startswith("codesign: configuration error: hydra.run.dir = ")
 
@@ -284,7 +284,9 @@ def test_the_same_training_experiment_may_continue_on_its_folder(tmp_path):
     for task in ("joint", "baseline"):
         run_dir = tmp_path / task
         _earlier_run(run_dir, task)
-        rundir.check_earlier_run(run_dir, task)  # no error: resume is defined there
+        (run_dir / ".codesign-run.json").write_text(json.dumps({"task": task, "state": "running", "pid": 1}))
+        rundir.check_earlier_run(run_dir, task)  # a killed run: no error, resume is defined there (a finished one
+        # runs again only with its own settings: tests/inputs/test_run_guard.py)
         with pytest.raises(ConfigError, match=rf"holds the results of \+experiment={task} "):
             rundir.check_earlier_run(run_dir, "mask_search")
     empty = tmp_path / "empty"

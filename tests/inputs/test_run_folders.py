@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 
 import codesign.experiments as experiments
 from codesign.errors import ConfigError, OutputWriteError
-from codesign.experiments import rundir, runlock
+from codesign.experiments import rundir, runlock, runstart
 from codesign.io import files as io
 from tests.cli import run_codesign
 from tests.conftest import REPO_ROOT
@@ -85,7 +85,7 @@ def _hold_the_folder(run_dir: Path):
             os.close(ready_r)
             os.close(stop_w)
             config = OmegaConf.create({"task": "psf", "hydra": {"run": {"dir": str(run_dir)}}})
-            rundir.OutputDirCheck().on_run_start(config)
+            runstart.OutputDirCheck().on_run_start(config)
             os.write(ready_w, b"started")
             os.read(stop_r, 1)  # running, until the parent closes the pipe
             code = 0
@@ -124,7 +124,7 @@ def test_a_stale_lock_of_a_killed_run_is_taken_over_with_a_note(tmp_path, monkey
     stale = json.dumps({"pid": dead, "task": "psf"}) + "\n"
     (run_dir / LOCK).write_text(stale)  # a run killed before Hydra wrote anything: its lock alone
     config = OmegaConf.create({"task": "psf", "hydra": {"run": {"dir": str(run_dir)}}})
-    rundir.OutputDirCheck().on_run_start(config)
+    runstart.OutputDirCheck().on_run_start(config)
     assert capsys.readouterr().err == (f"codesign: note: hydra.run.dir = '{run_dir}': the lock of PID {dead} "
                                        f"(+experiment=psf), which no longer runs, is taken over: that run was killed\n")
     assert json.loads((run_dir / LOCK).read_text()) == {"pid": os.getpid(), "task": "psf"}

@@ -1,0 +1,88 @@
+"""A sweep's folder (``-m``, ``hydra.sweep.dir``) under the same guard as a single run's, before Hydra writes there.
+
+Hydra writes multirun.yaml at the sweep's top and, per job, .hydra/ and the log into the job's folder before any
+job code runs, so the judging happens here, in the callback before the sweep: the top folder is free when it is
+empty or holds an earlier sweep of the same experiment (its multirun.yaml is that sweep's record), and every job
+folder already in it is judged as a run folder of that experiment (rundir.guard: the user's files, another
+experiment, a finished run, a link, a folder in use). Job folders made later are new; each job locks its own.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+from codesign.errors import ConfigError
+from codesign.experiments import rundir
+from codesign.experiments.runlinks import refuse_links
+from codesign.experiments.runlock import LOCK, acquire_lock, release_lock
+from codesign.io import files as io
+
+KEY = "hydra.sweep.dir"
+RECORD = "multirun.yaml"  # Hydra's record of a sweep, at its top
+CHOOSE = f"choose another folder with {KEY}=PATH (or leave {KEY} unset: every sweep gets a new one)"
+
+
+def recorded_task(top: Path) -> str | None:
+    """The experiment of the codesign sweep recorded in ``top``/multirun.yaml ('unknown' when its experiment was
+    swept or unreadable), or None when no Hydra sweep wrote that file (absent, or a file of the user's)."""
+    try:
+        record = OmegaConf.load(top / RECORD)
+        if OmegaConf.select(record, "hydra.sweep.dir") is None:
+            return None
+    except Exception:  # noqa: BLE001 - not a Hydra record: the user's file
+        return None
+    task = record.get("task")
+    return str(task) if task is not None else "unknown"
+
+
+def _judge_top(top: Path, task) -> None:
+    """ConfigError unless ``top`` holds nothing but job folders (judged one by one later) and, beside them, the
+    multirun.yaml of an earlier sweep of ``task``: never the user's own files, never another experiment's sweep."""
+    entries = sorted(p.name for p in top.iterdir() if p.name != LOCK)
+    earlier = recorded_task(top) if RECORD in entries else None
+    swept = f"+experiment={task}" if task is not None else "an experiment"
+    theirs = [n for n in entries if not (top / n).is_dir() and not (n == RECORD and earlier is not None)]
+    if theirs:
+        raise ConfigError(KEY, str(top), f"holds files that no codesign sweep wrote ({rundir.shown_names(theirs)}); "
+                          f"a sweep of {swept} writes only into an empty folder or its own earlier sweep's, never "
+                          f"over files of yours: {CHOOSE}")
+    if earlier is not None and (earlier != task or task is None):
+        found = f"+experiment={earlier}" if earlier != "unknown" else "an unknown experiment"
+        raise ConfigError(KEY, str(top), f"holds a sweep of {found} ({RECORD}); a sweep of {swept} never writes into "
+                          f"another experiment's sweep folder: {CHOOSE}")
+
+
+def _judge_job(job: Path, task) -> list[str]:
+    """An existing job folder guarded as a run folder of ``task``; when the experiment is swept (no one ``task``)
+    only an empty one is free: which experiment a job runs is not known before it starts."""
+    held = sorted(p.name for p in job.iterdir())
+    if task is None and held:
+        raise ConfigError(KEY, str(job), f"holds an earlier job's files ({rundir.shown_names(held)}); a sweep "
+                          f"over +experiment writes only into new job folders: {CHOOSE}")
+    return rundir.guard(job, task, KEY)  # no config: a job's settings are composed later, per job
+
+
+def guard_sweep(config) -> list[str]:
+    """Guard the sweep's top folder and every job folder already in it (locked for this process); ConfigError
+    after undoing what the locks changed. Returns the notes to show."""
+    top = Path(str(OmegaConf.select(config, KEY))).absolute()
+    task = OmegaConf.select(config, "task")
+    io.check_writable_dir(top, KEY)
+    rundir.remember(top)
+    existed = rundir.existed_before(top)
+    notes = [acquire_lock(top, task, KEY)]
+    locked: list[Path] = []
+    try:
+        refuse_links(top, KEY)
+        _judge_top(top, task)
+        for job in sorted(p for p in top.iterdir() if p.is_dir()):
+            notes += _judge_job(job, task)
+            locked.append(job)
+    except ConfigError:
+        for folder in [*locked, top]:
+            release_lock(folder, rundir.EARLIER_OWN.get(folder, {}).get(LOCK))
+        if not existed:
+            rundir.remove_if_empty(top)
+        raise
+    return [n for n in notes if n]
