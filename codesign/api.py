@@ -8,6 +8,7 @@ sensor counts (DN) or radiance in [0, 1] as stated. docs/api.md is the reference
 from __future__ import annotations
 
 import json
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -16,6 +17,8 @@ import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 import codesign.experiments as _experiments
+from codesign.experiments import rundir
+from codesign.experiments.runlock import release_lock
 from codesign.camera import Camera, build_camera as _camera_of
 from codesign.config import CONF_DIR
 from codesign.config.runtime import apply_debug_overrides, command_line_keys, renamed_key_error, to_container
@@ -172,10 +175,14 @@ def run(experiment: str, *overrides: str, run_dir: str | Path | None = None) -> 
     A configuration error raises ConfigError (its key, value and what is allowed), before any work."""
     cfg = compose(*overrides, experiment=experiment)
     run_dir = Path(run_dir) if run_dir is not None else _new_run_dir(experiment)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    for note in rundir.guard(run_dir, experiment, "run_dir", cfg):  # the command's guard: lock, refusals
+        print(f"codesign: note: {note}", file=sys.stderr)
     with open_dict(cfg):
         cfg.debug = None  # applied by compose (typed keys kept); run_experiment would apply it again over them
-    _experiments.run_experiment(cfg, run_dir, exit_on_error=False)
+    try:
+        _experiments.run_experiment(cfg, run_dir, exit_on_error=False)
+    finally:
+        release_lock(run_dir)  # the folder free again for other processes once this run has ended
     metrics_file = run_dir / "metrics.json"
     metrics = json.loads(metrics_file.read_text()) if metrics_file.is_file() else {}
     return {**metrics, "run_dir": run_dir}
