@@ -42,6 +42,15 @@ def check_resume_config(saved: dict, cfg: DictConfig, key: str, extra_keys: tupl
                           "same settings, or start a new run directory")
 
 
+def check_resume_steps(done, steps: int, path) -> None:
+    """A resume continues a training up to trainer.steps: one asked to stop before the checkpoint's step would
+    report the checkpoint's steps as this run's; a ConfigError naming both."""
+    if isinstance(done, int) and not isinstance(done, bool) and done > steps:
+        raise ConfigError("trainer.steps", steps, f"is fewer than the {done} steps already trained in the checkpoint "
+                          f"it resumes ({path}): a resume trains on up to trainer.steps, never back: set "
+                          f"trainer.steps={done} or more, or start a new run directory")
+
+
 def resume_if_possible(trainer, cfg: DictConfig, run_dir: Path, extra_keys: tuple = ()) -> None:
     """Load ``trainer.resume`` or, when there is one, the run dir's own checkpoint (a killed run started again)."""
     resume = cfg.trainer.get("resume")
@@ -55,6 +64,7 @@ def resume_if_possible(trainer, cfg: DictConfig, run_dir: Path, extra_keys: tupl
         if problem:
             raise load_error("trainer.resume", path, "cannot be resumed: its weights do not fit this run's model",
                              problem)
+        check_resume_steps(state.get("step"), trainer.spec.steps, path)
         try:
             trainer.load_state_dict(state)
         except (RuntimeError, KeyError, ValueError, TypeError, IndexError) as err:
