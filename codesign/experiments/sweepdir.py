@@ -64,7 +64,7 @@ def _judge_job(job: Path, task) -> list[str]:
 
 
 def guard_sweep(config) -> list[str]:
-    """Guard the sweep's top folder and every job folder already in it (locked for this process); ConfigError
+    """Guard the sweep's top folder (locked for this process) and every job folder already in it; ConfigError
     after undoing what the locks changed. Returns the notes to show."""
     top = Path(str(OmegaConf.select(config, KEY))).absolute()
     task = OmegaConf.select(config, "task")
@@ -72,16 +72,16 @@ def guard_sweep(config) -> list[str]:
     rundir.remember(top)
     existed = rundir.existed_before(top)
     notes = [acquire_lock(top, task, KEY)]
-    locked: list[Path] = []
     try:
         refuse_links(top, KEY)
         _judge_top(top, task)
         for job in sorted(p for p in top.iterdir() if p.is_dir()):
             notes += _judge_job(job, task)
-            locked.append(job)
+            # judged free: unlocked again, each job locks its own folder as it starts (a launcher's job may run in
+            # another process, which a lock held here would keep out)
+            release_lock(job, rundir.EARLIER_OWN.get(job, {}).get(LOCK))
     except ConfigError:
-        for folder in [*locked, top]:
-            release_lock(folder, rundir.EARLIER_OWN.get(folder, {}).get(LOCK))
+        release_lock(top, rundir.EARLIER_OWN.get(top, {}).get(LOCK))
         if not existed:
             rundir.remove_if_empty(top)
         raise
