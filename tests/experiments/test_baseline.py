@@ -117,8 +117,9 @@ def test_rerun_in_the_same_dir_resumes_instead_of_retraining(baseline_run, tmp_p
     assert "resumed from" in log and "at step 4" in log
     assert "step 1/4" not in log
     proc = _run("+experiment=baseline", "debug=smoke", "model=sgan_f", f"hydra.run.dir={copy}")
-    assert proc.returncode == 2
-    assert f"trainer.resume = '{copy / 'checkpoint.pt'}': was trained with different model" in proc.stderr
+    assert proc.returncode == 2  # a finished run is never rewritten under other settings (issue 59)
+    assert f"hydra.run.dir = '{copy}': holds a finished +experiment=baseline run (" in proc.stderr
+    assert "that was trained with different model." in proc.stderr
     assert (copy / "metrics.json").is_file()  # the refused run left the earlier results in place
 
 
