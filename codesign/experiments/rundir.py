@@ -276,6 +276,7 @@ def guard(folder: Path, task, key: str = "hydra.run.dir", config=None) -> list[s
     Returns the notes to show."""
     folder = Path(folder)
     io.check_writable_dir(folder, key)
+    refuse_links(folder, key)  # before the lock, which opens a file in the folder
     remember(folder)
     existed = existed_before(folder)
     notes = [acquire_lock(folder, task, key)]  # first: the folder is judged with no other run writing there

@@ -48,7 +48,7 @@ def _open_locked(path: Path) -> int | None:
     """An fd of ``path`` with an exclusive flock, or None when another process holds it. Retried when the file
     was replaced meanwhile (a run ending removes it: an fd of the removed file locks nothing)."""
     while True:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o644)  # never a link's target
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

@@ -69,11 +69,11 @@ def guard_sweep(config) -> list[str]:
     top = Path(str(OmegaConf.select(config, KEY))).absolute()
     task = OmegaConf.select(config, "task")
     io.check_writable_dir(top, KEY)
+    refuse_links(top, KEY)  # before the lock, which opens a file in the folder
     rundir.remember(top)
     existed = rundir.existed_before(top)
     notes = [acquire_lock(top, task, KEY)]
     try:
-        refuse_links(top, KEY)
         _judge_top(top, task)
         for job in sorted(p for p in top.iterdir() if p.is_dir()):
             notes += _judge_job(job, task)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 import json
+import logging
 import os
 from pathlib import Path
 from types import SimpleNamespace
@@ -14,6 +15,7 @@ import pytest
 from omegaconf import OmegaConf
 
 import codesign
+from codesign.config import CONF_DIR
 from codesign.errors import ConfigError
 from codesign.experiments import rundir, runlock, runstart
 from codesign.train import distributed
@@ -344,3 +346,41 @@ def test_a_finished_training_run_runs_again_in_place_only_with_its_own_settings(
         f"settings cannot be compared with this run's (no readable .hydra/config.yaml there); a finished run is never "
         f"rewritten in place (to evaluate it otherwise: +experiment=evaluate checkpoint={run_dir / 'checkpoint.pt'}): "
         f"{_choose('run_dir')}")
+
+
+# ---- files opened without following a link ----------------------------------------------------------------------
+def test_a_linked_lock_file_is_refused_and_its_target_kept(tmp_path, capsys):
+    """The lock is opened (and truncated) before the folder is judged: a .codesign.lock linked to the user's file
+    must neither truncate it nor be written through."""
+    target = tmp_path / "thesis.tex"
+    target.write_text("the user's thesis\n")
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / ".codesign.lock").symlink_to(target)
+    config = OmegaConf.create({"task": "psf", "hydra": {"run": {"dir": str(run_dir)}}})
+    with pytest.raises(SystemExit):
+        runstart.OutputDirCheck().on_run_start(config)
+    assert capsys.readouterr().err == "codesign: configuration error: " + _link_refusal(
+        "hydra.run.dir", run_dir, ".codesign.lock", target) + "\n"
+    assert target.read_text() == "the user's thesis\n" and (run_dir / ".codesign.lock").is_symlink()
+
+
+def test_the_run_log_is_never_appended_through_a_link(tmp_path):
+    """Hydra's job log (conf/config.yaml: hydra.job_logging's file handler) opens its file without following a
+    link swapped in after the folder was guarded; a plain file is appended to as before."""
+    from codesign.io.logfile import NoFollowFileHandler
+
+    target = tmp_path / "notes.txt"
+    target.write_text("the user's notes\n")
+    (tmp_path / "__main__.log").symlink_to(target)
+    with pytest.raises(OSError):
+        NoFollowFileHandler(str(tmp_path / "__main__.log"))
+    assert target.read_text() == "the user's notes\n"
+    plain = tmp_path / "plain.log"
+    plain.write_text("earlier line\n")
+    handler = NoFollowFileHandler(str(plain))
+    handler.emit(logging.LogRecord("codesign", logging.INFO, __file__, 1, "a new line", None, None))
+    handler.close()
+    assert plain.read_text() == "earlier line\na new line\n"
+    conf = OmegaConf.load(CONF_DIR / "config.yaml")  # the handler Hydra's job log is made with
+    assert conf.hydra.job_logging.handlers.file["class"] == "codesign.io.logfile.NoFollowFileHandler"
