@@ -8,10 +8,13 @@ import copy
 import json
 import logging
 import os
+import subprocess
+import sys
 from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
+from hydra.types import RunMode
 from omegaconf import OmegaConf
 
 import codesign
@@ -384,3 +387,39 @@ def test_the_run_log_is_never_appended_through_a_link(tmp_path):
     assert plain.read_text() == "earlier line\na new line\n"
     conf = OmegaConf.load(CONF_DIR / "config.yaml")  # the handler Hydra's job log is made with
     assert conf.hydra.job_logging.handlers.file["class"] == "codesign.io.logfile.NoFollowFileHandler"
+
+
+HOLD = """
+import fcntl, json, os, sys, time
+fd = os.open(sys.argv[1], os.O_RDWR | os.O_CREAT)
+fcntl.flock(fd, fcntl.LOCK_EX)
+os.write(fd, json.dumps({"pid": os.getpid(), "task": "psf"}).encode())
+print("held", flush=True)
+time.sleep(60)
+"""
+
+
+def test_a_job_folder_made_in_use_after_the_sweep_started_is_refused(tmp_path, capsys):
+    """A job's folder that did not exist when the sweep was guarded is locked as the job starts (Hydra's
+    on_job_start): a run that took it meanwhile is named, as for the single command."""
+    job = tmp_path / "sweep" / "1"
+    job.mkdir(parents=True)
+    holder = subprocess.Popen([sys.executable, "-c", HOLD, str(job / ".codesign.lock")], stdout=subprocess.PIPE,
+                              text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        config = OmegaConf.create({"task": "psf", "hydra": {"mode": RunMode.MULTIRUN,
+                                                            "runtime": {"output_dir": str(job)}}})
+        with pytest.raises(SystemExit) as info:
+            runstart.OutputDirCheck().on_job_start(config)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert info.value.code == 2
+    assert capsys.readouterr().err == (
+        f"codesign: configuration error: hydra.sweep.dir = '{job}': is in use by a running +experiment=psf run (PID "
+        f"{holder.pid}): two runs never share a folder (each would overwrite the other's results): wait for it to "
+        f"end, or {_choose('hydra.sweep.dir')}\n")
+    single = OmegaConf.create({"task": "psf", "hydra": {"mode": RunMode.RUN, "runtime": {"output_dir": str(job)}}})
+    runstart.OutputDirCheck().on_job_start(single)  # a single run's folder was locked in on_run_start already
+    assert not runlock.HELD
