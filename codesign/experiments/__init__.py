@@ -164,7 +164,10 @@ def _discard_empty_run_dir(run_dir: Path) -> None:
     if written or run_dir.resolve() == Path.cwd().resolve():
         return  # outputs of this run: kept with the record of how they were made
     for path in made:  # what this run's start wrote; anything older (a user's app.log) stays, and the folder with it
-        shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
+        if path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink(missing_ok=True)
     if any(run_dir.iterdir()):
         return
     run_dir.rmdir()
