@@ -14,6 +14,9 @@ from tests.conftest import REPO_ROOT
 
 EXAMPLES = REPO_ROOT / "examples"
 PUBLISHED_LSR = 8.622e-3  # the published mask's certified LSR at the default optics (+experiment=psf's lsr)
+# the shipped restorer's lead over the sensor image on the restore example's capture (PSNR after the match, dB):
+# 25.17 against 20.47 dB measured with the shipped weights (2026-12-06), the test holds about half of it
+RESTORE_EXAMPLE_LEAD_DB = 2.0
 
 
 def _run(args: list[str], cwd, timeout: int = 300) -> str:
@@ -82,21 +85,33 @@ def test_short_training_example(tmp_path):
 
 
 def test_restore_capture_example(tmp_path):
+    """The shipped restorer takes a 256 px capture (larger than its 96 to 256 px training crops) through the main
+    job's design, a mask it never trained on, and comes out ahead of the sensor image under the laser."""
     out = _run([str(EXAMPLES / "restore_capture.py"), "--out", "run"], tmp_path)
-    assert "the shipped checkpoint" in out and "(256 px," in out
-    restored = re.search(r"PSNR against the scene ([0-9.]+) dB \(sensor image ([0-9.]+) dB\)", out)
-    assert restored and 5 < float(restored.group(1)) < 60
+    assert "(256 x 256 px at bin 9.89," in out
+    restored = re.search(r"\((\d+) x (\d+) px\) in [0-9.]+ s: PSNR after the gain/offset match ([0-9.]+) dB "
+                         r"\(sensor image ([0-9.]+) dB\)", out)
+    assert restored and restored.group(1, 2) == ("256", "256")
+    assert float(restored.group(3)) > float(restored.group(4)) + RESTORE_EXAMPLE_LEAD_DB
     assert (tmp_path / "run" / "restore" / "restored_sensor_alpha_l_1e6.png").is_file()
 
 
 def test_the_first_script_of_docs_api_runs_as_written(tmp_path):
+    """docs/api.md's opening script closes the loop with tensors: a searched Mask, its PSF and LSR at the shipped
+    restorer's optics, a dazzled 256 px capture through it, the shipped restorer ahead of the sensor image."""
     page = (REPO_ROOT / "docs" / "api.md").read_text()
     script = re.search(r"```python\n(.*?)```", page, re.S).group(1)
+    assert len(script.strip().splitlines()) <= 25
     (tmp_path / "first.py").write_text(script)
-    out = _run(["first.py"], tmp_path)
-    claimed = re.search(r"prints the published mask's LSR, (\S+) at the default optics", page).group(1)
-    assert f"published mask: LSR {claimed}," in out and float(claimed) == pytest.approx(PUBLISHED_LSR, rel=1e-3)
-    assert "zernike mask" in out and "sensor image (256, 256) px" in out
+    out = _run(["first.py"], tmp_path, timeout=600)
+    claimed = re.search(r"It prints the published mask's LSR, (\S+) on the search's smoke grid", page).group(1)
+    designed = re.search(r"designed mask: certified LSR (\S+) \(the published mask's (\S+)\)", out)
+    assert designed and designed.group(2) == claimed
+    assert float(claimed) == pytest.approx(PUBLISHED_LSR, rel=0.01)  # the smoke grid's, near the default optics'
+    optics = re.search(r"at the restorer's optics: LSR (\S+), mean MTF (\S+)", out)
+    assert float(optics.group(1)) == pytest.approx(float(designed.group(1)), rel=0.05)  # the same design
+    scores = dict(re.findall(r"(sensor image|restored) \(256, 256\) px: PSNR ([0-9.]+) dB", out))
+    assert float(scores["restored"]) > float(scores["sensor image"]) + 2
 
 
 @pytest.mark.parametrize("experiment,typed", [("psf", ()), ("simulate", ("optics.focal_n=96",)),

@@ -39,7 +39,7 @@ def _unreadable(p: Path, err: Exception) -> str:
 # checkpoints shipped in the package, found by name (checkpoint=pretrained, init.checkpoint=pretrained); their model
 # cards beside them (codesign/models/pretrained/README.md)
 PRETRAINED_DIR = Path(__file__).resolve().parents[1] / "models" / "pretrained"
-PRETRAINED = {"pretrained": "sgan_b_l1_pool.pt"}
+PRETRAINED = {"pretrained": "wiener_naf_pool.pt"}
 
 
 def checkpoint_path(path: str | Path, key: str = "checkpoint") -> Path:

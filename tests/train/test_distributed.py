@@ -92,7 +92,8 @@ def test_two_gloo_ranks_hold_identical_mask_and_weights_and_match_one_process(tm
     assert first.keys() == first1.keys()
     for k in first:
         assert first[k] == pytest.approx(first1[k], rel=1e-5, abs=1e-6), k
-    for k in ("generator_total", "rec1", "rec2", "lsr_penalty"):
+    assert {"generator_total", "lsr_penalty"} <= first.keys()  # the main job's network and the mask's constraint
+    for k in first:
         assert r0["losses"][1][k] == pytest.approx(one["losses"][1][k], rel=1e-4, abs=1e-6), k
     # ... and the mask after 3 steps [measured 2.6e-5 relative]: the GAN's updates amplify rounding, so the
     # networks are only compared loosely [measured 1.3e-3 absolute]

@@ -167,7 +167,7 @@ def test_penalty_is_zero_inside_the_margin_and_quadratic_beyond(tmp_path):
 
 
 def test_nan_loss_skips_the_step_and_leaves_mask_and_network_untouched(tmp_path, caplog, monkeypatch):
-    tr = joint_trainer(tmp_path)
+    tr = joint_trainer(tmp_path, "model=sgan_b_l1")  # the SGAN's update poisoned (GANUpdate, its G1)
     tr.train_step()
     mask_before = snapshot(tr.codesign.mask)
     net_before = [p.detach().clone() for p in tr.model.g1.parameters()]
