@@ -5,6 +5,7 @@ against the published mask and the physical limit.
     python examples/mask_search.py mask=spline search.max_evals=300   # any Hydra override
 """
 import argparse
+import time
 import sys
 from pathlib import Path
 
@@ -14,9 +15,11 @@ import codesign  # noqa: E402
 
 parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
 parser.add_argument("--smoke", action="store_true", help="debug=smoke sizes (seconds)")
-parser.add_argument("--out", type=Path, default=Path("outputs/examples/mask_search"), help="run folder")
+parser.add_argument("--out", type=Path,
+                    help="run folder (default: outputs/examples/mask_search/<date>_<time>, a new one each run)")
 parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. mask=spline search.max_evals=300")
 args = parser.parse_args()
+args.out = args.out or Path("outputs/examples/mask_search") / time.strftime("%Y-%m-%d_%H-%M-%S")
 
 found = codesign.mask_search(*args.overrides, *(["debug=smoke"] if args.smoke else []), run_dir=args.out)
 print(f"searched the {found['mask_kind']} family: {found['evaluations']} evaluations, feasible={found['feasible']}")

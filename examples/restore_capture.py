@@ -10,6 +10,7 @@ as a 16-bit PNG, and restored by +experiment=restore (``restore.input_bin``: the
     python examples/restore_capture.py --size 192 256     # a non-square capture
 """
 import argparse
+import time
 import sys
 from pathlib import Path
 
@@ -25,8 +26,10 @@ parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.R
 parser.add_argument("--alpha-l", type=float, default=1e6, help="laser strength alpha_l (dimensionless)")
 parser.add_argument("--size", type=int, nargs=2, default=(256, 256), metavar=("ROWS", "COLUMNS"),
                     help="the capture's size at the 256 px scale (a crop of the simulated 256 x 256 frame)")
-parser.add_argument("--out", type=Path, default=Path("outputs/examples/restore_capture"), help="output folder")
+parser.add_argument("--out", type=Path,
+                    help="output folder (default: outputs/examples/restore_capture/<date>_<time>, a new one each run)")
 args = parser.parse_args()
+args.out = args.out or Path("outputs/examples/restore_capture") / time.strftime("%Y-%m-%d_%H-%M-%S")
 
 cfg = codesign.checkpoint_config("pretrained")  # the shipped restorer's optics and sensor
 cfg.data.image_size, cfg.data.padded_size = 256, 320  # the paper's 256 px scale of the 2532 px sensor

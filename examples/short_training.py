@@ -5,6 +5,7 @@ against the sensor image and the classical Wiener filter.
     python examples/short_training.py trainer.steps=200 # any Hydra override (model=sgan_f, preset=cpu, ...)
 """
 import argparse
+import time
 import sys
 from pathlib import Path
 
@@ -14,9 +15,11 @@ import codesign  # noqa: E402
 
 parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
 parser.add_argument("--smoke", action="store_true", help="debug=smoke sizes (seconds)")
-parser.add_argument("--out", type=Path, default=Path("outputs/examples/short_training"), help="run folder")
+parser.add_argument("--out", type=Path,
+                    help="run folder (default: outputs/examples/short_training/<date>_<time>, a new one each run)")
 parser.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. trainer.steps=200 model=sgan_f")
 args = parser.parse_args()
+args.out = args.out or Path("outputs/examples/short_training") / time.strftime("%Y-%m-%d_%H-%M-%S")
 
 trained = codesign.train_restorer(*args.overrides, *(["debug=smoke"] if args.smoke else []), run_dir=args.out)
 print(f"trained {trained['steps']} steps in {trained['seconds']:.1f} s")
