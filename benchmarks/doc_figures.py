@@ -183,6 +183,22 @@ def _seed_row(m: dict) -> tuple[str, ...]:
     return (*_total_gains(m), f"{signed(joint['mean'])} +- {fixed(joint['interval'])}")
 
 
+def _gain_cells(m: dict, label: str) -> tuple[str, ...]:
+    """One of the main job's gain rows per alpha_l as the page writes it: +4.20 +- 1.45."""
+    row = m["gains"][label]
+    return tuple(f"{signed(row[c]['mean'])} +- {fixed(row[c]['interval'])}"
+                 for c in ("laser_0", "laser_1e3", "laser_1e6"))
+
+
+def _naf_seed_row(m: dict) -> tuple[str, ...]:
+    """A seed's row of the current main job's table: minutes, the co-designed / published LSR, then the total, the
+    joint stage and the network over Wiener on the designed mask per alpha_l."""
+    labels = [label for label, *_ in GAINS]
+    over_wiener = next(label for label in labels if label.startswith("the network over Wiener"))
+    return (fixed(m["minutes"], 1), fixed(m["masks"]["co-designed"]["lsr"] / m["lsr_published_peak"], 3),
+            *_total_gains(m), *_gain_cells(m, JOINT_STAGE), *_gain_cells(m, over_wiener))
+
+
 def _main_job_summary(m: dict) -> tuple[str]:
     """The printed end of the main job's run, rebuilt from its metrics.json exactly as the run prints it."""
     from codesign.train.protocol_summary import protocol_summary
@@ -240,6 +256,8 @@ QUOTES: list[Quote] = [
     _pool_row("pool of 12 masks, 1,600 steps", "pool_1600"),
     # docs/models.md Sec. 8: every restorer at 400 steps on the published mask
     *(_restorer_row(n) for n in ("sgan_b", "sgan_e", "sgan_f", "sgan_b_gated", "wiener_unet")),
+    _restorer_row("wiener_naf", "benchmarks/results/restorers/wiener_naf/restorer_table.json"),
+    _restorer_row("shipped (pool, own budget)", "benchmarks/results/restorers/wiener_naf/restorer_table.json"),
     *(_restorer_row(n, TARGET_LEVEL) for n in TARGET_LEVEL_ROWS),
     *(Quote("docs/models.md", f"| {label} | n/a | n/a | " + " | ".join(["{}"] * 6) + " |", PRETRAINED.format(run),
             lambda d: _row_cells(d["masks"]["published"]["alpha"]))
@@ -267,6 +285,8 @@ QUOTES: list[Quote] = [
           lambda d: (fixed(d["snr_one_batch"]), fixed(read_metrics(REPO / GRADIENT.format(1))["snr_one_batch"]))),
     # docs/codesign.md Sec. 7: the current main job's summary as its run printed it (main_job/wiener_naf/seed0/)
     Quote("docs/codesign.md", "{}", MAIN_JOB_NAF.format(0), _main_job_summary),
+    *(Quote("docs/codesign.md", f"| {k} | " + " | ".join(["{}"] * 11) + " |", MAIN_JOB_NAF.format(k), _naf_seed_row)
+      for k in (0, 1, 2)),
     # docs/results_log.md: the previous default's (benchmarks/results/main_job/)
     Quote("docs/results_log.md", "{}", MAIN_JOB, _main_job_summary),
     # ... the three seeds at 240 restorer steps and the mixed laser strengths (benchmarks/results/main_job/steps240/)

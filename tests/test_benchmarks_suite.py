@@ -34,11 +34,11 @@ def test_benchmarks_holds_the_suite_and_its_helpers_only():
     __main__, common, one bench_<name>.py per registry entry, the GPU campaign (gpu.py), which runs parts of entries
     on a GPU node as __main__ runs them all, the check of the docs' quoted figures against their results files
     (doc_figures.py), and the commands that made figures the docs still show: every restorer side by side
-    (restorer_table.py) and the shipped restorer's training and its evaluation mask by mask (pretrain.py,
-    pretrained_eval.py)."""
+    (restorer_table.py) and the shipped restorer's evaluation mask by mask (pretrained_eval.py; it trains with the
+    package's own command, codesign/models/pretrained/README.md)."""
     modules = {p.name for p in BENCH_DIR.glob("*.py")}
     allowed = {"__init__.py", "__main__.py", "common.py", "gpu.py", "doc_figures.py", "restorer_table.py",
-               "pretrain.py", "pretrained_eval.py"} | \
+               "pretrained_eval.py"} | \
         {f"bench_{n}.py" for n in BENCHMARKS}
     assert modules <= allowed, f"not part of the suite: {sorted(modules - allowed)}"
     assert not [p for p in BENCH_DIR.iterdir() if p.is_dir() and p.name not in ("results", "__pycache__")]
