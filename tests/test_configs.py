@@ -71,7 +71,7 @@ def test_presets_size_the_run_and_trainers_only_schedule_it():
     assert (schedule_only.model.size, schedule_only.data.image_size, schedule_only.trainer.steps) == ("cpu", 96, 500000)
 
 
-def test_the_main_job_trains_sgan_b_l1_and_any_network_can_replace_it():
+def test_the_main_job_trains_wiener_naf_and_any_network_can_replace_it():
     from codesign.models import build_restorer
 
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
@@ -80,17 +80,12 @@ def test_the_main_job_trains_sgan_b_l1_and_any_network_can_replace_it():
         other = compose("config", overrides=["+experiment=joint", "model=wiener_unet"])
         paper_net = compose("config", overrides=["+experiment=joint", "model=sgan_b"])
     model = build_restorer(OmegaConf.to_container(joint.model, resolve=True))
-    spec = model.spec
-    # sgan_b_gated's residual paths, G2 ungated and held to the exposure, its L1 terms alone (no critic work)
-    assert (spec.name, spec.variant, spec.g2_residual, spec.g1_base, spec.g2_base, spec.laser_gate, spec.g2_gate,
-            spec.g2_base_nsr_lasered, spec.level_head, spec.target_level) == (
-        "sgan_b_l1", "sgan_b", True, "filled", "wiener", True, False, 100.0, True, "exposure")
-    assert (model.weights.adv, model.weights.mdf, model.weights.l1_stage1, model.adversarial) == (0.0, 0.0, 200.0,
-                                                                                                 False)
+    # the restorer conditioned on the PSF, the shipped one's network (init.checkpoint=auto starts from it)
+    assert (model.kind, model.any_size, model.adversarial, joint.init.checkpoint) == ("wiener_naf", True, False, "auto")
     gated_spec = build_restorer(OmegaConf.to_container(gated.model, resolve=True)).spec
     assert (gated_spec.g2_gate, gated_spec.target_level, gated.model.loss.adv) == (True, "scene", 1.0)
     assert joint.data.params.alpha_l_spacing == "log" and gated.data.params.alpha_l_spacing == "log"
-    assert (joint.trainer.ema, joint.trainer.steps, joint.codesign.finetune_steps) == (0.99, 200, 120)
+    assert (joint.trainer.ema, joint.trainer.steps, joint.codesign.finetune_steps) == (0.99, 400, 240)
     assert build_restorer(OmegaConf.to_container(other.model, resolve=True)).kind == "wiener_unet"
     assert paper_net.model.g2_residual is False and paper_net.model.laser_gate is False
 

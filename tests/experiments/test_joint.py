@@ -18,7 +18,10 @@ from codesign.io.metric_names import upgrade
 from tests.cli import run_codesign
 from tests.conftest import REPO_ROOT as REPO
 
+# the joint experiment's mechanics with the SGAN (the main job's network is wiener_naf, whose co-design
+# tests/models/test_wiener_naf.py covers): its two generators, its fixed image size, its named loss terms
 SINGLE = "codesign.protocol=single"
+SGAN = "model=sgan_b_l1"
 KEYS = ("lsr", "lsr_published", "mtf_mean", "mtf_mean_published", "psnr", "psnr_published", "ssim", "ssim_published",
         "r_n", "theta_n", "steps", "seconds", "lsr_max", "psnr_laser_1e6", "psnr_published_laser_1e6",
         "psnr_laser_0", "ssim_published_laser_0", "diverged", "diverged_published", "phase_resolved",
@@ -36,7 +39,7 @@ def _tags(run_dir: Path) -> dict:
 @pytest.fixture(scope="module")
 def joint_run(tmp_path_factory) -> Path:
     run_dir = tmp_path_factory.mktemp("joint") / "run"
-    proc = run_codesign("+experiment=joint", SINGLE, "debug=smoke", f"hydra.run.dir={run_dir}", timeout=300)
+    proc = run_codesign("+experiment=joint", SINGLE, SGAN, "debug=smoke", f"hydra.run.dir={run_dir}", timeout=300)
     assert proc.returncode == 0, proc.stderr[-4000:]
     (run_dir.parent / "console.txt").write_text(proc.stdout + proc.stderr)
     return run_dir
@@ -104,7 +107,7 @@ def test_a_run_killed_at_a_step_and_resumed_records_what_an_uninterrupted_run_re
     *_start scores included, but the wall times; seconds counts the whole training, not the part after the resume."""
     run_dir = tmp_path / "run"
     killer = [sys.executable, str(Path(__file__).with_name("kill_after_checkpoint.py")), "1", "+experiment=joint",
-              SINGLE, "debug=smoke", f"hydra.run.dir={run_dir}"]
+              SINGLE, SGAN, "debug=smoke", f"hydra.run.dir={run_dir}"]
     killed = subprocess.run(killer, cwd=REPO, capture_output=True, text=True, timeout=300,
                             env={**os.environ, "OMP_NUM_THREADS": "2", "MKL_NUM_THREADS": "2"})
     assert killed.returncode == -signal.SIGKILL, killed.stderr[-3000:]
@@ -114,7 +117,7 @@ def test_a_run_killed_at_a_step_and_resumed_records_what_an_uninterrupted_run_re
     state = torch.load(run_dir / "checkpoint.pt", weights_only=True)
     state["seconds"] = 1.0e6
     torch.save(state, run_dir / "checkpoint.pt")
-    again = run_codesign("+experiment=joint", SINGLE, "debug=smoke", f"hydra.run.dir={run_dir}", timeout=300)
+    again = run_codesign("+experiment=joint", SINGLE, SGAN, "debug=smoke", f"hydra.run.dir={run_dir}", timeout=300)
     assert again.returncode == 0, again.stderr[-3000:]
     assert "at step 2" in again.stdout + again.stderr
     resumed = json.loads((run_dir / "metrics.json").read_text())
@@ -124,7 +127,7 @@ def test_a_run_killed_at_a_step_and_resumed_records_what_an_uninterrupted_run_re
     assert [k for k in whole if k not in timing and resumed[k] != whole[k]] == []
     assert 1.0e6 < resumed["seconds"] < 1.0e6 + 300  # the whole training's, not the 2 steps after the resume
     # the same run directory under a changed constraint is refused, naming the key
-    bad = run_codesign("+experiment=joint", SINGLE, "debug=smoke", "trainer.steps=6", "codesign.lsr_max=0.001",
+    bad = run_codesign("+experiment=joint", SINGLE, SGAN, "debug=smoke", "trainer.steps=6", "codesign.lsr_max=0.001",
                        f"hydra.run.dir={run_dir}", timeout=300)
     assert bad.returncode == 2 and "was trained with different codesign" in bad.stderr
 
@@ -145,7 +148,8 @@ def test_warm_start_frozen_mask_continues_the_checkpoint_exactly(joint_run, tmp_
     new run are the checkpoint's final ones, bit for bit; the mask does not move; the start is recorded."""
     ckpt = joint_run / "published" / "checkpoint.pt"
     run_dir = tmp_path / "warm"
-    proc = run_codesign("+experiment=joint", SINGLE, "debug=smoke", f"init.checkpoint={ckpt}", "codesign.mask_lr=0",
+    proc = run_codesign("+experiment=joint", SINGLE, SGAN, "debug=smoke", f"init.checkpoint={ckpt}",
+                        "codesign.mask_lr=0",
                         "codesign.lsr_max=start", "codesign.compare_published=false", "logging.tensorboard=false",
                         f"hydra.run.dir={run_dir}", timeout=300)
     assert proc.returncode == 0, proc.stderr[-4000:]
@@ -162,7 +166,7 @@ def test_warm_start_from_other_image_sizes_is_refused_before_work(joint_run, tmp
     from tests.inputs._run import config_error
 
     ckpt = joint_run / "published" / "checkpoint.pt"
-    line = config_error(monkeypatch, capsys, tmp_path / "bad", "+experiment=joint", "debug=smoke",
+    line = config_error(monkeypatch, capsys, tmp_path / "bad", "+experiment=joint", SGAN, "debug=smoke",
                         f"init.checkpoint={ckpt}", "data.image_size=64", "data.padded_size=96")
     assert line == (
         f"codesign: configuration error: init.checkpoint = '{ckpt}': was trained with different data.image_size, "

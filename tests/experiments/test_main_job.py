@@ -77,8 +77,8 @@ def test_the_summary_is_the_stages_evaluations(main_job):
     for system, (stage, column) in SYSTEMS.items():
         table = stages[stage]["evaluation"]
         for c in conds:
-            assert m["systems"][system][c] == {k: table[c][column or "sgan"][k] for k in ("psnr_matched", "psnr",
-                                                                                         "ssim")}
+            net = column or m["network"]  # the network's column: its method name (wiener_naf, the main job's)
+            assert m["systems"][system][c] == {k: table[c][net][k] for k in ("psnr_matched", "psnr", "ssim")}
     for label, system, against in GAINS:
         for c in conds:
             a, b = m["per_scene_psnr_matched"][system][c], m["per_scene_psnr_matched"][against][c]
@@ -90,7 +90,7 @@ def test_the_summary_is_the_stages_evaluations(main_job):
     assert m["scenes"] == ["awning.png", "bridge_city.png"]
     text = (main_job / "summary.txt").read_text()
     assert text == protocol_summary(m) + "\n" and text.rstrip() in (main_job.parent / "console.txt").read_text()
-    assert "  co-designed + sgan_b_l1" in text and "goal (NOT met)" in text  # 4 steps meet no goal
+    assert m["network"] == "wiener_naf" and "  co-designed + wiener_naf" in text and "goal (NOT met)" in text  # 4 steps meet no goal
 
 
 def test_a_second_run_on_the_folder_redoes_nothing(main_job, tmp_path):

@@ -55,7 +55,8 @@ def _poisoned(trained, entry):
     if entry == "all-nan":  # a diverged run's weights
         state["model"] = {k: torch.full_like(v, float("nan")) if v.is_floating_point() else v
                           for k, v in state["model"].items()}
-        return state, f"model['{FIRST}']", "588 NaN of 588 values"
+        first, n = next((k, v.numel()) for k, v in state["model"].items() if v.is_floating_point())  # any network
+        return state, f"model['{first}']", f"{n} NaN of {n} values"
     if entry == "one-inf":
         state["model"][FIRST].view(-1)[7] = float("inf")
         return state, f"model['{FIRST}']", "1 +inf of 588 values"
