@@ -7,6 +7,7 @@ from hydra import compose, initialize_config_dir
 
 from codesign.config.runtime import command_line_keys
 import codesign.experiments as experiments
+from codesign.experiments import rundir, runlock
 from tests.conftest import REPO_ROOT
 
 
@@ -58,3 +59,16 @@ def config_error(monkeypatch, capsys, run_dir, *overrides: str) -> str:
     assert info.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     return err[-1]
+
+
+@pytest.fixture(autouse=True)
+def fresh_run_folder_state(monkeypatch):
+    """The run-folder guard's records of this process (earlier folders, held locks) as a fresh run finds them: a
+    module that binds this fixture to a name has it for every test (tests/inputs/test_run_guard.py and
+    test_run_folders.py)."""
+    for name in ("EARLIER", "EARLIER_LOGS", "EARLIER_OWN"):
+        monkeypatch.setattr(rundir, name, {}, raising=False)
+    monkeypatch.setattr(runlock, "HELD", {})
+    yield
+    for run_dir in list(runlock.HELD):
+        runlock.release_lock(run_dir)

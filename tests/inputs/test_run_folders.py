@@ -17,6 +17,7 @@ from omegaconf import OmegaConf
 import codesign.experiments as experiments
 from codesign.errors import ConfigError, OutputWriteError
 from codesign.experiments import rundir, runlock, runstart
+from tests.inputs._run import fresh_run_folder_state  # noqa: F401 (autouse: the guard's records, fresh per test)
 from codesign.io import files as io
 from tests.cli import run_codesign
 from tests.conftest import REPO_ROOT
@@ -42,15 +43,6 @@ def _dead_pid() -> int:
     return proc.pid
 
 
-@pytest.fixture(autouse=True)
-def _fresh_rundir_state(monkeypatch):
-    """The module's records of this process (earlier folders, held locks) as a fresh run finds them."""
-    for name in ("EARLIER", "EARLIER_LOGS", "EARLIER_OWN"):
-        monkeypatch.setattr(rundir, name, {}, raising=False)
-    monkeypatch.setattr(runlock, "HELD", {})
-    yield
-    for run_dir in list(runlock.HELD):
-        runlock.release_lock(run_dir)
 
 
 # ---- a folder of the user's own files -------------------------------------------------------------------------

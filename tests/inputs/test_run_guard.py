@@ -21,6 +21,7 @@ import codesign
 from codesign.config import CONF_DIR
 from codesign.errors import ConfigError
 from codesign.experiments import rundir, runlock, runstart
+from tests.inputs._run import fresh_run_folder_state  # noqa: F401 (autouse: the guard's records, fresh per test)
 from codesign.train import distributed
 from codesign.train.checkpoint import save_checkpoint
 from codesign.train.model_setup import build_model
@@ -71,15 +72,6 @@ def _last(proc) -> str:
     return proc.stderr.strip().splitlines()[-1]
 
 
-@pytest.fixture(autouse=True)
-def _fresh_rundir_state(monkeypatch):
-    """The module's records of this process (earlier folders, held locks) as a fresh run finds them."""
-    for name in ("EARLIER", "EARLIER_LOGS", "EARLIER_OWN"):
-        monkeypatch.setattr(rundir, name, {}, raising=False)
-    monkeypatch.setattr(runlock, "HELD", {})
-    yield
-    for run_dir in list(runlock.HELD):
-        runlock.release_lock(run_dir)
 
 
 # ---- sweeps: the top folder and every job folder -------------------------------------------------------------
