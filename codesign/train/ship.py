@@ -1,22 +1,23 @@
 """A trained checkpoint as weights to ship: ``python -m codesign.train.ship CHECKPOINT OUT.pt``.
 
-Keeps what restoring and a warm start need (the generators' EMA averages folded into the model's state, the step,
-the configuration) and drops the optimizers, schedules and random states (a sixth of the size for wiener_naf). The
-stored configuration's scene source becomes the built-in one: a corpus folder is part of a checkout, not of an
-installation, and ``evaluate`` / ``sensor_image`` read the checkpoint's scenes; ``record["trained_on"]`` keeps what
-it trained on. How codesign/models/pretrained/wiener_naf_pool.pt was made (its README.md).
+Keeps what restoring and a warm start need (the generators' EMA averages folded into the model's state, or the last
+step's weights; the step, the configuration, a joint run's learned mask) and drops the optimizers, schedules and
+random states (a quarter of the size for wiener_naf). The stored configuration's scene source becomes the built-in
+one: a corpus folder is part of a checkout, not of an installation, and ``evaluate`` / ``sensor_image`` read the
+checkpoint's scenes; ``record["trained_on"]`` keeps what it trained on. How
+codesign/models/pretrained/wiener_naf_pool.pt was made (its README.md).
 """
 from __future__ import annotations
 
 import argparse
 import copy
-import os
 import sys
 from pathlib import Path
 
 import torch
 
 from codesign.errors import ConfigError
+from codesign.train.checkpoint import save_checkpoint
 
 
 WEIGHTS = ("ema", "last")
@@ -40,8 +41,11 @@ def shipped_state(checkpoint: str | Path, weights: str = "ema") -> dict:
     record["trained_on"] = {"data.scenes": data.get("scenes"), "data.folder": data.get("folder")}
     record.update({"seconds": state.get("seconds"), "versions": state.get("versions"), "weights": weights})
     data["scenes"], data["folder"] = "builtin", None
-    weights = {k: v.detach().clone() for k, v in model.state_dict().items()}
-    return {"model": weights, "step": int(state["step"]), "config": config, "record": record}
+    tensors = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    shipped = {"model": tensors, "step": int(state["step"]), "config": config, "record": record}
+    if "mask" in state:  # a joint run's learned mask: evaluate and restore image through it
+        shipped["mask"] = state["mask"]
+    return shipped
 
 
 def main(argv=None) -> int:
@@ -58,9 +62,7 @@ def main(argv=None) -> int:
     except ConfigError as err:
         print(f"codesign: {err}", file=sys.stderr)
         return 2
-    tmp = a.out.with_name(a.out.name + ".tmp")
-    torch.save(state, tmp)
-    os.replace(tmp, a.out)
+    save_checkpoint(a.out, state)  # atomic: a crash leaves no half-written file
     print(f"{a.out}: step {state['step']}, {a.weights} weights, {a.out.stat().st_size / 2**20:.2f} MiB, trained on "
           f"{state['record']['trained_on']}")
     return 0

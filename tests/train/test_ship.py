@@ -4,6 +4,7 @@ from __future__ import annotations
 import torch
 from omegaconf import OmegaConf
 
+from codesign.train.checkpoint import save_checkpoint
 from codesign.train.data import SimulatedData
 from codesign.train.model_setup import build_model
 from codesign.train.optim import init_weights
@@ -46,6 +47,9 @@ def test_the_shipped_weights_restore_as_the_checkpoint_s_ema_and_name_its_scenes
     assert _same([g.state_dict() for g in load_trained(out, CPU)[1]], ema)
     assert not _same([g.state_dict() for g in tr.model.generators()], ema)
     assert out.stat().st_size < path.stat().st_size / 2  # no optimizer state
+    joint = save_checkpoint(tmp_path / "joint.pt", {**torch.load(path, weights_only=False),
+                                                    "mask": {"r": torch.arange(3.0)}})
+    assert torch.equal(shipped_state(joint)["mask"]["r"], torch.arange(3.0))  # a learned mask travels with it
     last = tmp_path / "last.pt"
     assert main(["--weights", "last", str(path), str(last)]) == 0
     assert _same([g.state_dict() for g in load_trained(last, CPU)[1]], [g.state_dict() for g in tr.model.generators()])
