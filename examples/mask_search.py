@@ -5,8 +5,8 @@ against the published mask and the physical limit.
     python examples/mask_search.py mask=spline search.max_evals=300   # any Hydra override
 """
 import argparse
-import time
 import sys
+import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # this checkout's codesign, installed or not

@@ -10,8 +10,8 @@ as a 16-bit PNG, and restored by +experiment=restore (``restore.input_bin``: the
     python examples/restore_capture.py --size 192 256     # a non-square capture
 """
 import argparse
-import time
 import sys
+import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -5,8 +5,8 @@ against the sensor image and the classical Wiener filter.
     python examples/short_training.py trainer.steps=200 # any Hydra override (model=sgan_f, preset=cpu, ...)
 """
 import argparse
-import time
 import sys
+import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # this checkout's codesign, installed or not
