@@ -59,14 +59,6 @@ def require_numbers(key: str, value: Any, allowed: str, length: int | None = Non
     return [require_number(f"{key}[{i}]", v, **bounds) for i, v in enumerate(items)]
 
 
-def unknown_keys(prefix: str, cfg: Any, known) -> None:
-    """ConfigError naming the first key of mapping ``cfg`` that is not in ``known`` (a typo would otherwise be
-    ignored silently and the default used)."""
-    extra = sorted(set(cfg) - set(known)) if hasattr(cfg, "keys") else []
-    if extra:
-        raise ConfigError(f"{prefix}.{extra[0]}", cfg[extra[0]], f"unknown key; allowed: {', '.join(sorted(known))}")
-
-
 class OutputWriteError(OSError):
     """An output file could not be written; the file that was there before (if any) is unchanged."""
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 from dataclasses import fields
 from typing import Any, Mapping
 
-from codesign.errors import unknown_keys
+from codesign.errors import ConfigError
 
 
 class SpecMixin:
@@ -21,5 +21,9 @@ class SpecMixin:
     def from_config(cls, cfg: Mapping[str, Any], prefix: str | None = None):
         """Build from a mapping (e.g. a Hydra config node); an unknown key is a ConfigError naming it."""
         prefix = prefix or cls.__dataclass_fields__["prefix"].default
-        unknown_keys(prefix, cfg, {f.name for f in fields(cls)} - {"prefix"})
+        known = sorted({f.name for f in fields(cls)} - {"prefix"})
+        # the key check of codesign.config.keys.unknown_keys, here because core (this module) is below config
+        extra = sorted(set(cfg) - set(known)) if hasattr(cfg, "keys") else []
+        if extra:
+            raise ConfigError(f"{prefix}.{extra[0]}", cfg[extra[0]], f"unknown key; allowed: {', '.join(known)}")
         return cls(**dict(cfg), prefix=prefix)

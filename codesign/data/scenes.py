@@ -12,12 +12,13 @@ from typing import Any, Mapping, Sequence
 
 import torch
 
+from codesign.config.keys import unknown_keys
 from codesign.config.store import register, spec_node
 from codesign.data.builtin import builtin_scene_names
 from codesign.data.images import SceneLoadWarning, UnreadableImage
 from codesign.data.paramconfig import ParamConfig, param_config
 from codesign.data.source import SceneSource
-from codesign.errors import ConfigError, require_choice, require_list, require_number, unknown_keys
+from codesign.errors import ConfigError, require_choice, require_list, require_number
 
 __all__ = ["SceneSampler", "DataConfig", "data_config", "build_scene_source", "build_scene_sampler",
            "SceneSource", "builtin_scene_names", "heldout_source", "HELDOUT_DIR"]
