@@ -232,6 +232,11 @@ def logging_spec(cfg) -> LoggingSpec:
     return LoggingSpec.from_config(dict(node))
 
 
+def tensorboard_enabled(cfg) -> bool:
+    """``logging.tensorboard`` of a composed config (the LoggingSpec default when the block is absent)."""
+    return logging_spec(cfg).tensorboard
+
+
 check_logging = logging_spec  # validates; the runner calls it before any work
 
 register("logging", "default", spec_node(LoggingSpec))

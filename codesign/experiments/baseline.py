@@ -7,11 +7,11 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig
 
-from codesign.config.runtime import check_seed, logging_spec, to_container
+from codesign.config.runtime import check_seed, logging_spec, tensorboard_enabled, to_container
 from codesign.design.check import camera_sampling_report
 from codesign.design.measured_merit import measured_psf_report
 from codesign.io import files as io
-from codesign.io.tensorboard import open_writer, tensorboard_enabled
+from codesign.io.tensorboard import open_writer
 from codesign.train import distributed
 from codesign.train.checkpoint import CHECKPOINT_NAME
 from codesign.train.data import SimulatedData

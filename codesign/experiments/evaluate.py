@@ -9,12 +9,12 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from codesign.camera import with_measured_psf
-from codesign.config.runtime import check_seed, explicit_keys, mask_typed, with_typed_mask
+from codesign.config.runtime import check_seed, explicit_keys, mask_typed, tensorboard_enabled, with_typed_mask
 from codesign.design.check import camera_sampling_report
 from codesign.design.measured_merit import measured_psf_report
 from codesign.errors import ConfigError
 from codesign.io import files as io
-from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
+from codesign.io.tensorboard import log_summary, open_writer
 from codesign.train.data import SimulatedData
 from codesign.train.evaluation import eval_settings, run_evaluation
 from codesign.train.checkpoint import nonfinite_summary, stored_config_error

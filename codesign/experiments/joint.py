@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from codesign.config.runtime import check_seed, logging_spec, to_container
+from codesign.config.runtime import check_seed, logging_spec, tensorboard_enabled, to_container
 from codesign.design.check import camera_sampling_report, recheck_gain, report_sampling, sampling_of
 from codesign.design.limits import MTFLimit
 from codesign.train.lsr_constraint import CodesignSpec, LSRConstraint
@@ -27,7 +27,7 @@ from codesign.fab.laser_lines import lines_summary, log_lines, run_lines
 from codesign.optics.masks.records import write_record
 from codesign.io import files as io
 from codesign.io import plots
-from codesign.io.tensorboard import open_writer, tensorboard_enabled
+from codesign.io.tensorboard import open_writer
 from codesign.optics import HalfRingMask, circular_mtf
 from codesign.optics.masks import published_mask_config
 from codesign.train import distributed

@@ -13,7 +13,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig
 
-from codesign.config.runtime import resolve_dtype, to_container
+from codesign.config.runtime import resolve_dtype, tensorboard_enabled, to_container
 from codesign.design.check import report_sampling, sampling_of, sampling_report, verify_design
 from codesign.design.tradeoff_figures import evaluations_figure
 from codesign.design.limits import MTFLimit
@@ -28,7 +28,7 @@ from codesign.design.search_setup import (quantized_figures, restorability_tools
 from codesign.errors import ConfigError
 from codesign.fab.laser_lines import lines_summary, log_lines, run_lines, surface_name
 from codesign.io import files as io, plots
-from codesign.io.tensorboard import open_writer, tensorboard_enabled
+from codesign.io.tensorboard import open_writer
 from codesign.optics import OpticalSystem, OpticsSpec, RadialMTF, build_mask, circular_mtf, metrics
 from codesign.optics.lines import smooth_lsr
 from codesign.experiments.protocol import Experiment

@@ -8,7 +8,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from codesign.config.runtime import resolve_dtype
+from codesign.config.runtime import resolve_dtype, tensorboard_enabled
 from codesign.design.check import sampling_report
 from codesign.optics.metrics import require_band_frequencies
 from codesign.design.limits import MTFLimit
@@ -20,7 +20,7 @@ from codesign.fab.laser_lines import lines_summary, log_lines, lsr_curve, lsr_wa
 from codesign.optics.materials import material_of
 from codesign.io import files as io
 from codesign.io import plots
-from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
+from codesign.io.tensorboard import log_summary, open_writer
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask, circular_mtf
 from codesign.experiments.protocol import Experiment
 

@@ -23,13 +23,13 @@ import torch
 import torch.nn.functional as F
 
 from codesign.camera import build_camera, field_of_view, with_measured_psf
-from codesign.config.runtime import explicit_keys, mask_typed, to_container, with_typed_mask
+from codesign.config.runtime import explicit_keys, mask_typed, tensorboard_enabled, to_container, with_typed_mask
 from codesign.design.check import camera_sampling_report
 from codesign.design.measured_merit import measured_psf_report
 from codesign.errors import ConfigError
 from codesign.io import files as io
 from codesign.io.captures import read_counts, save_png16
-from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
+from codesign.io.tensorboard import log_summary, open_writer
 from codesign.models.capture import RestoreSpec, binned_shape, capture_factor, capture_geometry, restore_capture
 from codesign.train.checkpoint import nonfinite_summary, stored_config_error
 from codesign.train.resume import apply_checkpoint_mask, load_trained

@@ -14,7 +14,7 @@ import torch
 from omegaconf import DictConfig
 
 from codesign.camera import build_camera
-from codesign.config.runtime import check_seed, resolve_dtype, to_container
+from codesign.config.runtime import check_seed, resolve_dtype, tensorboard_enabled, to_container
 from codesign.data.params import alpha_tag, fixed_scene_params, sample_scene_params
 from codesign.data.scenes import build_scene_source
 from codesign.data.simulate_spec import SimulateSpec
@@ -23,7 +23,7 @@ from codesign.design.measured_merit import measured_psf_figure, measured_psf_rep
 from codesign.io import files as io
 from codesign.io.captures import save_png16
 from codesign.io.plots import plt
-from codesign.io.tensorboard import log_summary, open_writer, tensorboard_enabled
+from codesign.io.tensorboard import log_summary, open_writer
 from codesign.experiments.protocol import Experiment
 
 log = logging.getLogger("codesign.simulate")

@@ -7,13 +7,6 @@ from pathlib import Path
 
 import numpy as np
 
-from codesign.config.runtime import logging_spec
-
-
-def tensorboard_enabled(cfg) -> bool:
-    """``logging.tensorboard`` of a composed config (the LoggingSpec default when the block is absent)."""
-    return logging_spec(cfg).tensorboard
-
 
 def open_writer(run_dir: Path, enabled: bool = True, purge_step: int | None = None):
     """A SummaryWriter on ``run_dir`` (None when ``enabled`` is false)."""
