@@ -7,7 +7,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from codesign.camera.camera import Camera
-from codesign.data.scenes import data_config
+from codesign.data.scenes import DataConfig
 from codesign.errors import ConfigError
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask
 from codesign.optics.lines import LaserLines
@@ -26,7 +26,7 @@ def sensor_spec(cfg: DictConfig) -> SensorSpec:
         if key in sensor_cfg:
             raise ConfigError(f"sensor.{key}", sensor_cfg[key], f"unknown key: the network resolution is "
                               f"data.{key}")
-    dc = data_config(cfg.data)  # data.image_size / padded_size validated under their own names first
+    dc = DataConfig.from_config(cfg.data)  # data.image_size / padded_size validated under their own names first
     resolution = sensor_cfg.get("resolution", SensorSpec.resolution)
     if isinstance(resolution, int) and not isinstance(resolution, bool) and dc.image_size > resolution:
         raise ConfigError("data.image_size", dc.image_size, f"must be <= sensor.resolution ({resolution}): the "

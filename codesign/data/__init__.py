@@ -6,7 +6,7 @@ from codesign.data.builtin import (
                                   procedural_scene,
 )
 from codesign.data.images import SceneLoadWarning, UnreadableImage, load_image
-from codesign.data.paramconfig import ParamConfig, param_config
+from codesign.data.paramconfig import ParamConfig
 from codesign.data.params import (
                                   FIGURE_VALUES,
                                   LASER_STRENGTHS,
@@ -24,14 +24,13 @@ from codesign.data.scenes import (
                                   SceneSampler,
                                   build_scene_sampler,
                                   build_scene_source,
-                                  data_config,
 )
 from codesign.data.source import SceneSource, split_scene_names
 
 __all__ = [
     "PROCEDURAL_SCENES", "SKIMAGE_SCENES", "builtin_scene_names", "procedural_scene", "SceneLoadWarning",
-    "UnreadableImage", "load_image", "ParamConfig", "param_config", "FIGURE_VALUES", "LASER_STRENGTHS",
+    "UnreadableImage", "load_image", "ParamConfig", "FIGURE_VALUES", "LASER_STRENGTHS",
     "PRESETS", "ROBUSTNESS_FIXED", "ROBUSTNESS_STAGES", "SceneParams", "fixed_scene_params", "preset_names",
     "preset_params", "sample_scene_params", "DataConfig", "SceneSampler", "build_scene_sampler",
-    "build_scene_source", "data_config", "SceneSource", "split_scene_names",
+    "build_scene_source", "SceneSource", "split_scene_names",
 ]

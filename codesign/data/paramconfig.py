@@ -7,7 +7,7 @@ from typing import Any, Mapping
 
 from codesign.errors import ConfigError, require_choice, require_number
 
-__all__ = ["ParamConfig", "param_config"]
+__all__ = ["ParamConfig"]
 
 PREFIX = "data.params"
 
@@ -34,6 +34,56 @@ class ParamConfig:
     exposure_std_s: float = 0.01                           # s; the paper: 0.1 x the mean
     exposure_min_s: float = 1.0e-4                         # s; draws are clipped up to this
 
+    @classmethod
+    def from_config(cls, cfg: ParamConfig | Mapping | None) -> ParamConfig:
+        """Validate a ``data.params`` mapping (missing keys take the defaults) into a ParamConfig.
+
+        Accepts the params block itself, the whole ``data`` block (its ``params`` entry is used), a ParamConfig
+        (returned as is) or None (all defaults). Errors name the key, e.g. ``data.params.c1_range``.
+        """
+        if cfg is None:
+            return cls()
+        if isinstance(cfg, ParamConfig):
+            return cfg
+        if not isinstance(cfg, Mapping) and not hasattr(cfg, "keys"):
+            raise ConfigError(PREFIX, cfg, "must be a mapping of parameter ranges")
+        if "params" in cfg and "alpha_l_range" not in cfg:
+            cfg = cfg["params"]
+            if cfg is None:
+                return cls()
+        unknown = sorted(set(cfg.keys()) - set(_FIELDS))
+        if unknown:
+            raise ConfigError(f"{PREFIX}.{unknown[0]}", cfg[unknown[0]],
+                              f"unknown key; allowed: {', '.join(_FIELDS)}")
+        out: dict[str, Any] = {}
+        for name in cfg.keys():
+            key, v = f"{PREFIX}.{name}", cfg[name]
+            if name in _RANGES:
+                out[name] = _range(key, v, ALPHA_L_MAX if name == "alpha_l_range" else None)
+            elif name == "alpha_l_spacing":
+                out[name] = require_choice(key, v, SPACINGS)
+            elif name == "alpha_l_levels":
+                out[name] = require_number(key, v, lo=1, integer=True)
+            elif name in ("exposure_mean_s", "exposure_min_s"):  # a zero exposure would make the sensor blind
+                out[name] = require_number(key, v, lo=0.0, lo_open=True)
+            else:  # non-negative scalars: fractions, means, stds, the exposure floor
+                out[name] = require_number(key, v, lo=0.0)
+        pc = cls(**out)
+        lo, hi = pc.alpha_l_range
+        if pc.alpha_l_spacing != "linear" and lo == 0 < hi < 1:
+            raise ConfigError(f"{PREFIX}.alpha_l_range", list(pc.alpha_l_range),
+                              f"with alpha_l_spacing={pc.alpha_l_spacing} and a lower end of 0 the upper end must be "
+                              ">= 1 (the log levels start at 1, the laser at the saturation level, with 0 as one more "
+                              "level)")
+        # one level cannot be both ends (the range would be ignored); mixed splits its levels between two such grids
+        least = 4 if pc.alpha_l_spacing == "mixed" else 2
+        if pc.alpha_l_levels < least and lo < hi:
+            raise ConfigError(f"{PREFIX}.alpha_l_levels", pc.alpha_l_levels,
+                              f"cannot span {PREFIX}.alpha_l_range = [{lo:g}, {hi:g}]: must be >= {least} (both "
+                              f"ends are levels{' of each half' if least == 4 else ''}), or give a range of one "
+                              "strength [a, a]")
+        return pc
+
 
 _RANGES = ("alpha_l_range", "read_noise_mean_range_e", "read_noise_std_range_e", "c1_range", "c2_range",
            "alpha_b_range")
@@ -53,50 +103,3 @@ def _range(key: str, value: Any, top: float | None = None) -> tuple[float, float
     if lo > hi:
         raise ConfigError(key, list(value), allowed)
     return lo, hi
-
-
-def param_config(cfg: ParamConfig | Mapping | None) -> ParamConfig:
-    """Validate a ``data.params`` mapping (missing keys take the defaults) into a ParamConfig.
-
-    Accepts the params block itself, the whole ``data`` block (its ``params`` entry is used), a ParamConfig
-    (returned as is) or None (all defaults). Errors name the key, e.g. ``data.params.c1_range``.
-    """
-    if cfg is None:
-        return ParamConfig()
-    if isinstance(cfg, ParamConfig):
-        return cfg
-    if not isinstance(cfg, Mapping) and not hasattr(cfg, "keys"):
-        raise ConfigError(PREFIX, cfg, "must be a mapping of parameter ranges")
-    if "params" in cfg and "alpha_l_range" not in cfg:
-        cfg = cfg["params"]
-        if cfg is None:
-            return ParamConfig()
-    unknown = sorted(set(cfg.keys()) - set(_FIELDS))
-    if unknown:
-        raise ConfigError(f"{PREFIX}.{unknown[0]}", cfg[unknown[0]], f"unknown key; allowed: {', '.join(_FIELDS)}")
-    out: dict[str, Any] = {}
-    for name in cfg.keys():
-        key, v = f"{PREFIX}.{name}", cfg[name]
-        if name in _RANGES:
-            out[name] = _range(key, v, ALPHA_L_MAX if name == "alpha_l_range" else None)
-        elif name == "alpha_l_spacing":
-            out[name] = require_choice(key, v, SPACINGS)
-        elif name == "alpha_l_levels":
-            out[name] = require_number(key, v, lo=1, integer=True)
-        elif name in ("exposure_mean_s", "exposure_min_s"):  # a zero exposure would make the sensor blind
-            out[name] = require_number(key, v, lo=0.0, lo_open=True)
-        else:  # non-negative scalars: fractions, means, stds, the exposure floor
-            out[name] = require_number(key, v, lo=0.0)
-    pc = ParamConfig(**out)
-    lo, hi = pc.alpha_l_range
-    if pc.alpha_l_spacing != "linear" and lo == 0 < hi < 1:
-        raise ConfigError(f"{PREFIX}.alpha_l_range", list(pc.alpha_l_range),
-                          f"with alpha_l_spacing={pc.alpha_l_spacing} and a lower end of 0 the upper end must be >= 1 "
-                          "(the log levels start at 1, the laser at the saturation level, with 0 as one more level)")
-    # one level cannot be both ends (the range would be ignored); mixed splits its levels between two such grids
-    least = 4 if pc.alpha_l_spacing == "mixed" else 2
-    if pc.alpha_l_levels < least and lo < hi:
-        raise ConfigError(f"{PREFIX}.alpha_l_levels", pc.alpha_l_levels,
-                          f"cannot span {PREFIX}.alpha_l_range = [{lo:g}, {hi:g}]: must be >= {least} (both ends are "
-                          f"levels{' of each half' if least == 4 else ''}), or give a range of one strength [a, a]")
-    return pc

@@ -9,11 +9,11 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Any, Mapping, Sequence
+from typing import Any, Sequence
 
 import torch
 
-from codesign.data.paramconfig import ParamConfig, param_config
+from codesign.data.paramconfig import ParamConfig
 from codesign.errors import ConfigError, require_number
 
 __all__ = ["SceneParams", "sample_scene_params", "fixed_scene_params", "preset_params", "preset_names",
@@ -23,7 +23,7 @@ __all__ = ["SceneParams", "sample_scene_params", "fixed_scene_params", "preset_p
 
 def laser_strength_levels(pc: ParamConfig) -> torch.Tensor:
     """The predetermined laser strengths the training draws from, float64, ascending (see sample_scene_params).
-    Both ends of ``alpha_l_range`` are levels (param_config refuses a single level for a range of two values)."""
+    Both ends of ``alpha_l_range`` are levels (ParamConfig.from_config refuses a single level for a range of two values)."""
     (lo, hi), n = pc.alpha_l_range, pc.alpha_l_levels
     if pc.alpha_l_spacing == "linear" or lo == hi:
         return torch.linspace(lo, hi, n, dtype=torch.float64)
@@ -161,12 +161,12 @@ def _batch(batch: int) -> int:
     return require_number("batch", batch, lo=1, integer=True)
 
 
-def sample_scene_params(batch: int, generator: torch.Generator, cfg: ParamConfig | Mapping | None,
+def sample_scene_params(batch: int, generator: torch.Generator, params: ParamConfig | None,
                         sensor_width_m: float, sensor_height_m: float, focal_length_m: float, *,
                         dtype: torch.dtype = torch.float32) -> SceneParams:
     """Draw ``batch`` scene parameter sets as in Sec. 6.2 (training distribution); returns CPU tensors.
 
-    cfg: the ``data.params`` block (or the whole ``data`` block, or a ParamConfig; None = paper defaults).
+    params: the ranges (``ParamConfig.from_config`` of the ``data.params`` block; None = paper defaults).
     sensor_width_m, sensor_height_m: W_s, H_s of the simulated sensor (m); focal_length_m: f (m).
 
     * alpha_l: uniform over ``alpha_l_levels`` (10,000) predetermined values ``torch.linspace(lo, hi, n)``
@@ -193,7 +193,10 @@ def sample_scene_params(batch: int, generator: torch.Generator, cfg: ParamConfig
     float64, then cast to ``dtype``; the same generator state gives identical parameters.
     """
     batch = _batch(batch)
-    pc = param_config(cfg)
+    pc = ParamConfig() if params is None else params
+    if not isinstance(pc, ParamConfig):
+        raise ConfigError("params", params, "must be a ParamConfig (ParamConfig.from_config of the data.params "
+                          "block) or None")
     w = require_number("sensor_width_m", sensor_width_m, lo=0, lo_open=True)
     h = require_number("sensor_height_m", sensor_height_m, lo=0, lo_open=True)
     f = require_number("focal_length_m", focal_length_m, lo=0, lo_open=True)

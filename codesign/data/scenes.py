@@ -16,11 +16,11 @@ from codesign.config.keys import unknown_keys
 from codesign.config.store import register, spec_node
 from codesign.data.builtin import builtin_scene_names
 from codesign.data.images import SceneLoadWarning, UnreadableImage
-from codesign.data.paramconfig import ParamConfig, param_config
+from codesign.data.paramconfig import ParamConfig
 from codesign.data.source import SceneSource
 from codesign.errors import ConfigError, require_choice, require_list, require_number
 
-__all__ = ["SceneSampler", "DataConfig", "data_config", "build_scene_source", "build_scene_sampler",
+__all__ = ["SceneSampler", "DataConfig", "build_scene_source", "build_scene_sampler",
            "SceneSource", "builtin_scene_names", "heldout_source", "HELDOUT_DIR"]
 
 
@@ -151,6 +151,55 @@ class DataConfig:
     mask_lsr: tuple = (1e-4, 1e-2)
     scales: tuple | None = None
 
+    @classmethod
+    def from_config(cls, cfg: Mapping | Any) -> DataConfig:
+        """Validate the ``data`` config node (or a root config holding one); errors name the ``data.*`` key."""
+        if cfg is not None and "data" in cfg and "scenes" not in cfg:
+            cfg = cfg["data"]
+        if cfg is None or not hasattr(cfg, "get"):
+            raise ConfigError("data", cfg, "must be a mapping of the data.* keys (codesign/data/scenes.py: "
+                              "DataConfig)")
+        unknown_keys("data", cfg, DATA_KEYS)
+        d = cls  # the defaults of keys a mapping leaves out
+        scenes = require_choice("data.scenes", cfg.get("scenes", d.scenes), ("builtin", "folder"))
+        folder = cfg.get("folder")
+        if scenes == "folder":
+            if not isinstance(folder, (str, Path)) or not str(folder).strip():
+                raise ConfigError("data.folder", folder, "must be the path of an image folder when "
+                                  "data.scenes=folder")
+            folder = Path(str(folder)).expanduser()
+        elif folder is not None:  # a folder the built-in source would silently ignore
+            raise ConfigError("data.folder", folder, "is only read with data.scenes=folder (data.scenes is builtin): "
+                              "add data.scenes=folder to train on this folder, or leave data.folder null")
+        # the sensor model's bounds (SensorSpec), checked here under the keys the user types
+        image_size = require_number("data.image_size", cfg.get("image_size", d.image_size), lo=8, hi=65536,
+                                    integer=True)
+        padded = cfg.get("padded_size", d.padded_size)
+        padded_size = require_number("data.padded_size", padded, lo=8, hi=65536, integer=True)
+        if padded_size < image_size:
+            raise ConfigError("data.padded_size", padded, f"must be an integer >= data.image_size ({image_size})")
+        flips = cfg.get("flips", d.flips)
+        if not isinstance(flips, bool):
+            raise ConfigError("data.flips", flips, "must be true or false")
+        return cls(
+            scenes=scenes, folder=Path(folder).expanduser() if scenes == "folder" else None,
+            image_size=image_size, padded_size=padded_size,
+            batch_size=require_number("data.batch_size", cfg.get("batch_size", d.batch_size), lo=1, integer=True),
+            test_fraction=require_number("data.test_fraction", cfg.get("test_fraction", d.test_fraction), lo=0, hi=1,
+                                         lo_open=True, hi_open=True),
+            split_seed=require_number("data.split_seed", cfg.get("split_seed", d.split_seed), lo=0, integer=True),
+            flips=flips,
+            cache_mb=require_number("data.cache_mb", cfg.get("cache_mb", d.cache_mb), lo=0),
+            params=ParamConfig.from_config(cfg.get("params")),
+            masks=_masks(cfg.get("masks")),
+            mask_every=require_number("data.mask_every", cfg.get("mask_every", d.mask_every), lo=1, integer=True),
+            mask_draws=require_number("data.mask_draws", cfg.get("mask_draws", d.mask_draws), lo=0, hi=1000,
+                                      integer=True),
+            mask_jitter=require_number("data.mask_jitter", cfg.get("mask_jitter", d.mask_jitter), lo=0, hi=10),
+            mask_lsr=_lsr_range(cfg.get("mask_lsr", d.mask_lsr)),
+            scales=_scales(cfg.get("scales")),
+        )
+
 
 DATA_KEYS = tuple(f.name for f in fields(DataConfig))
 MASKS_ALLOWED = ("must be a list of masks, each 'published', 'defocus:R' (R in rad, 0 < R <= 200), 'random:FAMILY' or "
@@ -195,56 +244,9 @@ def _lsr_range(value) -> tuple:
     return (float(lo), float(hi))
 
 
-def data_config(cfg: Mapping | Any) -> DataConfig:
-    """Validate the ``data`` config node (or a root config holding one); errors name the ``data.*`` key."""
-    if cfg is not None and "data" in cfg and "scenes" not in cfg:
-        cfg = cfg["data"]
-    if cfg is None or not hasattr(cfg, "get"):
-        raise ConfigError("data", cfg, "must be a mapping of the data.* keys (codesign/data/scenes.py: DataConfig)")
-    unknown_keys("data", cfg, DATA_KEYS)
-    d = DataConfig  # the defaults of keys a mapping leaves out
-    scenes = require_choice("data.scenes", cfg.get("scenes", d.scenes), ("builtin", "folder"))
-    folder = cfg.get("folder")
-    if scenes == "folder":
-        if not isinstance(folder, (str, Path)) or not str(folder).strip():
-            raise ConfigError("data.folder", folder, "must be the path of an image folder when data.scenes=folder")
-        folder = Path(str(folder)).expanduser()
-    elif folder is not None:  # a folder the built-in source would silently ignore
-        raise ConfigError("data.folder", folder, "is only read with data.scenes=folder (data.scenes is builtin): "
-                          "add data.scenes=folder to train on this folder, or leave data.folder null")
-    # the sensor model's bounds (SensorSpec), checked here under the keys the user types
-    image_size = require_number("data.image_size", cfg.get("image_size", d.image_size), lo=8, hi=65536,
-                                integer=True)
-    padded = cfg.get("padded_size", d.padded_size)
-    padded_size = require_number("data.padded_size", padded, lo=8, hi=65536, integer=True)
-    if padded_size < image_size:
-        raise ConfigError("data.padded_size", padded, f"must be an integer >= data.image_size ({image_size})")
-    flips = cfg.get("flips", d.flips)
-    if not isinstance(flips, bool):
-        raise ConfigError("data.flips", flips, "must be true or false")
-    return DataConfig(
-        scenes=scenes, folder=Path(folder).expanduser() if scenes == "folder" else None,
-        image_size=image_size, padded_size=padded_size,
-        batch_size=require_number("data.batch_size", cfg.get("batch_size", d.batch_size), lo=1, integer=True),
-        test_fraction=require_number("data.test_fraction", cfg.get("test_fraction", d.test_fraction), lo=0, hi=1,
-                                     lo_open=True, hi_open=True),
-        split_seed=require_number("data.split_seed", cfg.get("split_seed", d.split_seed), lo=0, integer=True),
-        flips=flips,
-        cache_mb=require_number("data.cache_mb", cfg.get("cache_mb", d.cache_mb), lo=0),
-        params=param_config(cfg.get("params")),
-        masks=_masks(cfg.get("masks")),
-        mask_every=require_number("data.mask_every", cfg.get("mask_every", d.mask_every), lo=1, integer=True),
-        mask_draws=require_number("data.mask_draws", cfg.get("mask_draws", d.mask_draws), lo=0, hi=1000,
-                                  integer=True),
-        mask_jitter=require_number("data.mask_jitter", cfg.get("mask_jitter", d.mask_jitter), lo=0, hi=10),
-        mask_lsr=_lsr_range(cfg.get("mask_lsr", d.mask_lsr)),
-        scales=_scales(cfg.get("scales")),
-    )
-
-
 def build_scene_source(cfg: Mapping | DataConfig) -> SceneSource:
     """The SceneSource of the ``data`` config (validated first); ``source.config`` holds the DataConfig."""
-    dc = cfg if isinstance(cfg, DataConfig) else data_config(cfg)
+    dc = cfg if isinstance(cfg, DataConfig) else DataConfig.from_config(cfg)
     kw = dict(test_fraction=dc.test_fraction, split_seed=dc.split_seed, cache_mb=dc.cache_mb)
     source = SceneSource.from_folder(dc.folder, **kw) if dc.scenes == "folder" else SceneSource.builtin(**kw)
     source.config = dc
@@ -267,7 +269,7 @@ def build_scene_sampler(cfg: Mapping | DataConfig, split: str, generator: torch.
                         crop_size: int | None = None, source: SceneSource | None = None) -> SceneSampler:
     """A SceneSampler over ``split`` with data.batch_size and data.flips (flips only for 'train');
     crop_size defaults to data.image_size. Pass ``source`` to share one source (and its cache)."""
-    dc = cfg if isinstance(cfg, DataConfig) else data_config(cfg)
+    dc = cfg if isinstance(cfg, DataConfig) else DataConfig.from_config(cfg)
     source = source if source is not None else build_scene_source(dc)
     crop = dc.image_size if crop_size is None else crop_size
     return SceneSampler(source, split, crop, dc.batch_size, generator, flips=dc.flips and split == "train")

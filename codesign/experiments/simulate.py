@@ -15,6 +15,7 @@ from omegaconf import DictConfig
 
 from codesign.camera import build_camera
 from codesign.config.runtime import check_seed, resolve_dtype, tensorboard_enabled, to_container
+from codesign.data.paramconfig import ParamConfig
 from codesign.data.params import alpha_tag, fixed_scene_params, sample_scene_params
 from codesign.data.scenes import build_scene_source
 from codesign.data.simulate_spec import SimulateSpec
@@ -160,8 +161,8 @@ def _throughput(cfg: DictConfig, sim, optics, scenes, repeats: int, seed: int, d
     gen = torch.Generator().manual_seed(seed)
     batch = int(cfg.data.batch_size)
     side_m = sim.sensor.side_m
-    sp = sample_scene_params(batch, gen, cfg.data.params, sensor_width_m=side_m, sensor_height_m=side_m,
-                             focal_length_m=sim.optics.focal_length_m)
+    sp = sample_scene_params(batch, gen, ParamConfig.from_config(cfg.data.params), sensor_width_m=side_m,
+                             sensor_height_m=side_m, focal_length_m=sim.optics.focal_length_m)
     sp = sp.to(device, dtype)
     idx = torch.arange(batch) % scenes.shape[0]
     bscenes = scenes[idx]

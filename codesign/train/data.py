@@ -96,7 +96,7 @@ class SimulatedData:
         """Sec. 6.2 parameters, the laser's spot placed over ``camera``'s sensor (default the run's)."""
         camera = self.camera if camera is None else camera
         side = camera.sensor.side_m
-        return sample_scene_params(batch, generator, self.cfg.data.params, sensor_width_m=side,
+        return sample_scene_params(batch, generator, self.source.config.params, sensor_width_m=side,
                                    sensor_height_m=side, focal_length_m=camera.optics.focal_length_m)
 
     def train_draw(self, step: int, camera: Camera | None = None) -> tuple:

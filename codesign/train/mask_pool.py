@@ -26,7 +26,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from codesign.camera import Camera
-from codesign.data.scenes import data_config
+from codesign.data.scenes import DataConfig
 from codesign.errors import ConfigError
 from codesign.optics.masks import FAMILIES, build_mask, load_record, published_mask_config
 from codesign.optics.lines import LaserLines
@@ -40,7 +40,7 @@ log = logging.getLogger("codesign.train")
 def pool_settings(cfg: DictConfig) -> dict | None:
     """The checked data.masks / mask_every / mask_draws / mask_jitter, or None when data.masks is null; every
     member's family ("masks": (member, family) pairs, None for 'published' and 'defocus:R')."""
-    dc = data_config(cfg.data)  # the list and the numbers, checked under their keys
+    dc = DataConfig.from_config(cfg.data)  # the list and the numbers, checked under their keys
     if dc.masks is None:
         return None
     members = [(str(m), _check_item(f"data.masks[{i}]", m)) for i, m in enumerate(dc.masks)]
@@ -187,7 +187,7 @@ def build_mask_pool(cfg: DictConfig, base: Camera, seed: int) -> MaskPool | None
     training starts."""
     settings = pool_settings(cfg)
     if settings is None:
-        scales = data_config(cfg.data).scales
+        scales = DataConfig.from_config(cfg.data).scales
         if scales is not None:
             raise ConfigError("data.scales", list(scales), "trains over pixel scales with a pool of masks: set "
                               "data.masks too (e.g. [published]), or leave data.scales null")

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from codesign.data import (FIGURE_VALUES, LASER_STRENGTHS, PRESETS, ROBUSTNESS_STAGES, ParamConfig, SceneParams,
-                           fixed_scene_params, param_config, preset_names, preset_params, sample_scene_params)
+                           fixed_scene_params, preset_names, preset_params, sample_scene_params)
 from codesign.errors import ConfigError
 
 # Table 1: f = 0.11 m; the 2532 x 2532 laboratory crop at 5.4 um, and a non-square sensor to tell axes apart.
@@ -18,7 +18,8 @@ N = 20_000
 
 
 def _sample(seed: int = 0, batch: int = N, cfg=None, **kw) -> SceneParams:
-    return sample_scene_params(batch, torch.Generator().manual_seed(seed), cfg, W_M, H_M, F_M, **kw)
+    return sample_scene_params(batch, torch.Generator().manual_seed(seed), ParamConfig.from_config(cfg), W_M, H_M,
+                               F_M, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -100,13 +101,14 @@ def test_config_ranges_are_used():
     assert torch.all(p.alpha_b == 0.5) and p.exposure_s.tolist() == pytest.approx([0.1] * 2000)
     assert set(p.alpha_l.tolist()) == {float(v) for v in range(11)}
     assert p.c1.min() >= 0.1 and p.c1.max() <= 0.2
-    assert param_config(None) == ParamConfig() == param_config({}) == param_config({"params": None})
+    from_config = ParamConfig.from_config
+    assert from_config(None) == ParamConfig() == from_config({}) == from_config({"params": None})
 
 
 def test_log_spacing_draws_from_zero_and_geometric_levels_up_to_the_range_end():
     from codesign.data.params import laser_strength_levels
 
-    pc = param_config({"alpha_l_range": [0, 1.0e6], "alpha_l_levels": 7, "alpha_l_spacing": "log"})
+    pc = ParamConfig.from_config({"alpha_l_range": [0, 1.0e6], "alpha_l_levels": 7, "alpha_l_spacing": "log"})
     levels = laser_strength_levels(pc)
     # 0, then 6 levels from 1 to 1e6: a constant ratio 10^(6/5)
     assert len(levels) == 7 and levels[0] == 0 and levels[1] == 1
@@ -114,7 +116,7 @@ def test_log_spacing_draws_from_zero_and_geometric_levels_up_to_the_range_end():
     ratios = levels[2:] / levels[1:-1]
     assert torch.allclose(ratios, torch.full_like(ratios, 10 ** 1.2), rtol=1e-12)
     # a range that starts above 1 keeps its lower end and has no zero level
-    high = laser_strength_levels(param_config({"alpha_l_range": [1e3, 1e6], "alpha_l_levels": 4,
+    high = laser_strength_levels(ParamConfig.from_config({"alpha_l_range": [1e3, 1e6], "alpha_l_levels": 4,
                                                "alpha_l_spacing": "log"}))
     assert high.tolist() == pytest.approx([1e3, 1e4, 1e5, 1e6], rel=1e-12)
     # the paper's default grid is unchanged: 10,000 evenly spaced levels over [0, 2e6]
@@ -122,7 +124,7 @@ def test_log_spacing_draws_from_zero_and_geometric_levels_up_to_the_range_end():
     # the draws: every one a level; log puts ~2/3 of them at <= 1e4 where the linear grid puts 0.5 %
     cfg = {"params": {"alpha_l_spacing": "log"}}
     drawn = _sample(batch=N, cfg=cfg, dtype=torch.float64).alpha_l
-    grid = laser_strength_levels(param_config(cfg["params"]))
+    grid = laser_strength_levels(ParamConfig.from_config(cfg["params"]))
     assert torch.isin(drawn, grid).all()
     share = lambda a: float((a <= 1e4).double().mean())  # noqa: E731
     assert share(drawn) == pytest.approx(4 / 6.30103, abs=0.02)
@@ -132,14 +134,14 @@ def test_log_spacing_draws_from_zero_and_geometric_levels_up_to_the_range_end():
 def test_mixed_spacing_is_half_the_levels_of_each_grid():
     from codesign.data.params import laser_strength_levels
 
-    mixed = laser_strength_levels(param_config({"alpha_l_range": [0, 1.0e6], "alpha_l_levels": 9,
+    mixed = laser_strength_levels(ParamConfig.from_config({"alpha_l_range": [0, 1.0e6], "alpha_l_levels": 9,
                                                 "alpha_l_spacing": "mixed"}))
     linear = torch.linspace(0, 1.0e6, 5, dtype=torch.float64)                    # the larger half: 5 levels
-    log = laser_strength_levels(param_config({"alpha_l_range": [0, 1.0e6], "alpha_l_levels": 4,
+    log = laser_strength_levels(ParamConfig.from_config({"alpha_l_range": [0, 1.0e6], "alpha_l_levels": 4,
                                               "alpha_l_spacing": "log"}))        # 0, 1, 1e3, 1e6
     assert torch.equal(mixed, torch.sort(torch.cat([linear, log])).values)
     # a uniform draw over the default grid: a 50/50 mixture of the two grids' shares
-    grid = laser_strength_levels(param_config({"alpha_l_spacing": "mixed"}))
+    grid = laser_strength_levels(ParamConfig.from_config({"alpha_l_spacing": "mixed"}))
     assert len(grid) == 10_000 and torch.all(grid[1:] >= grid[:-1])
     assert float((grid <= 1e4).double().mean()) == pytest.approx(0.5 * 0.005 + 0.5 * 4 / 6.30103, abs=0.002)
     assert float((grid > 5e5).double().mean()) == pytest.approx(0.5 * 0.75 + 0.5 * 0.60103 / 6.30103, abs=0.002)
@@ -147,12 +149,12 @@ def test_mixed_spacing_is_half_the_levels_of_each_grid():
 
 def test_bad_alpha_l_spacing_names_the_allowed_values():
     with pytest.raises(ConfigError, match=r"data\.params\.alpha_l_spacing.*must be one of linear, log, mixed"):
-        param_config({"alpha_l_spacing": "geometric"})
+        ParamConfig.from_config({"alpha_l_spacing": "geometric"})
     with pytest.raises(ConfigError, match=r"data\.params\.alpha_l_range.*upper end must be >= 1"):
-        param_config({"alpha_l_spacing": "log", "alpha_l_range": [0, 0.5]})
+        ParamConfig.from_config({"alpha_l_spacing": "log", "alpha_l_range": [0, 0.5]})
     with pytest.raises(ConfigError, match=r"data\.params\.alpha_l_levels = 3: .* must be >= 4 \(both ends are "
                                           r"levels of each half\)"):
-        param_config({"alpha_l_spacing": "mixed", "alpha_l_levels": 3})
+        ParamConfig.from_config({"alpha_l_spacing": "mixed", "alpha_l_levels": 3})
 
 
 @pytest.mark.parametrize("key, value", [
@@ -175,6 +177,8 @@ def test_bad_call_arguments():
         sample_scene_params(2, torch.Generator(), None, W_M, H_M, 0.0)
     with pytest.raises(TypeError):
         sample_scene_params(2, 0, None, W_M, H_M, F_M)
+    with pytest.raises(ConfigError, match="params = .*must be a ParamConfig"):  # a spec, not the config block
+        sample_scene_params(2, torch.Generator(), {"c1_range": [0, 1]}, W_M, H_M, F_M)
 
 
 def test_fixed_scene_params_defaults_are_the_figure_settings():

@@ -14,7 +14,7 @@ from PIL import Image
 
 from codesign.data import (PROCEDURAL_SCENES, DataConfig, ParamConfig, SceneLoadWarning, SceneSampler,
                            SceneSource, UnreadableImage, build_scene_sampler, build_scene_source,
-                           builtin_scene_names, data_config, load_image, procedural_scene, split_scene_names)
+                           builtin_scene_names, load_image, procedural_scene, split_scene_names)
 from codesign.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[2]
@@ -240,11 +240,11 @@ def test_default_node_and_config_validation(folder):
     from hydra.core.config_store import ConfigStore
 
     cfg = OmegaConf.create(ConfigStore.instance().load("data/default.yaml").node)  # the config option data=default
-    dc = data_config(cfg)
+    dc = DataConfig.from_config(cfg)
     assert isinstance(dc, DataConfig) and dc.params == ParamConfig()
     assert (dc.scenes, dc.image_size, dc.padded_size, dc.batch_size) == ("builtin", 256, 384, 8)
     assert (dc.test_fraction, dc.split_seed, dc.folder) == (0.1, 0, None)
-    assert data_config(OmegaConf.create({"data": cfg})) == dc  # a root config works too
+    assert DataConfig.from_config(OmegaConf.create({"data": cfg})) == dc  # a root config works too
     with pytest.warns(SceneLoadWarning):
         s = build_scene_sampler(OmegaConf.merge(cfg, {"scenes": "folder", "folder": str(folder), "batch_size": 2}),
                                 "test", _gen(0), crop_size=8)

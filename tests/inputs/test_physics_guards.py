@@ -16,7 +16,7 @@ import torch
 import codesign.experiments as experiments
 from codesign.camera import build_camera
 from codesign.config.runtime import command_line_keys
-from codesign.data.paramconfig import param_config
+from codesign.data.paramconfig import ParamConfig
 from codesign.errors import ConfigError
 from codesign.optics import OpticalSystem, OpticsSpec
 from codesign.optics.measured import load_measured
@@ -152,8 +152,9 @@ def test_one_laser_strength_level_for_a_range_is_refused_before_any_work(tmp_pat
                     "be >= 2 (both ends are levels), or give a range of one strength [a, a]")
     from codesign.data.params import laser_strength_levels  # the advice holds: one strength, one level
 
-    assert laser_strength_levels(param_config({"alpha_l_range": [5, 5], "alpha_l_levels": 1})).tolist() == [5.0]
-    assert laser_strength_levels(param_config({"alpha_l_levels": 2})).tolist() == [0.0, 2e6]
+    one = ParamConfig.from_config({"alpha_l_range": [5, 5], "alpha_l_levels": 1})
+    assert laser_strength_levels(one).tolist() == [5.0]
+    assert laser_strength_levels(ParamConfig.from_config({"alpha_l_levels": 2})).tolist() == [0.0, 2e6]
 
 
 @pytest.mark.parametrize("params, levels", [
@@ -164,14 +165,14 @@ def test_one_laser_strength_level_for_a_range_is_refused_before_any_work(tmp_pat
 def test_the_laser_strength_grid_holds_both_ends_of_the_range(params, levels):
     from codesign.data.params import laser_strength_levels
 
-    grid = laser_strength_levels(param_config(params)).tolist()
+    grid = laser_strength_levels(ParamConfig.from_config(params)).tolist()
     assert grid == pytest.approx(levels, rel=1e-12)
     assert grid[0] == levels[0] and grid[-1] == levels[-1]  # the ends exactly
 
 
 def test_a_laser_strength_range_beyond_float32_is_refused():
     with pytest.raises(ConfigError) as err:
-        param_config({"alpha_l_range": [0, 1e40]})
+        ParamConfig.from_config({"alpha_l_range": [0, 1e40]})
     assert str(err.value) == "data.params.alpha_l_range = 1e+40: must be a finite number >= 0 and <= 1e+12"
     assert float(torch.tensor(1e40, dtype=torch.float32)) == math.inf  # what it would have trained on
 
