@@ -93,6 +93,13 @@ def family_searches(scale: str, out: Path, only: tuple[str, ...] = FAMILIES
     return results, extra
 
 
+def _record(run_dir: Path) -> str:
+    """A search's best_mask.json, or the gzip-compressed copy (best_mask.json.gz) that results/full keeps of a large
+    one; --redo reads the families it does not search again from there."""
+    plain = run_dir / "best_mask.json"
+    return str(plain if plain.is_file() else plain.with_name("best_mask.json.gz"))
+
+
 def _progress(fam: str, m: dict) -> None:
     print(f"  {fam}: LSR {m['lsr']:.4g} ({m['lsr_over_limit']:.2f}x the limit), mtf_mean {m['mtf_mean']:.4g}, "
           f"{m['evaluations']} evaluations in {m['seconds']:.0f} s; re-check "
@@ -142,7 +149,7 @@ def _validation_masks(results: dict, out: Path):
     random half rings, a random Zernike surface."""
     rng = np.random.default_rng(3)
     masks = [("uncoded", {"kind": "zernike", "init": "zero"}), ("published", {"kind": "halfring"})]
-    masks += [(f"best {fam}", {"kind": fam, "init": str(out / "design" / fam / "best_mask.json"),
+    masks += [(f"best {fam}", {"kind": fam, "init": _record(out / "design" / fam),
                                **({"preset": None} if fam == "halfring" else {})}) for fam in results]
     for a in (8.0, 20.0, 60.0, 120.0):
         masks.append((f"defocus {a:g} rad", {"kind": "spline", "init": "defocus", "defocus_rad": a}))
@@ -289,8 +296,8 @@ def objective_searches(scale: str, out: Path, reference: "WienerReference") -> d
                 f"search.max_evals={BUDGET[scale]['objective_evals']}", "search.pareto_factors=null"]
         print(f"  restorability objective, LSR ceiling {name}", flush=True)
         res[name] = _search(out / "design" / f"restorability_{name}", over)
-        res[name]["measured"] = reference(_camera({"kind": "spline", "init": str(out / "design" /
-                                                   f"restorability_{name}" / "best_mask.json")}))
+        res[name]["measured"] = reference(_camera({"kind": "spline",
+                                                   "init": _record(out / "design" / f"restorability_{name}")}))
     res["published mask"] = {"measured": reference(_camera({"kind": "halfring"}))}
     return res
 

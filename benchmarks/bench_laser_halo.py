@@ -91,7 +91,7 @@ def rows(camera, alphas=ALPHAS, refine: int = 8, angle=ANGLE, without_halo=None)
     return out, seconds
 
 
-SPLINE_RECORD = Path(__file__).resolve().parent / "results/full/design/spline/best_mask.json"
+SPLINE_RECORD = Path(__file__).resolve().parent / "results/full/design/spline/best_mask.json.gz"
 REFINE = {"quick": 4, "full": 8}
 
 

@@ -23,7 +23,7 @@ import torch
 REPO = Path(__file__).resolve().parent.parent
 # the main job's seed-0 design (1/4 of the published peak), which no pool of the shipped restorer held: the unseen
 # mask of benchmarks.pretrain and benchmarks.pretrained_eval
-HELDOUT_MASK = REPO / "benchmarks" / "results" / "pretrained" / "heldout_mask.json"
+HELDOUT_MASK = REPO / "benchmarks" / "results" / "pretrained" / "heldout_mask.json.gz"
 RESULTS = REPO / "benchmarks" / "results"
 CONF = REPO / "conf"
 
@@ -31,10 +31,12 @@ CONF = REPO / "conf"
 def mask_overrides(mask: str) -> list[str]:
     """The config overrides that image through ``mask``: ``published`` (the five half rings), ``heldout``
     (HELDOUT_MASK) or the path of a mask record."""
+    from codesign.optics.masks import load_record
+
     if mask == "published":
         return ["mask=halfring"]
     path = HELDOUT_MASK if mask == "heldout" else Path(mask).resolve()
-    return ["mask=" + json.loads(path.read_text())["kind"], f"mask.init={path}"]
+    return ["mask=" + load_record(path, "mask", "a mask record")["kind"], f"mask.init={path}"]
 
 
 def machine() -> dict:

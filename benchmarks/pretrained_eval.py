@@ -10,7 +10,7 @@ per-scene differences).
     python -m benchmarks.pretrained_eval --checkpoint pretrained --masks published,heldout \\
         --out benchmarks/results/pretrained/eval_pool_seed0.json
 
-Masks: ``published`` (the five half rings), ``heldout`` (benchmarks/results/pretrained/heldout_mask.json, the spline
+Masks: ``published`` (the five half rings), ``heldout`` (benchmarks/results/pretrained/heldout_mask.json.gz, the spline
 design at a quarter of the published peak that no pool held), or the path of any mask record.
 """
 from __future__ import annotations

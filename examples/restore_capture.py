@@ -2,7 +2,7 @@
 
 The shipped restorer (``checkpoint=pretrained``, codesign/models/pretrained/README.md) takes the capture and the
 OTF of the mask it came through, so one network restores any mask and any capture size. Here a capture of the
-main job's designed mask (benchmarks/results/pretrained/heldout_mask.json, held out of the restorer's training) is
+main job's designed mask (benchmarks/results/pretrained/heldout_mask.json.gz, held out of the restorer's training) is
 simulated at the 256 px scale of the paper's 2532 x 2532 sensor (or, with --size, a non-square crop of it), written
 as a 16-bit PNG, and restored by +experiment=restore (``restore.input_bin``: the capture is already binned).
 
@@ -20,7 +20,7 @@ sys.path.insert(0, str(ROOT))  # this checkout's codesign, installed or not
 import codesign  # noqa: E402
 from codesign.io.captures import read_counts, save_png16  # noqa: E402
 
-MASK = ROOT / "benchmarks" / "results" / "pretrained" / "heldout_mask.json"
+MASK = ROOT / "benchmarks" / "results" / "pretrained" / "heldout_mask.json.gz"
 
 parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
 parser.add_argument("--alpha-l", type=float, default=1e6, help="laser strength alpha_l (dimensionless)")

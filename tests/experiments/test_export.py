@@ -13,7 +13,7 @@ from codesign.fab.writers import read_height_png, read_height_tiff
 from tests.cli import run_codesign
 from tests.conftest import REPO_ROOT
 
-SEARCHED = REPO_ROOT / "benchmarks/results/full/design/restorability_published/best_mask.json"  # a spline design
+SEARCHED = REPO_ROOT / "benchmarks/results/full/design/restorability_published/best_mask.json.gz"  # a spline design
 
 
 def _run(tmp: Path, name: str, *args: str) -> Path:

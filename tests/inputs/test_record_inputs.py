@@ -3,6 +3,7 @@ a record made for other optics refused, the file's size and nesting bounded befo
 refused, all before any work and with the file named in the message; a record's levels kept (psf, export)."""
 from __future__ import annotations
 
+import gzip
 import json
 import logging
 
@@ -106,7 +107,11 @@ def test_a_spec_key_that_no_record_holds_is_refused(monkeypatch, capsys, tmp_pat
     (lambda p: p.write_text('{"kind": "spline", "levels": ' + "[" * 100000 + "]" * 100000 + "}"),
      "it nests lists or objects deeper than Python reads (a mask record nests two levels)"),
     (lambda p: p.mkdir(), "it is a directory"),
-], ids=["33MiB", "nested", "directory"])
+    (lambda p: p.write_bytes(gzip.compress(b" " * (33 * 2**20), 1)),  # 33 kB that unpack to 33 MiB
+     "it unpacks to more than any mask record (at most 32 MiB: a pixel record of ~2.8 million phases): not read"),
+    (lambda p: p.write_bytes(gzip.compress(json.dumps(HALFRING).encode())[:-12]),
+     "cannot be unpacked as gzip (Compressed file ended before the end-of-stream marker was reached)"),
+], ids=["33MiB", "nested", "directory", "gzip-33MiB", "gzip-cut-short"])
 def test_a_file_no_record_can_be_is_refused_before_it_is_read(make, message, monkeypatch, capsys, tmp_path):
     path = tmp_path / "best_mask.json"
     make(path)
@@ -129,6 +134,15 @@ def test_a_records_levels_are_kept(grid, tmp_path):
     continuous = build_mask({"kind": "halfring"}, grid, 3.83e-3).phase()
     assert mask.levels == 8
     assert torch.equal(mask.phase(), grid.scatter(quantize(continuous.reshape(-1)[grid.support], 8)))
+
+
+def test_a_gzip_compressed_record_is_read_as_the_same_design(grid, tmp_path):
+    # benchmarks/results keeps its spline and pixel records as best_mask.json.gz (2.3x smaller)
+    (tmp_path / "m.json").write_text(json.dumps(HALFRING))
+    (tmp_path / "m.json.gz").write_bytes(gzip.compress(json.dumps(HALFRING).encode()))
+    plain, packed = (build_mask({"kind": "halfring", "init": str(tmp_path / name)}, grid, 3.83e-3)
+                     for name in ("m.json", "m.json.gz"))
+    assert packed.levels == plain.levels == 8 and torch.equal(packed.phase(), plain.phase())
 
 
 def test_a_configured_levels_quantizes_a_record_anew_and_says_so(grid, tmp_path, caplog):

@@ -69,7 +69,7 @@ python -m benchmarks.early_steps --steps 160 --at 0,40,160 $P --out $R/unitdc_ga
 python -m benchmarks.early_steps --steps 160 --at 0,160 $P --out $R/unitdc_gate_g2gate_ema0.99_seed1.json seed=1
 # the laser-strength spacing (2026-11-27, fifth session): the paper's linear grid over [0, 2e6] against
 # data.params.alpha_l_spacing=log, on the published mask and on the spline design of the mask search
-S="mask=spline mask.init=benchmarks/results/full/design/spline/best_mask.json"
+S="mask=spline mask.init=benchmarks/results/full/design/spline/best_mask.json.gz"
 python -m benchmarks.early_steps --steps 160 --at 0,160 $P --out $R/gated_spline.json $S
 python -m benchmarks.early_steps --steps 160 --at 0,160 $P --out $R/gated_spline_logalpha.json $S data.params.alpha_l_spacing=log
 python -m benchmarks.early_steps --steps 160 --at 0,160 $P --out $R/gated_logalpha.json data.params.alpha_l_spacing=log
