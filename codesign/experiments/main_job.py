@@ -50,6 +50,7 @@ from codesign.train.model_setup import build_model
 from codesign.train.protocol_summary import protocol_summary, summary_record, systems_figure
 from codesign.train.resume import initial_checkpoint, load_initial_weights
 from codesign.train.spec import InitSpec, TrainerSpec
+from codesign.train import stage_settings
 
 log = logging.getLogger("codesign.main_job")
 
@@ -60,6 +61,10 @@ SHOWN_SCENES = 3
 PEAK_GAP = 0.03
 DEFAULT_SHARE = 0.25  # codesign.lsr_max null with a design stage: a quarter of the published mask's certified peak
 STAGES = ("design", "restorer", "published_restorer", "designed", "codesigned", "published")
+# what a stage's recorded settings may differ in when a restart reuses it (stage_settings.py): the settings it never
+# reads; the design stage trains no network, the restorer stages take trainer.steps, not codesign.finetune_steps
+STAGE_UNREAD = {"design": ("trainer", "model", "init", "evaluate", "codesign.finetune_steps"),
+                "restorer": ("codesign.finetune_steps",), "published_restorer": ("codesign.finetune_steps",)}
 EVALUATED = ("published", "designed", "codesigned")
 
 
@@ -144,6 +149,7 @@ class _Job:
     progress: Progress | None = None
     seconds_file: Path | None = None
     seconds: dict = field(default_factory=dict)
+    settings: dict = field(default_factory=dict)  # what each stage records as the settings that shaped it
 
 
 def _build(cfg: DictConfig, run_dir: Path, device: torch.device) -> _Job:
@@ -151,6 +157,9 @@ def _build(cfg: DictConfig, run_dir: Path, device: torch.device) -> _Job:
     codesign.lsr_over=wavelengths), the ceiling from it, the stage folders and the progress line."""
     job = _check(cfg, device)
     job.run_dir = run_dir
+    job.settings = stage_settings.settings(job.cfg)
+    for stage in STAGES:  # a restart reuses a stage only with the settings it was made with: before any work
+        stage_settings.check_stage(run_dir / stage, stage, job.settings, STAGE_UNREAD.get(stage, ()))
     cs = job.cs
     job.system = system = OpticalSystem(OpticsSpec.from_config(to_container(job.cfg.optics)), device=device)
     job.published = published = published_reference(job.mask_cfg, system)
@@ -210,6 +219,7 @@ def _design_stage(job: _Job) -> tuple[dict, dict | None]:
                                     f"({job.lsr_max_from})")
     t = time.perf_counter()
     if cs.design is not None:
+        stage_settings.begin_stage(job.stages["design"], "design", job.settings)
         designed_cfg, design = _design(job.cfg, job.search, cs, job.lsr_max, job.stages["design"], job.device)
     else:
         designed_cfg, design = job.mask_cfg, None
@@ -256,7 +266,7 @@ def _train_stages(job: _Job, designed_cfg: dict, train) -> None:
                            (f", from {start}/" if start else ""))
         t = time.perf_counter()
         if not (folder / "metrics.json").is_file():
-            folder.mkdir(parents=True, exist_ok=True)
+            stage_settings.begin_stage(folder, stage, job.settings)
             train(_stage_cfg(job.cfg, mask, **changes, **warm), folder, job.device, evaluate)
             _note_seconds(job.seconds_file, job.seconds, stage, time.perf_counter() - t)
             job.progress.done(stage, job.seconds[stage])
