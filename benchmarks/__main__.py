@@ -25,7 +25,7 @@ import sys
 import time
 from pathlib import Path
 
-from benchmarks.common import RESULTS, SCALES, Report, machine, write_json, write_text
+from benchmarks.common import RESULTS, SCALES, Report, compact_png, machine, write_json, write_text
 
 BENCHMARKS = ("psf", "optics", "mask", "sensor", "laser_halo", "restoration", "capture", "joint", "train_options",
               "scaling", "accuracy", "design", "peers")
@@ -73,7 +73,8 @@ def standalone(run) -> None:
     """``python -m benchmarks.bench_X [--scale S] [--threads T]``: one benchmark, results in results/<scale>/."""
     a = parse_args(sys.argv[1:] + ["--no-docs"])
     _setup_threads(a.threads)
-    run(a.scale, RESULTS / a.scale)
+    for fig in run(a.scale, RESULTS / a.scale).figures:
+        compact_png(fig)
 
 
 def render_docs(reports: list[Report], info: dict, scale: str, seconds: dict, out: Path) -> str:
@@ -123,6 +124,8 @@ def main(argv=None) -> None:
         t0 = time.perf_counter()
         reports.append(importlib.import_module(f"benchmarks.bench_{name}").run(a.scale, out))
         seconds[name] = time.perf_counter() - t0
+        for fig in reports[-1].figures:
+            compact_png(fig)
         # each section also on its own, so a partial run (--only) keeps its tables
         write_text(out / f"{name}.md", render_section(reports[-1], "."))
         print(f"[{i}/{len(a.names)}] {name}: {seconds[name]:.0f} s", flush=True)

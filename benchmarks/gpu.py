@@ -40,8 +40,8 @@ import torch
 from torch.autograd import DeviceType
 from torch.profiler import ProfilerActivity, profile
 
-from benchmarks.common import cuda_sync, gpu_driver, keep_weights, machine, markdown_table, peak_cuda_mib, \
-    restorer, run_logged, timeit, write_json, write_text
+from benchmarks.common import compact_png, cuda_sync, gpu_driver, keep_weights, machine, markdown_table, \
+    peak_cuda_mib, restorer, run_logged, timeit, write_json, write_text
 
 REPO = Path(__file__).resolve().parent.parent
 RESULTS = REPO / "benchmarks" / "results" / "gpu"
@@ -367,7 +367,7 @@ def inference_figure(rows: list[dict], path: Path) -> Path | None:
            title=f"restoration throughput, batch {top}")
     ax.set_xticklabels(labels, rotation=20, fontsize=7)
     ax.legend(fontsize=7)
-    return save_figure(path, fig)
+    return compact_png(save_figure(path, fig))
 
 
 def main(argv=None) -> int:

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from benchmarks.__main__ import BENCHMARKS, docs_path, parse_args, render_docs
-from benchmarks.common import Report, fit_exponent, markdown_table
+from benchmarks.common import Report, compact_png, fit_exponent, markdown_table
 
 BENCH_DIR = Path(__file__).resolve().parent.parent / "benchmarks"
 # reserved in the registry while its module is written elsewhere: checked once it exists
@@ -100,6 +100,27 @@ def test_fit_exponent_recovers_a_power_law():
 def test_markdown_table_formats_floats_per_column():
     t = markdown_table(["name", "ms", "err"], [["a", 1.23456, 1e-5], ["b", 10.0, math.nan]], {"ms": ".1f"})
     assert t.splitlines() == ["| name | ms | err |", "|---|---|---|", "| a | 1.2 | 1e-05 |", "| b | 10.0 | nan |"]
+
+
+def test_a_plot_is_stored_with_256_colours_and_other_images_as_they_are(tmp_path):
+    """compact_png keeps benchmarks/results small (issue 58): a plot's flat colours stay exact."""
+    import numpy as np
+    from PIL import Image
+
+    rng = np.random.default_rng(0)
+    plot = np.full((60, 80, 4), 255, np.uint8)
+    plot[20:40, :, :3] = rng.integers(0, 256, (20, 80, 3))  # 1,600 colours: more than a palette holds
+    plot[:10, :10, :3] = (31, 119, 180)  # a line's colour
+    Image.fromarray(plot, "RGBA").save(tmp_path / "plot.png")
+    with Image.open(compact_png(tmp_path / "plot.png")) as im:
+        assert im.mode == "P" and len(im.getcolors()) <= 256
+        out = np.asarray(im.convert("RGB"))
+    assert (out[40:] == 255).all() and (out[:10, :10] == (31, 119, 180)).all()
+    assert np.abs(out.astype(int) - plot[..., :3]).mean() < 10
+    for name, image in (("photo.png", Image.fromarray(plot[..., 0], "L")), ("clear.png", Image.new("RGBA", (4, 4)))):
+        image.save(tmp_path / name)  # a grayscale photograph, a transparent image: left alone
+        before = (tmp_path / name).read_bytes()
+        assert compact_png(tmp_path / name).read_bytes() == before
 
 
 def test_docs_rendering_holds_machine_tables_figures_and_paths(tmp_path):
