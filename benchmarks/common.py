@@ -150,7 +150,8 @@ def time_error_plot(path: Path, series: dict[str, list[tuple[float, float, str]]
 def compact_png(path: Path) -> Path:
     """Re-save a plot (RGB or opaque RGBA) with a palette of 256 colours, atomically: its flat colours stay exact
     (white, the lines), only a few antialiased edge pixels move (mean error < 0.1 of 255), and the file takes half
-    the bytes, which keeps benchmarks/results small (issue 58). Other images (grayscale photographs) stay as they are."""
+    the bytes, which keeps benchmarks/results small (issue 58). Other images (grayscale photographs, transparent
+    ones) stay as they are."""
     from PIL import Image
 
     with Image.open(path) as im:
