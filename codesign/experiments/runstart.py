@@ -1,9 +1,12 @@
 """The Hydra callbacks where every run starts (registered in conf/config.yaml under hydra.callbacks): a single
 run's folder (rank 0 under torchrun) and a sweep's folder and job folders guarded before Hydra writes there
-(rundir.guard, sweepdir.guard_sweep), each job of a sweep locked as it starts, and a launcher whose plugin is
-missing named before Hydra's traceback."""
+(rundir.guard, sweepdir.guard_sweep), each job of a sweep locked as it starts, the run's .hydra/ record written
+without following a link (Hydra's own write, hydra.output_subdir, is off), and a launcher whose plugin is missing
+named before Hydra's traceback."""
 from __future__ import annotations
 
+import copy
+import errno
 import sys
 from pathlib import Path
 
@@ -13,6 +16,9 @@ from codesign.errors import ConfigError
 from codesign.experiments.rundir import guard
 from codesign.experiments.runlock import acquire_lock
 from codesign.experiments.sweepdir import guard_sweep
+from codesign.io.logfile import write_text_nofollow
+
+RECORD_DIR = ".hydra"  # where Hydra would write the run's config record (its default hydra.output_subdir)
 
 
 def _refuse(err: ConfigError) -> None:
@@ -56,16 +62,52 @@ class OutputDirCheck(Callback):
             _refuse(err)
 
     def on_job_start(self, config, **kwargs) -> None:
-        """Hydra callback as each job starts: a sweep's job folder locked (one made since the sweep started too)."""
+        """Hydra callback as each job starts (after Hydra opened its log, before the task): a sweep's job folder
+        locked (one made since the sweep started too; a single run's was locked in on_run_start), then the job's
+        .hydra/ record written."""
         from hydra.types import RunMode
 
-        if OmegaConf.select(config, "hydra.mode") != RunMode.MULTIRUN:
-            return  # a single run's folder is locked in on_run_start
         folder = Path(str(OmegaConf.select(config, "hydra.runtime.output_dir")))
+        multirun = OmegaConf.select(config, "hydra.mode") == RunMode.MULTIRUN
+        key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
         try:
-            _show_notes([n for n in [acquire_lock(folder, OmegaConf.select(config, "task"), "hydra.sweep.dir")] if n])
+            if multirun:
+                _show_notes([n for n in [acquire_lock(folder, OmegaConf.select(config, "task"), key)] if n])
+            write_hydra_record(config, folder, key)
         except ConfigError as err:
             _refuse(err)
+
+
+def hydra_records(config) -> dict[str, str]:
+    """The three files of the run's .hydra/ with the text Hydra's run_job writes there (hydra/core/utils.py): the
+    job's config without its hydra node, Hydra's own config, the command line's overrides."""
+    from hydra.core.hydra_config import HydraConfig
+    from omegaconf import open_dict, read_write
+
+    task_cfg = copy.deepcopy(config)
+    with read_write(task_cfg), open_dict(task_cfg):
+        del task_cfg["hydra"]
+    return {"config.yaml": OmegaConf.to_yaml(task_cfg), "hydra.yaml": OmegaConf.to_yaml(HydraConfig.instance().cfg),
+            "overrides.yaml": OmegaConf.to_yaml(config.hydra.overrides.task)}
+
+
+def write_hydra_record(config, folder: Path, key: str) -> None:
+    """The run's .hydra/ record written into ``folder`` (rank 0 alone under torchrun), neither .hydra nor a file in
+    it followed when it is a link (one swapped in after the guard): a ConfigError naming the link instead."""
+    from codesign.train import distributed
+
+    if not distributed.current().is_main:
+        return
+    for name, text in hydra_records(config).items():
+        try:
+            write_text_nofollow(folder / RECORD_DIR, name, text)
+        except OSError as err:
+            if err.errno not in (errno.ELOOP, errno.ENOTDIR, errno.EMLINK):
+                raise
+            raise ConfigError(key, str(folder), f"{RECORD_DIR}/{name} (or {RECORD_DIR}) became a symbolic link "
+                              f"after the folder was checked; a run never writes through a link (it would change "
+                              f"files outside its folder): remove the link, or choose another folder with "
+                              f"{key}=PATH") from None
 
 
 # launcher class -> the pip package that provides it (the optional extra: pip install '.[launchers]')

@@ -8,6 +8,7 @@ import copy
 import json
 import logging
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -176,6 +177,10 @@ def test_a_killed_sweep_of_the_same_experiment_runs_again_in_its_folder(tmp_path
            f"stopped before its end); this run replaces its results" in proc.stderr
     assert json.loads((top / "0" / STATE).read_text())["state"] == "finished"
     assert (top / "0" / "psf.npy").is_file() and not (top / "0" / ".codesign.lock").exists()
+    # the job's .hydra/ record, written by codesign as the job starts (runstart.write_hydra_record), not by Hydra
+    assert sorted(p.name for p in (top / "0" / ".hydra").iterdir()) == ["config.yaml", "hydra.yaml", "overrides.yaml"]
+    assert OmegaConf.load(top / "0" / ".hydra" / "overrides.yaml") == ["+experiment=psf", "debug=smoke", "seed=0"]
+    assert OmegaConf.load(top / "0" / ".hydra" / "config.yaml").task == "psf"
 
 
 # ---- links in a single run's folder ----------------------------------------------------------------------------
@@ -412,6 +417,63 @@ def test_a_job_folder_made_in_use_after_the_sweep_started_is_refused(tmp_path, c
         f"codesign: configuration error: hydra.sweep.dir = '{job}': is in use by a running +experiment=psf run (PID "
         f"{holder.pid}): two runs never share a folder (each would overwrite the other's results): wait for it to "
         f"end, or {_choose('hydra.sweep.dir')}\n")
-    single = OmegaConf.create({"task": "psf", "hydra": {"mode": RunMode.RUN, "runtime": {"output_dir": str(job)}}})
+
+
+def test_a_single_runs_folder_is_locked_in_on_run_start_not_as_its_job_starts(tmp_path, monkeypatch):
+    single = _hydra_job(tmp_path / "run", monkeypatch)
     runstart.OutputDirCheck().on_job_start(single)  # a single run's folder was locked in on_run_start already
-    assert not runlock.HELD
+    assert not runlock.HELD and (tmp_path / "run" / ".hydra" / "config.yaml").is_file()
+
+
+def _hydra_job(run_dir: Path, monkeypatch):
+    """The config Hydra's run_job hands its callbacks for a single run into ``run_dir`` (made), set as Hydra's."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.hydra_config import HydraConfig
+    from omegaconf import open_dict, read_write
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        config = compose("config", overrides=["+experiment=psf", "debug=smoke"], return_hydra_config=True)
+    with read_write(config.hydra.runtime), open_dict(config.hydra.runtime):
+        config.hydra.runtime.output_dir = str(run_dir)
+    monkeypatch.setattr(HydraConfig.instance(), "cfg", None)  # Hydra's global config put back after the test
+    HydraConfig.instance().set_config(config)
+    run_dir.mkdir()
+    return config
+
+
+def test_the_run_records_its_config_as_hydra_would_without_following_a_link(tmp_path, monkeypatch, capsys):
+    """Hydra wrote .hydra/config.yaml, hydra.yaml and overrides.yaml with a plain open, after the guard: a link
+    swapped in meanwhile was followed. hydra.output_subdir is off; codesign writes the same three files as the job
+    starts, never through a link."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.core.utils import _save_config  # Hydra's own writer: the content to match
+    from omegaconf import open_dict, read_write
+
+    assert OmegaConf.load(CONF_DIR / "config.yaml").hydra.output_subdir is None
+    run_dir = tmp_path / "run"
+    config = _hydra_job(run_dir, monkeypatch)
+    runstart.OutputDirCheck().on_job_start(config)
+    task_cfg = copy.deepcopy(config)
+    with read_write(task_cfg), open_dict(task_cfg):
+        del task_cfg["hydra"]
+    for name, node in (("config.yaml", task_cfg), ("hydra.yaml", HydraConfig.instance().cfg),
+                       ("overrides.yaml", config.hydra.overrides.task)):
+        _save_config(node, name, tmp_path / "by_hydra")
+        assert (run_dir / ".hydra" / name).read_text() == (tmp_path / "by_hydra" / name).read_text(), name
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "config.yaml").write_text("the user's config\n")
+    shutil.rmtree(run_dir / ".hydra")
+    for linked, target in ((".hydra", elsewhere), (".hydra/config.yaml", elsewhere / "config.yaml")):
+        if linked != ".hydra":  # the folder real again, its config.yaml a link
+            (run_dir / ".hydra").unlink()
+            (run_dir / ".hydra").mkdir()
+        (run_dir / linked).symlink_to(target)  # swapped in after the guard
+        with pytest.raises(SystemExit) as info:
+            runstart.OutputDirCheck().on_job_start(config)
+        assert info.value.code == 2
+        assert capsys.readouterr().err == (
+            f"codesign: configuration error: hydra.run.dir = '{run_dir}': .hydra/config.yaml (or .hydra) became a "
+            f"symbolic link after the folder was checked; a run never writes through a link (it would change files "
+            f"outside its folder): remove the link, or choose another folder with hydra.run.dir=PATH\n")
+        assert _tree(elsewhere) == {"config.yaml": b"the user's config\n"}, linked
