@@ -372,7 +372,7 @@ def inference_figure(rows: list[dict], path: Path) -> Path | None:
     return compact_png(save_figure(path, fig))
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="python -m benchmarks.gpu", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--budget-min", type=float, default=25.0, help="wall-clock budget in minutes (default 25)")
@@ -390,30 +390,24 @@ def main(argv=None) -> int:
                     "profile_sgan_f.txt in --out")
     ap.add_argument("--render", action="store_true", help="run nothing: write gpu.md (and docs/gpu.md for GPU "
                     "results) again from --out's gpu.json, e.g. results a device run wrote elsewhere, copied here")
-    a = ap.parse_args(argv)
-    if a.render:
-        out = a.out or RESULTS
-        if not (out / "gpu.json").is_file():
-            ap.error(f"--render: {out / 'gpu.json'} does not exist")
-        res = json.loads((out / "gpu.json").read_text())
-        publish(res, out, res["dry_run"])
-        print(f"rendered {out / 'gpu.md'}" + ("" if res["dry_run"] else f" and {DOCS}"))
-        return 0
+    return ap
+
+
+def _steps_and_device(ap: argparse.ArgumentParser, a: argparse.Namespace) -> tuple[list[str], torch.device]:
+    """The steps to run, in the campaign's order, and the device: every argument checked before any work."""
     steps = [s.strip() for s in (a.only or ",".join(STEPS)).split(",") if s.strip()]
     if not steps or any(s not in STEPS for s in steps):
         ap.error(f"--only {a.only!r}: allowed steps: {', '.join(STEPS)} (comma-separated)")
-    steps = [s for s in STEPS if s in steps]
     if a.checkpoint is not None and not a.checkpoint.is_file():
         ap.error(f"--checkpoint {a.checkpoint}: no such file")
-    dev = torch.device(a.device or ("cpu" if a.dry_run else "cuda"))
     if not 1 <= a.budget_min <= 600:
         ap.error(f"--budget-min {a.budget_min:g}: must be between 1 and 600")
-    if a.profile and not a.dry_run:
-        if not torch.cuda.is_available():
-            ap.error(f"--profile: no CUDA device visible (torch {torch.__version__}): it profiles the GPU")
-        (a.out or RESULTS).mkdir(parents=True, exist_ok=True)
-        profile_inference(a.out or RESULTS)
-        return 0
+    return [s for s in STEPS if s in steps], torch.device(a.device or ("cpu" if a.dry_run else "cuda"))
+
+
+def _scenes(ap: argparse.ArgumentParser, a: argparse.Namespace, dev: torch.device) -> Path | None:
+    """The held-out photographs (None: the built-in test split, a dry run's fallback), after the checks that a GPU
+    run needs (a CUDA device, its own results folder for a dry run)."""
     if dev.type == "cuda" and not torch.cuda.is_available():
         ap.error(f"no CUDA device visible (torch {torch.__version__}): run on a GPU node, or --dry-run on a CPU")
     if a.dry_run and a.out is None:
@@ -425,24 +419,56 @@ def main(argv=None) -> int:
         ap.error(f"--scenes {scenes}: no such folder")
     if scenes is None and not a.dry_run:
         ap.error(f"no held-out scenes: {SCENES} is missing; give --scenes DIR (the 12 photographs)")
+    return scenes
+
+
+def main(argv=None) -> int:
+    ap = _parser()
+    a = ap.parse_args(argv)
+    if a.render:
+        out = a.out or RESULTS
+        if not (out / "gpu.json").is_file():
+            ap.error(f"--render: {out / 'gpu.json'} does not exist")
+        res = json.loads((out / "gpu.json").read_text())
+        publish(res, out, res["dry_run"])
+        print(f"rendered {out / 'gpu.md'}" + ("" if res["dry_run"] else f" and {DOCS}"))
+        return 0
+    steps, dev = _steps_and_device(ap, a)
+    if a.profile and not a.dry_run:
+        if not torch.cuda.is_available():
+            ap.error(f"--profile: no CUDA device visible (torch {torch.__version__}): it profiles the GPU")
+        (a.out or RESULTS).mkdir(parents=True, exist_ok=True)
+        profile_inference(a.out or RESULTS)
+        return 0
+    scenes = _scenes(ap, a, dev)
     out = a.out or RESULTS
     out.mkdir(parents=True, exist_ok=True)
-    p, budget = PLANS["dry" if a.dry_run else "gpu"], Budget(a.budget_min)
-    facts = gpu_facts(dev)
-    print(f"GPU campaign{' (dry run)' if a.dry_run else ''} on {facts.get('gpu', dev)}, steps {', '.join(steps)}, "
-          f"budget {a.budget_min:g} min, results in {out}", flush=True)
     earlier = json.loads((out / "gpu.json").read_text()) if (out / "gpu.json").is_file() and \
         steps != list(STEPS) else {}
     if earlier and earlier.get("dry_run") != a.dry_run:
         ap.error(f"{out / 'gpu.json'} holds a {'dry' if earlier.get('dry_run') else 'GPU'} run: a partial run "
                  "(--only) adds to results of its own kind only")
+    res = campaign(a, steps, dev, scenes, out, earlier)
+    print(f"done in {sum(res['seconds'][s] for s in steps) / 60:.1f} min: {out / 'gpu.json'}"
+          + ("" if a.dry_run else f", {DOCS}"))
+    ran = [{"evaluate": "evaluation"}.get(s, s) for s in steps if s not in ("speed", "compiled")]
+    return 1 if any(res[k].get("exit") != 0 for k in ran) else 0
+
+
+def campaign(a: argparse.Namespace, steps: list[str], dev: torch.device, scenes: Path | None, out: Path,
+             earlier: dict) -> dict:
+    """Run ``steps`` in order, each with its share of the budget, into ``out`` (``earlier``: the results of the
+    steps a partial run keeps); gpu.json and the pages are written after every step."""
+    p, budget = PLANS["dry" if a.dry_run else "gpu"], Budget(a.budget_min)
+    facts = gpu_facts(dev)
+    print(f"GPU campaign{' (dry run)' if a.dry_run else ''} on {facts.get('gpu', dev)}, steps {', '.join(steps)}, "
+          f"budget {a.budget_min:g} min, results in {out}", flush=True)
     res = {**earlier, "dry_run": a.dry_run, "plan": p,
            "machines": {**earlier.get("machines", {}), **{s: facts for s in steps}}}
-    n = len(steps)
     with tempfile.TemporaryDirectory(prefix="codesign_gpu_") as tmp:
         work = Path(tmp)
         for i, step in enumerate(steps, 1):
-            print(f"[{i}/{n}] {STEPS[step]}", flush=True)
+            print(f"[{i}/{len(steps)}] {STEPS[step]}", flush=True)
             t0 = time.perf_counter()
             if step == "tests":
                 res["tests"] = step_tests(dev, out, budget.share(p["shares"]["tests"], p["floors"]["tests"]))
@@ -465,10 +491,7 @@ def main(argv=None) -> int:
                                                                    "or was not run (train.log; --checkpoint PATH)"}
             res.setdefault("seconds", {})[step] = time.perf_counter() - t0
             publish(res, out, a.dry_run)  # after every step: a campaign cut short keeps what it measured
-    print(f"done in {sum(res['seconds'][s] for s in steps) / 60:.1f} min: {out / 'gpu.json'}"
-          + ("" if a.dry_run else f", {DOCS}"))
-    ran = [{"evaluate": "evaluation"}.get(s, s) for s in steps if s not in ("speed", "compiled")]
-    return 1 if any(res[k].get("exit") != 0 for k in ran) else 0
+    return res
 
 
 def publish(res: dict, out: Path, dry_run: bool) -> None:
