@@ -34,9 +34,10 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from codesign.config.runtime import check_seed, to_container
-from codesign.design.merit import metrics_spec, published_reference
+from codesign.design.merit import published_reference
 from codesign.design.search_spec import SearchSpec
 from codesign.errors import ConfigError
+from codesign.experiments.specs import material_of, metrics_spec
 from codesign.fab.laser_lines import lines_summary, run_lines
 from codesign.io import files as io
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask
@@ -155,15 +156,15 @@ class _Job:
 def _build(cfg: DictConfig, run_dir: Path, device: torch.device) -> _Job:
     """Every setting checked before any work, the published mask's certified peak (the worst line's with
     codesign.lsr_over=wavelengths), the ceiling from it, the stage folders and the progress line."""
+    settings = stage_settings.settings(cfg)  # as composed (init.checkpoint=auto as typed): what the user gave
+    for stage in STAGES:  # a restart reuses a stage only with the settings it was made with: checked first
+        stage_settings.check_stage(run_dir / stage, stage, settings, STAGE_UNREAD.get(stage, ()))
     job = _check(cfg, device)
-    job.run_dir = run_dir
-    job.settings = stage_settings.settings(job.cfg)
-    for stage in STAGES:  # a restart reuses a stage only with the settings it was made with: before any work
-        stage_settings.check_stage(run_dir / stage, stage, job.settings, STAGE_UNREAD.get(stage, ()))
+    job.run_dir, job.settings = run_dir, settings
     cs = job.cs
     job.system = system = OpticalSystem(OpticsSpec.from_config(to_container(job.cfg.optics)), device=device)
     job.published = published = published_reference(job.mask_cfg, system)
-    lines = run_lines(job.cfg, system, "codesign.lsr_over" if cs.lsr_over == "wavelengths" else None)
+    lines = run_lines(material_of(job.cfg), system, "codesign.lsr_over" if cs.lsr_over == "wavelengths" else None)
     with torch.no_grad():
         if cs.lsr_over == "wavelengths":  # the worst line's certified peak (the joint stage's guard: the design line's)
             phase = {"published": published.phase().detach()}

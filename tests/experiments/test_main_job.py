@@ -34,6 +34,9 @@ def test_every_stage_runs_in_its_folder_from_the_right_start(main_job):
         assert (main_job / stage / "metrics.json").is_file(), stage
     for name in ("summary.txt", "systems.png", "learned_mask.json", "stage_seconds.json", "design/best_mask.json"):
         assert (main_job / name).is_file(), name
+    for stage in STAGES:  # the settings that shaped each stage (a restart compares them: tests/inputs/)
+        record = json.loads((main_job / stage / "stage_settings.json").read_text())
+        assert record["stage"] == stage and record["settings"]["seed"] == 0, stage
     design = _metrics(main_job / "design")
     assert design["mask_kind"] == "spline" and design["objective"] == "restorability"
     steps = {s: _metrics(main_job / s)["steps"] for s in STAGES[1:]}
