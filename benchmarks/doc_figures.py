@@ -136,20 +136,22 @@ def _gated_row(seed: str, suffix: str) -> Quote:
                  GATED.format(suffix), values)
 
 
+def _matched(rows: dict, plus_minus: str = "+-") -> list[str]:
+    """The network's matched PSNR (its gain over Wiener) per alpha_l, from an evaluation's per-alpha_l rows
+    (benchmarks/pretrained_eval.py's ``alpha``): 25.10 (+1.20 +- 0.40)."""
+    return [f"{fixed(rows[a]['sgan']['psnr_matched'])} ({signed(rows[a]['gain_over_wiener']['mean'])} {plus_minus} "
+            f"{fixed(rows[a]['gain_over_wiener']['interval'])})" for a in ("0", "1e3", "1e5", "1e6")]
+
+
 def _pool_row(label: str, run: str) -> Quote:
     """A row of docs/models.md Sec. 11: a network through the held-out mask, matched PSNR (gain over Wiener)."""
-    def values(d):
-        rows = d["masks"]["heldout"]["alpha"]
-        return tuple(f"{fixed(rows[a]['sgan']['psnr_matched'])} ({signed(rows[a]['gain_over_wiener']['mean'])} ± "
-                     f"{fixed(rows[a]['gain_over_wiener']['interval'])})" for a in ("0", "1e3", "1e5", "1e6"))
-    return Quote("docs/models.md", f"| {label} | " + " | ".join(["{}"] * 4) + " |", PRETRAINED.format(run), values)
+    return Quote("docs/models.md", f"| {label} | " + " | ".join(["{}"] * 4) + " |", PRETRAINED.format(run),
+                 lambda d: tuple(_matched(d["masks"]["heldout"]["alpha"], "±")))
 
 
 def _row_cells(rows: dict) -> tuple:
-    """Matched PSNR (gain over Wiener) per alpha_l, then plain PSNR / SSIM at alpha_l = 0 and 1e6, from an evaluation's
-    per-alpha_l rows (benchmarks/pretrained_eval.py's ``alpha``)."""
-    gains = [f"{fixed(rows[a]['sgan']['psnr_matched'])} ({signed(rows[a]['gain_over_wiener']['mean'])} +- "
-             f"{fixed(rows[a]['gain_over_wiener']['interval'])})" for a in ("0", "1e3", "1e5", "1e6")]
+    """_matched, then plain PSNR / SSIM at alpha_l = 0 and 1e6."""
+    gains = _matched(rows)
     plain = [f"{fixed(rows[a]['sgan']['psnr'])} / {fixed(rows[a]['sgan']['ssim'], 3)}" for a in ("0", "1e6")]
     return (*gains, *plain)
 
@@ -170,24 +172,22 @@ def _adapted_row(label: str, seed: int, run: str) -> Quote:
                  values)
 
 
-def _total_gains(m: dict) -> tuple[str, ...]:
-    """The main job's total gain per alpha_l as the page writes it: +4.20 +- 1.45."""
-    total = m["gains"][GAINS[-1][0]]
-    return tuple(f"{signed(total[c]['mean'])} +- {fixed(total[c]['interval'])}"
+def _gain_cells(m: dict, label: str) -> tuple[str, ...]:
+    """One of the main job's gain rows per alpha_l as the page writes it: +4.20 +- 1.45."""
+    row = m["gains"][label]
+    return tuple(f"{signed(row[c]['mean'])} +- {fixed(row[c]['interval'])}"
                  for c in ("laser_0", "laser_1e3", "laser_1e6"))
+
+
+def _total_gains(m: dict) -> tuple[str, ...]:
+    """The main job's total gain per alpha_l (its last gain row)."""
+    return _gain_cells(m, GAINS[-1][0])
 
 
 def _seed_row(m: dict) -> tuple[str, ...]:
     """A seed's row of the main job's seed table: the total gain per alpha_l, then the joint stage's at 1e6."""
     joint = m["gains"][JOINT_STAGE]["laser_1e6"]
     return (*_total_gains(m), f"{signed(joint['mean'])} +- {fixed(joint['interval'])}")
-
-
-def _gain_cells(m: dict, label: str) -> tuple[str, ...]:
-    """One of the main job's gain rows per alpha_l as the page writes it: +4.20 +- 1.45."""
-    row = m["gains"][label]
-    return tuple(f"{signed(row[c]['mean'])} +- {fixed(row[c]['interval'])}"
-                 for c in ("laser_0", "laser_1e3", "laser_1e6"))
 
 
 def _naf_seed_row(m: dict) -> tuple[str, ...]:
