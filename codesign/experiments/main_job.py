@@ -2,7 +2,9 @@
 to a designed and a co-designed one, each stage compared with the published system at the same budget.
 
 Stages, each in its own folder of the run directory; a stage whose metrics.json exists is not run again, and one
-killed mid-training resumes from its checkpoint (the same command on the same hydra.run.dir continues):
+killed mid-training resumes from its checkpoint (the same command on the same hydra.run.dir continues), each only
+with the settings it was made with (its stage_settings.json, compared before any work: codesign/train/
+stage_settings.py):
 
   design/              (a) the mask moved into the codesign.design family (spline) and searched for the best
                            restorability under the LSR ceiling (search.*: +experiment=mask_search's search), the
