@@ -19,13 +19,14 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 import codesign.experiments as _experiments
 from codesign.experiments import rundir
 from codesign.experiments.runlock import release_lock
+from codesign.experiments.specs import metrics_spec
 from codesign.camera import Camera, build_camera as _camera_of
 from codesign.config import CONF_DIR
 from codesign.config.runtime import apply_debug_overrides, command_line_keys, renamed_key_error, to_container
 from codesign.data.scenes import build_scene_source
 from codesign.data.params import alpha_tag, fixed_scene_params
 from codesign.data.simulate_spec import SimulateSpec
-from codesign.design.merit import evaluate_mask, metrics_spec, published_reference
+from codesign.design.merit import evaluate_mask, published_reference
 from codesign.errors import ConfigError
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask
 from codesign.optics.masks import Mask

@@ -1,5 +1,5 @@
 """The differentiable camera: mask -> phase -> PSF -> pixel kernel -> sensor image, and the OTF a restorer needs."""
-from codesign.camera.build import build_camera, sensor_spec, with_measured_psf
+from codesign.camera.build import build_camera, build_sensor_spec
 from codesign.camera.camera import Camera, OpticsOutputs, field_of_view
 
-__all__ = ["Camera", "OpticsOutputs", "build_camera", "field_of_view", "sensor_spec", "with_measured_psf"]
+__all__ = ["Camera", "OpticsOutputs", "build_camera", "build_sensor_spec", "field_of_view"]

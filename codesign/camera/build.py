@@ -7,19 +7,20 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from codesign.camera.camera import Camera
+from codesign.config.runtime import to_container
 from codesign.data.scenes import DataConfig
 from codesign.errors import ConfigError
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask
 from codesign.optics.lines import LaserLines
-from codesign.optics.materials import material_of
-from codesign.optics.measured import MEASURED_DEFAULTS, load_measured
+from codesign.optics.materials import Material
+from codesign.optics.measured import load_measured
 from codesign.sensor.simulator import SensorSimulator
 from codesign.sensor.spec import SensorSpec
 
 log = logging.getLogger("codesign.camera")
 
 
-def sensor_spec(cfg: DictConfig) -> SensorSpec:
+def build_sensor_spec(cfg: DictConfig) -> SensorSpec:
     """The SensorSpec of ``cfg.sensor`` at the network resolution of ``cfg.data`` (image_size, padded_size)."""
     sensor_cfg = OmegaConf.to_container(cfg.sensor, resolve=True)
     for key in ("image_size", "padded_size"):  # set by data.*, not a sensor.* key a user could type
@@ -40,7 +41,7 @@ def build_camera(cfg: DictConfig, device, dtype=torch.float32) -> Camera:
     PSF of ``optics.psf_file`` in place of the computed one when it is set (its files checked first)."""
     optics = OpticsSpec.from_config(OmegaConf.to_container(cfg.optics, resolve=True))
     measured = load_measured(optics)
-    sensor = sensor_spec(cfg)
+    sensor = build_sensor_spec(cfg)
     system = OpticalSystem(optics, dtype=dtype, device=device)
     mask = build_mask(OmegaConf.to_container(cfg.mask, resolve=True), system.grid, optics.aperture_diameter_m)
     if measured is not None:
@@ -59,16 +60,17 @@ def build_camera(cfg: DictConfig, device, dtype=torch.float32) -> Camera:
         raise ConfigError("optics.scene_spectrum", [list(p) for p in optics.scene_spectrum], "a measured PSF "
                           "(optics.psf_file) is the scene's PSF as measured: set optics.scene_spectrum=null, or "
                           "optics.psf_file=null to compute the band's PSF from the mask")
-    return Camera(system, mask, SensorSimulator(sensor, optics), device, measured, laser_line(cfg, system, sensor),
-                  scene_spectrum(cfg, system))
+    material = Material.from_config(to_container(cfg.get("material")))  # fused silica when a config has none
+    return Camera(system, mask, SensorSimulator(sensor, optics), device, measured,
+                  laser_line(material, system, sensor), scene_spectrum(material, system))
 
 
-def scene_spectrum(cfg: DictConfig, system: OpticalSystem) -> tuple | None:
-    """(LaserLines of optics.scene_spectrum's wavelengths, their weights), or None for the design wavelength."""
+def scene_spectrum(material: Material, system: OpticalSystem) -> tuple | None:
+    """(LaserLines of optics.scene_spectrum's wavelengths through ``material``, their weights), or None for the
+    design wavelength."""
     spectrum = system.spec.scene_spectrum
     if spectrum is None:
         return None
-    material = material_of(cfg)
     for lam, _ in spectrum:
         material.check_wavelength(lam)
     lines = LaserLines(system, material.index, tuple(lam for lam, _ in spectrum))
@@ -77,32 +79,15 @@ def scene_spectrum(cfg: DictConfig, system: OpticalSystem) -> tuple | None:
     return lines, tuple(w for _, w in spectrum)
 
 
-def laser_line(cfg: DictConfig, system: OpticalSystem, sensor: SensorSpec) -> LaserLines | None:
+def laser_line(material: Material, system: OpticalSystem, sensor: SensorSpec) -> LaserLines | None:
     """The LaserLines of the laser's line (sensor.wavelength_laser_m) when it is not the design wavelength: the
-    mask's surface (optics.wrap_waves, material.*) seen there; None at the design wavelength."""
+    mask's surface (optics.wrap_waves, ``material``) seen there; None at the design wavelength."""
     lam, spec = sensor.wavelength_laser_m, system.spec
     if spec.is_design_wavelength(lam):
         return None
-    material = material_of(cfg)
     material.check_wavelength(lam)
     line = LaserLines(system, material.index, (lam,))
     log.info("the laser at %.1f nm, the scene at %.1f nm: the laser sees the %s's phase scaled by %.4f (%s)",
              lam * 1e9, spec.wavelength_m * 1e9, "surface" if spec.wrap_waves is None else
              f"{spec.wrap_waves}-wave wrapped plate", line.scales[0], material.name)
     return line
-
-
-def with_measured_psf(target: DictConfig, cfg: DictConfig, typed: frozenset[str] = frozenset()) -> DictConfig:
-    """``target`` (a checkpoint's configuration) with this run's measured-PSF keys (``optics.psf_*`` of ``cfg``)
-    when this run gives a PSF file or types one of them (``optics.psf_file=null`` restores the computed PSF of a
-    checkpoint fine-tuned on a measured one); else ``target`` as it is: its own measured PSF, if any."""
-    optics = cfg.get("optics")
-    if optics is None:
-        return target
-    typed_here = "optics" in typed or any(f"optics.{k}" in typed for k in MEASURED_DEFAULTS)
-    if optics.get("psf_file") is None and not typed_here:
-        return target
-    out = OmegaConf.create(OmegaConf.to_container(target, resolve=True))
-    for key, default in MEASURED_DEFAULTS.items():
-        out.optics[key] = optics.get(key, default)
-    return out

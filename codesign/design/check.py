@@ -143,13 +143,10 @@ def sampling_report(mask, spec, band, log, what: str = "the mask", dtype=torch.f
     return report_sampling(phase_sampling(mask, spec, band, dtype=dtype), log, what)
 
 
-def camera_sampling_report(camera, cfg, log, what: str | None = None) -> dict:
-    """``sampling_report`` of a Camera's mask, on its optics, over the MTF band of ``cfg.metrics``."""
-    from codesign.design.merit import metrics_spec
-
+def camera_sampling_report(camera, band: tuple[float, float], log, what: str | None = None) -> dict:
+    """``sampling_report`` of a Camera's mask, on its optics, over the MTF band ``band`` (metrics.mtf_band)."""
     kind = getattr(camera.mask, "kind", "the")
-    return sampling_report(camera.mask, camera.system.spec, metrics_spec(cfg).mtf_band, log,
-                           what or f"{kind} mask")
+    return sampling_report(camera.mask, camera.system.spec, band, log, what or f"{kind} mask")
 
 
 def verify_design(mask, spec, band, tolerance: float, dtype=torch.float32, wide_factor: int = 2) -> dict:

@@ -32,17 +32,15 @@ def _figures(psf: torch.Tensor, h0: float, radial: RadialMTF, band) -> tuple[flo
 
 
 @torch.no_grad()
-def measured_psf_report(camera, cfg, log, curves: dict | None = None) -> dict:
+def measured_psf_report(camera, band: tuple[float, float], log, curves: dict | None = None) -> dict:
     """The metrics.json entries of a camera's measured PSF (nothing without one): its path and processing, its LSR
-    and mtf_mean beside the design mask's, and ``laser_halo`` False; one log line compares them. ``curves``: a dict
-    that receives what ``measured_psf_figure`` draws."""
+    and mtf_mean beside the design mask's over the MTF band ``band`` (metrics.mtf_band), and ``laser_halo`` False;
+    one log line compares them. ``curves``: a dict that receives what ``measured_psf_figure`` draws."""
     if camera.measured is None:
         return {}
-    from codesign.design.merit import metrics_spec
-
     m = camera.measured
     state = camera.frozen_optics().state  # places the measured PSF (camera.placement, camera.design_psf)
-    spec, h0, band = camera.system.spec, camera.system.uncoded_peak, metrics_spec(cfg).mtf_band
+    spec, h0 = camera.system.spec, camera.system.uncoded_peak
     radial = RadialMTF(spec)
     lsr, mtf_mean, rad = _figures(state.psf, h0, radial, band)
     design_lsr, design_mtf, design_rad = _figures(camera.design_psf, h0, radial, band)

@@ -57,11 +57,6 @@ class MetricsSpec(SpecMixin):
 register("metrics", "default", spec_node(MetricsSpec))
 
 
-def metrics_spec(cfg) -> MetricsSpec:
-    """The validated ``metrics`` block of a composed config (defaults when it has none)."""
-    return MetricsSpec.from_config(dict(cfg.get("metrics") or {}))
-
-
 @torch.no_grad()
 def mask_figures_of_merit(system, mask, radial: RadialMTF, band: tuple[float, float], p: float,
                           refine: bool = False, grids: int = 1) -> tuple[dict, dict]:

@@ -6,12 +6,13 @@ from dataclasses import dataclass
 
 import torch
 
-from codesign.camera import Camera, sensor_spec
-from codesign.data.scenes import build_scene_source
+from codesign.camera import Camera
+from codesign.data.source import SceneSource
 from codesign.design.problem import Limits, psf_state_of
 from codesign.design.restorability import Restorability, restorability_for
 from codesign.errors import ConfigError
 from codesign.sensor.simulator import SensorSimulator
+from codesign.sensor.spec import SensorSpec
 
 
 @dataclass
@@ -34,10 +35,10 @@ class RestorabilityTools:
         return float(self.module(kernel))
 
 
-def restorability_tools(cfg, system, mask, alpha_l: float | None) -> RestorabilityTools:
-    """Restorability at the sensor and network size of ``cfg`` (data.image_size), with the scene spectrum fitted
-    to the training split of ``cfg.data``'s scenes."""
-    sensor = sensor_spec(cfg)
+def restorability_tools(sensor: SensorSpec, source: SceneSource, system, mask, alpha_l: float | None
+                        ) -> RestorabilityTools:
+    """Restorability at the sensor and network size of ``sensor`` (its image_size: data.image_size), with the scene
+    spectrum fitted to the training split of ``source`` (data.*'s scenes)."""
     lam = system.spec.wavelength_m
     if alpha_l is not None and not system.spec.is_design_wavelength(sensor.wavelength_laser_m):
         raise ConfigError("search.restorability_alpha_l", alpha_l, f"counts the laser's saturated footprint at the "
@@ -45,7 +46,6 @@ def restorability_tools(cfg, system, mask, alpha_l: float | None) -> Restorabili
                           f"{sensor.wavelength_laser_m:g}: set search.restorability_alpha_l=null, or the laser back "
                           f"to the design wavelength")
     camera = Camera(system, mask, SensorSimulator(sensor, system.spec), system.grid.rho.device)
-    source = build_scene_source(cfg.data)
     scenes = source.fixed_batch(source.split_names("train"), sensor.image_size)
     return RestorabilityTools(restorability_for(camera, scenes, alpha_l=alpha_l), camera)
 

@@ -8,8 +8,6 @@ import torch
 from omegaconf import DictConfig
 
 from codesign.config.runtime import check_seed, logging_spec, tensorboard_enabled, to_container
-from codesign.design.check import camera_sampling_report
-from codesign.design.measured_merit import measured_psf_report
 from codesign.io import files as io
 from codesign.io.tensorboard import open_writer
 from codesign.train import distributed
@@ -22,6 +20,7 @@ from codesign.train.resume import initial_checkpoint, load_initial_weights, resu
 from codesign.train.model_setup import build_model, build_trainer, distributed_metrics, run_metrics
 from codesign.train.spec import InitSpec, TrainerSpec
 from codesign.train.optim import init_weights
+from codesign.experiments.specs import camera_reports
 from codesign.experiments.protocol import Experiment
 
 log = logging.getLogger("codesign.restoration")
@@ -81,8 +80,7 @@ def _build(cfg: DictConfig, run_dir: Path, device: torch.device) -> dict:
     ctx = distributed.current()
     data = SimulatedData(cfg, device, seed, ctx)
     data.use_pool(build_mask_pool(cfg, data.camera, seed))  # data.masks: one restorer for a pool of masks
-    sampling = {**camera_sampling_report(data.camera, cfg, log), **measured_psf_report(data.camera, cfg, log)} \
-        if ctx.is_main else {}
+    sampling = camera_reports(data.camera, cfg, log) if ctx.is_main else {}
     memory = check_training_fits(model, data, spec, device, "baseline")  # before any training
     trainer = build_trainer(cfg, model, data, run_dir, device, seed, ctx, spec)
     resume_if_possible(trainer, cfg, run_dir)

@@ -8,10 +8,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from codesign.camera import with_measured_psf
 from codesign.config.runtime import check_seed, explicit_keys, mask_typed, tensorboard_enabled, with_typed_mask
-from codesign.design.check import camera_sampling_report
-from codesign.design.measured_merit import measured_psf_report
 from codesign.errors import ConfigError
 from codesign.io import files as io
 from codesign.io.tensorboard import log_summary, open_writer
@@ -20,6 +17,7 @@ from codesign.train.evaluation import eval_settings, run_evaluation
 from codesign.train.checkpoint import nonfinite_summary, stored_config_error
 from codesign.train.resume import apply_checkpoint_mask, load_trained
 from codesign.train.model_setup import run_metrics
+from codesign.experiments.specs import camera_reports, with_measured_psf
 from codesign.experiments.protocol import Experiment
 
 log = logging.getLogger("codesign.evaluate")
@@ -137,7 +135,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
         apply_checkpoint_mask(data.camera.mask, state, path)
         data.camera.invalidate()
     metrics = {**run_metrics(merged, model, device), "checkpoint": str(path), "steps": int(state["step"]),
-               **camera_sampling_report(data.camera, merged, log), **measured_psf_report(data.camera, merged, log)}
+               **camera_reports(data.camera, merged, log)}
     metrics.update(run_evaluation(ev, CheckedRestorer(model, path), generators, data, run_dir, seed))
     io.write_json(run_dir / "metrics.json", metrics)
     log_summary(open_writer(run_dir, tensorboard_enabled(cfg)), {**model.summary(), "checkpoint": str(path)},

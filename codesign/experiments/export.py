@@ -11,17 +11,20 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from codesign.camera import build_sensor_spec
+from codesign.data.scenes import build_scene_source
 from codesign.design.limits import MTFLimit
-from codesign.design.merit import evaluate_mask, metrics_spec
+from codesign.design.merit import evaluate_mask
 from codesign.design.search_setup import restorability_tools
 from codesign.fab.laser_lines import (lines_summary, log_lines, lsr_curve, lsr_wavelength_figure, run_lines,
                                       surface_name)
-from codesign.fab.plate_setup import make_plate, plate_sidecar, setup
+from codesign.fab.plate_setup import build_plate, plate_sidecar
 from codesign.fab.plate_figures import export_figure
 from codesign.fab.surface import PlatePhase
 from codesign.fab.writers import write_height_png, write_height_tiff
 from codesign.io import files as io
 from codesign.optics import OpticalSystem, build_mask
+from codesign.experiments.specs import metrics_spec, plate_settings
 from codesign.experiments.protocol import Experiment
 
 log = logging.getLogger("codesign.export")
@@ -80,7 +83,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     the ideal design and the plate seen again by the pupil grid scored side by side (and at every laser line when
     configured); writes the height files, export.json, report.png and metrics.json; returns the exported plate's
     LSR. Steps: build, score, write the plate, report."""
-    spec, ex, material, mask_cfg, dtype = setup(cfg)
+    spec, ex, material, mask_cfg, dtype = plate_settings(cfg)
     ms = metrics_spec(cfg)
     material.check_wavelength(spec.wavelength_m)
     system = OpticalSystem(spec, dtype=dtype, device=device)
@@ -89,12 +92,12 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
              mask_cfg["kind"], f" from {mask_cfg['init']}" if mask_cfg.get("init") else "", ex.plate_n(spec),
              ex.plate_n(spec), ex.pitch_m, material.name, material.index(spec.wavelength_m), spec.wavelength_m * 1e9,
              f"{ex.levels} levels" if ex.levels else "continuous heights")
-    plate = make_plate(mask_cfg, spec, ex, material)
+    plate = build_plate(mask_cfg, spec, ex, material)
     surface = PlatePhase(plate.pupil_phase(system.grid, dtype=dtype).to(device))
     values, arrays = _score(cfg, system, ms, {"ideal": mask, "exported": surface})
     sidecar = plate_sidecar(plate, ex, material, mask_cfg, spec)
     metrics = _metrics(values, sidecar, mask_cfg["kind"], dtype)
-    lines = run_lines(cfg, system)
+    lines = run_lines(material, system)
     if lines is not None:
         _line_outputs(run_dir, metrics, system, lines, mask, plate, material, mask_cfg["kind"], dtype)
     _write_plate(run_dir, plate, sidecar)
@@ -110,7 +113,8 @@ def _score(cfg: DictConfig, system, ms, designs: dict) -> tuple[dict, dict]:
     """Every figure of merit of each design (name -> mask), its limit and restorability: (values, arrays) by
     name."""
     limit = MTFLimit(system, ms.mtf_band)
-    rest = restorability_tools(cfg, system, designs["ideal"], None)
+    rest = restorability_tools(build_sensor_spec(cfg), build_scene_source(cfg.data), system, designs["ideal"],
+                               None)
     values, arrays = {}, {}
     for name, design in designs.items():
         v, arr = evaluate_mask(system, design, ms.mtf_band, ms.lsr_p, ms.lsr_grids)

@@ -22,7 +22,7 @@ from codesign.design.check import camera_sampling_report, recheck_gain, report_s
 from codesign.design.limits import MTFLimit
 from codesign.train.lsr_constraint import CodesignSpec, LSRConstraint
 from codesign.errors import ConfigError
-from codesign.design.merit import MaskMonitor, metrics_spec, published_reference
+from codesign.design.merit import MaskMonitor, published_reference
 from codesign.fab.laser_lines import lines_summary, log_lines, run_lines
 from codesign.optics.masks.records import write_record
 from codesign.io import files as io
@@ -43,6 +43,7 @@ from codesign.train.spec import InitSpec, TrainerSpec
 from codesign.train.summary import comparison_figure, joint_summary, restorer_scores
 from codesign.train.optim import init_weights
 from codesign.experiments.main_job import IMAGES_FILE, run_protocol, save_images
+from codesign.experiments.specs import material_of, metrics_spec
 from codesign.experiments.protocol import Experiment
 
 log = logging.getLogger("codesign.joint")
@@ -198,12 +199,12 @@ def _build(cfg: DictConfig, run_dir: Path, device: torch.device) -> _Joint:
     camera, system = data.camera, data.camera.system
     reference = published_reference(to_container(cfg.mask), system)
     monitor = MaskMonitor(system, reference, ms.mtf_band, ms.lsr_p, ms.lsr_grids)
-    lines = run_lines(cfg, system, "codesign.lsr_over" if cs.lsr_over == "wavelengths" else None)
+    lines = run_lines(material_of(cfg), system, "codesign.lsr_over" if cs.lsr_over == "wavelengths" else None)
     constrained = lines if cs.lsr_over == "wavelengths" else None
     lsr_max, lsr_max_from = _lsr_max(cs, monitor, system, camera.mask, reference, constrained)
     start = check_training_fits(model, data, spec, device, "joint")  # before any training
     if ctx.is_main:  # warned about before any training
-        sampling = camera_sampling_report(camera, cfg, log, "the start mask")
+        sampling = camera_sampling_report(camera, ms.mtf_band, log, "the start mask")
         start.update(phase_resolved_start=sampling["phase_resolved"], phase_sampling_start=sampling["phase_sampling"],
                      **_check_lsr_max(lsr_max, cs, monitor, system, camera.mask, constrained))
     if not warm:

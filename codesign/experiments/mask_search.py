@@ -14,10 +14,12 @@ import torch
 from omegaconf import DictConfig
 
 from codesign.config.runtime import resolve_dtype, tensorboard_enabled, to_container
+from codesign.camera import build_sensor_spec
+from codesign.data.scenes import build_scene_source
 from codesign.design.check import report_sampling, sampling_of, sampling_report, verify_design
 from codesign.design.tradeoff_figures import evaluations_figure
 from codesign.design.limits import MTFLimit
-from codesign.design.merit import MaskMonitor, MetricsSpec, metrics_spec, published_reference
+from codesign.design.merit import MaskMonitor, MetricsSpec, published_reference
 from codesign.design.problem import DesignProblem, Limits
 from codesign.optics.masks.base import PhaseFitSpec
 from codesign.optics.masks.records import write_record
@@ -31,6 +33,7 @@ from codesign.io import files as io, plots
 from codesign.io.tensorboard import open_writer
 from codesign.optics import OpticalSystem, OpticsSpec, RadialMTF, build_mask, circular_mtf, metrics
 from codesign.optics.lines import smooth_lsr
+from codesign.experiments.specs import material_of, metrics_spec
 from codesign.experiments.protocol import Experiment
 from codesign.signals import Interrupted
 
@@ -99,11 +102,12 @@ def _build(cfg: DictConfig, run_dir: Path, device: torch.device) -> _Job:
     system = OpticalSystem(spec, dtype=resolve_dtype("search.precision", s.precision), device=device)
     mask = build_mask(mask_cfg, system.grid, spec.aperture_diameter_m)
     published = published_reference(mask_cfg, system)  # the same conventions: only the parameters differ
-    lines = run_lines(cfg, system, "search.lsr_over" if s.lsr_over == "wavelengths" else None)
+    lines = run_lines(material_of(cfg), system, "search.lsr_over" if s.lsr_over == "wavelengths" else None)
     monitor = MaskMonitor(system, published, ms.mtf_band, ms.lsr_p, ms.lsr_grids)
     base, base_arr = _published_figures(s, ms, monitor, published, lines)
     limit = MTFLimit(system, ms.mtf_band)
-    rest = restorability_tools(cfg, system, mask, s.restorability_alpha_l)  # reported for every design
+    sensor, source = build_sensor_spec(cfg), build_scene_source(cfg.data)
+    rest = restorability_tools(sensor, source, system, mask, s.restorability_alpha_l)  # reported for every design
     base["restorability"] = rest.score(published)
     job = _Job(s, ms, run_dir, device, system, mask, published, lines, base, base_arr, limit, rest, monitor.radial)
     defocus = s.defocus_rad if s.defocus_rad is not None else mask_cfg.get("defocus_rad", PhaseFitSpec.defocus_rad)

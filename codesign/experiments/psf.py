@@ -12,16 +12,16 @@ from codesign.config.runtime import resolve_dtype, tensorboard_enabled
 from codesign.design.check import sampling_report
 from codesign.optics.metrics import require_band_frequencies
 from codesign.design.limits import MTFLimit
-from codesign.design.merit import (MaskMonitor, MetricsSpec, evaluate_mask, metrics_spec, published_reference,
+from codesign.design.merit import (MaskMonitor, MetricsSpec, evaluate_mask, published_reference,
                                    time_forward_backward)
 from codesign.optics.masks.records import write_record
 from codesign.errors import require_number
 from codesign.fab.laser_lines import lines_summary, log_lines, lsr_curve, lsr_wavelength_figure, run_lines, surface_name
-from codesign.optics.materials import material_of
 from codesign.io import files as io
 from codesign.io import plots
 from codesign.io.tensorboard import log_summary, open_writer
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask, circular_mtf
+from codesign.experiments.specs import material_of, metrics_spec
 from codesign.experiments.protocol import Experiment
 
 log = logging.getLogger("codesign.psf")
@@ -48,7 +48,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     values, arrays, metrics_out = _measure(s, system, mask, device)
     label = f"{s.mask_cfg['kind']} ({metrics_out['phase_convention']})"
     _figures(run_dir, s, system, arrays, values, label)
-    lines = run_lines(cfg, system)
+    lines = run_lines(material_of(cfg), system)
     if lines is not None:
         metrics_out["laser_lines"] = _laser_lines(cfg, run_dir, s, system, lines, mask, label)
     _report(cfg, run_dir, s, system, mask, values, metrics_out)

@@ -22,10 +22,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from codesign.camera import build_camera, field_of_view, with_measured_psf
+from codesign.camera import build_camera, field_of_view
 from codesign.config.runtime import explicit_keys, mask_typed, tensorboard_enabled, to_container, with_typed_mask
-from codesign.design.check import camera_sampling_report
-from codesign.design.measured_merit import measured_psf_report
 from codesign.errors import ConfigError
 from codesign.io import files as io
 from codesign.io.captures import read_counts, save_png16
@@ -33,6 +31,7 @@ from codesign.io.tensorboard import log_summary, open_writer
 from codesign.models.capture import RestoreSpec, binned_shape, capture_factor, capture_geometry, restore_capture
 from codesign.train.checkpoint import nonfinite_summary, stored_config_error
 from codesign.train.resume import apply_checkpoint_mask, load_trained
+from codesign.experiments.specs import camera_reports, with_measured_psf
 from codesign.experiments.protocol import Experiment
 
 log = logging.getLogger("codesign.restore")
@@ -184,7 +183,7 @@ def run(cfg, run_dir: Path, device: torch.device) -> float:
         if value != default and not model.any_size:
             raise ConfigError(key, value, f"is for networks that take any size; this checkpoint's ({model.kind}) "
                               f"restores captures of {sensor.image_size} px only (leave {key} at its default)")
-    sampling = {**camera_sampling_report(camera, ckpt_cfg, log), **measured_psf_report(camera, ckpt_cfg, log)}
+    sampling = camera_reports(camera, ckpt_cfg, log)
     t0 = time.perf_counter()
     with torch.no_grad():
         if model.any_size:

@@ -25,6 +25,7 @@ from codesign.io import files as io
 from codesign.io.captures import save_png16
 from codesign.io.plots import plt
 from codesign.io.tensorboard import log_summary, open_writer
+from codesign.experiments.specs import metrics_spec
 from codesign.experiments.protocol import Experiment
 
 log = logging.getLogger("codesign.simulate")
@@ -121,11 +122,12 @@ def _build(cfg: DictConfig, s: SimulateSpec, device, dtype) -> tuple:
     log.info("sensor path %s: %d x %d network pixels of %.3g m (bin %.3f), scene crop %d, PSF kernel %d",
              sim.sensor.path, sim.sensor.image_size, sim.sensor.image_size, sim.sensor.coarse_pitch_m,
              sim.sensor.bin_factor, sim.scene_size, sim.coarse.ksize)
-    sampling = camera_sampling_report(camera, cfg, log)
+    band = metrics_spec(cfg).mtf_band
+    sampling = camera_sampling_report(camera, band, log)
     off_sensor = warn_laser_off_sensor(list(s.laser_angle_rad), sim.optics.focal_length_m, sim.sensor.side_m,
                                        camera.halo_on)
     curves: dict = {}
-    measured = measured_psf_report(camera, cfg, log, curves)
+    measured = measured_psf_report(camera, band, log, curves)
     return camera, names, scenes, {"sampling": sampling, "off_sensor": off_sensor, "measured": measured,
                                    "curves": curves}
 

@@ -15,12 +15,12 @@ import torch
 from omegaconf import DictConfig
 
 from codesign.config.runtime import to_container
-from codesign.design.merit import metrics_spec
-from codesign.fab.plate_setup import make_plate, setup
+from codesign.fab.plate_setup import build_plate
 from codesign.fab.plate_figures import sigma_text, tolerance_figure
 from codesign.fab.tolerance import SOURCES, Errors, PlateEvaluator, ToleranceSpec, deterministic, draw
 from codesign.io import files as io
 from codesign.optics import OpticalSystem
+from codesign.experiments.specs import metrics_spec, plate_settings
 from codesign.experiments.protocol import Experiment
 from codesign.signals import Interrupted
 
@@ -112,12 +112,13 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     source at once (Monte Carlo of tolerance.*), the LSR and mtf_mean of each sample; writes samples.csv,
     tolerance.png and metrics.json (an interrupted run keeps the finished sources in samples.partial.csv); returns
     the yield (the share of plates with LSR under the ceiling). Steps: build, Monte Carlo, report."""
-    spec, ex, material, mask_cfg, dtype = setup(cfg)
+    spec, ex, material, mask_cfg, dtype = plate_settings(cfg)
     ts = ToleranceSpec.from_config(to_container(cfg.get("tolerance")))
+    ts.check_detuning(spec)  # every detuned sample a wavelength the window carries, before any work
     band = metrics_spec(cfg).mtf_band
     material.check_wavelength(spec.wavelength_m)
     system = OpticalSystem(spec, dtype=dtype, device=device)
-    plate = make_plate(mask_cfg, spec, ex, material)
+    plate = build_plate(mask_cfg, spec, ex, material)
     gen = torch.Generator().manual_seed(ts.seed)
     evaluate = PlateEvaluator(plate, system, material, band, gen, ts.batch)
     active = tuple(s for s in SOURCES if ts.sigma(s) > 0)

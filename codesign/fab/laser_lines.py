@@ -8,16 +8,17 @@ import numpy as np
 import torch
 
 from codesign.errors import ConfigError
-from codesign.optics.materials import Material, material_of
+from codesign.optics.materials import Material
 from codesign.io.plots import plt
 from codesign.optics.lines import COMMON_LINES_M, LaserLines, curve_wavelengths, worst
 
 log = logging.getLogger("codesign.fab")
 
 
-def run_lines(cfg, system, need: str | None = None) -> LaserLines | None:
-    """The LaserLines of ``system``'s laser lines, or None when optics.laser_wavelengths_m is null; ``need``: the
-    key that asks for them (ConfigError naming it when no lines are set)."""
+def run_lines(material: Material, system, need: str | None = None) -> LaserLines | None:
+    """The LaserLines of ``system``'s laser lines through ``material`` (material.*), or None when
+    optics.laser_wavelengths_m is null; ``need``: the key that asks for them (ConfigError naming it when no lines
+    are set)."""
     spec = system.spec
     if spec.laser_wavelengths_m is None:
         if need is not None:
@@ -26,7 +27,6 @@ def run_lines(cfg, system, need: str | None = None) -> LaserLines | None:
                               f"optics.laser_wavelengths_m=[4.5e-7,5.32e-7,6.33e-7]), or {need}=design for the design "
                               "wavelength alone")
         return None
-    material = material_of(cfg)
     for w in (spec.wavelength_m, *spec.laser_wavelengths_m):
         material.check_wavelength(w)
     return LaserLines(system, material.index)

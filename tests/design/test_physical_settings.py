@@ -13,8 +13,9 @@ from codesign.camera.build import build_camera
 from codesign.design.check import phase_sampling
 from codesign.design.limits import MTFLimit
 from codesign.train.lsr_constraint import CodesignSpec
-from codesign.design.merit import MaskMonitor, MetricsSpec, metrics_spec, published_reference
+from codesign.design.merit import MaskMonitor, MetricsSpec, published_reference
 from codesign.experiments import joint
+from codesign.experiments.specs import metrics_spec
 from tests.cli import run_codesign
 from tests.inputs._run import compose_cfg
 from tests.train._util import tiny_trainer

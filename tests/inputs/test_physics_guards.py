@@ -48,11 +48,12 @@ def _delta(tmp_path) -> str:
 def _report(caplog, *overrides: str) -> tuple[dict, list[str]]:
     """measured_psf_report of a smoke camera with ``overrides``: (its metrics, its warnings)."""
     from codesign.design.measured_merit import measured_psf_report
+    from codesign.experiments.specs import metrics_spec
 
     cfg = _cfg(*SMOKE, *overrides)
     log = logging.getLogger("codesign.test_physics_guards")
     with caplog.at_level(logging.WARNING, logger="codesign"):
-        out = measured_psf_report(build_camera(cfg, CPU), cfg, log)
+        out = measured_psf_report(build_camera(cfg, CPU), metrics_spec(cfg).mtf_band, log)
     return out, [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
 
 

@@ -10,7 +10,7 @@ import logging
 import pytest
 import torch
 
-from codesign.fab.plate_setup import setup
+from codesign.experiments.specs import plate_settings
 from codesign.optics import OpticsSpec
 from codesign.optics.grid import PupilGrid
 from codesign.optics.masks import PUBLISHED_R, PUBLISHED_THETA, build_mask, quantize
@@ -159,7 +159,7 @@ def test_export_makes_a_plate_of_the_designs_levels(tmp_path):
     # export.levels = null wrote a continuous plate for an 8-level design
     path = tmp_path / "m.json"
     path.write_text(json.dumps(HALFRING))
-    _, ex, _, mask_cfg, _ = setup(compose_cfg("+experiment=export", f"mask.init={path}"))
+    _, ex, _, mask_cfg, _ = plate_settings(compose_cfg("+experiment=export", f"mask.init={path}"))
     assert ex.levels == 8
-    _, ex, _, _, _ = setup(compose_cfg("+experiment=export", f"mask.init={path}", "export.levels=4"))
+    _, ex, _, _, _ = plate_settings(compose_cfg("+experiment=export", f"mask.init={path}", "export.levels=4"))
     assert ex.levels == 4  # the typed export.levels wins

@@ -16,9 +16,10 @@ from PIL import Image
 from scipy.special import erf
 
 import codesign.experiments as experiments
-from codesign.camera import build_camera, with_measured_psf
+from codesign.camera import build_camera
 from codesign.config.runtime import command_line_keys
 from codesign.errors import ConfigError
+from codesign.experiments.specs import with_measured_psf
 from codesign.optics import OpticsSpec
 from codesign.optics.measured import centroid_px, integrate_axis, load_measured, resample
 from codesign.train.checkpoint import save_checkpoint
