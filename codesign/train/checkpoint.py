@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from codesign.errors import ConfigError
+from codesign.errors import ConfigError, require_number
 from codesign.io import files as io
+from codesign.train.spec import MAX_STEPS
 
 CHECKPOINT_NAME = "checkpoint.pt"
 
@@ -143,6 +144,20 @@ def check_trained(state: dict, path, key: str, resume: bool = False) -> None:
     if missing:
         raise ConfigError(key, str(path), f"is not a complete codesign training checkpoint: no {', '.join(missing)} "
                           f"entry")
+    check_step(state, path, key)
+
+
+def check_step(state: dict, path, key: str) -> None:
+    """A checkpoint's ``step``: a count of training steps (an integer >= 0), refused at load otherwise. -5, 4.7 or
+    True were reported as the steps trained (evaluate's metrics.json, a warm start's record) and a text ended in a
+    ValueError after the work."""
+    step = state.get("step")
+    try:
+        require_number("step", step, lo=0, hi=MAX_STEPS, integer=True)
+    except ConfigError as err:
+        shown = repr(step) if len(repr(step)) <= 80 else repr(step)[:76] + " ..."
+        raise ConfigError(key, str(path), f"its entry step = {shown}: {err.allowed} (the training steps it "
+                          f"holds)") from None
 
 
 def state_mismatch(module: torch.nn.Module, state: dict) -> str | None:
@@ -154,7 +169,16 @@ def state_mismatch(module: torch.nn.Module, state: dict) -> str | None:
     extra = [k for k in state if k not in own]
     shapes = [k for k in own if k in state and hasattr(state[k], "shape")
               and tuple(state[k].shape) != tuple(own[k].shape)]
+    # a floating tensor stored as integers (int64 weights) would be copied in rounded, without a word; the model's
+    # own integer buffers (a BatchNorm's num_batches_tracked) stay integers
+    kinds = [k for k in own if k in state and torch.is_tensor(state[k]) and k not in shapes
+             and own[k].is_floating_point() and not (state[k].is_floating_point() or state[k].is_complex())]
     parts = []
+    if kinds:
+        k = kinds[0]
+        parts.append(f"tensor {k!r} holds {str(state[k].dtype).replace('torch.', '')} values where the model has "
+                     f"{str(own[k].dtype).replace('torch.', '')} (allowed: floating point)"
+                     + (f" and {len(kinds) - 1} more" if len(kinds) > 1 else ""))
     if missing:
         parts.append(f"{len(missing)} tensor(s) missing (e.g. {missing[0]!r})")
     if extra:

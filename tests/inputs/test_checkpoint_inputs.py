@@ -197,3 +197,47 @@ def test_cli_evaluate_with_a_truncated_checkpoint(trained, tmp_path):
         f"codesign: configuration error: checkpoint = '{path}': is truncated or corrupt (PytorchStreamReader failed "
         f"reading zip archive: failed finding central directory); copy it again, or use an earlier checkpoint")
     assert "Traceback" not in proc.stderr and not run_dir.exists()
+
+
+@pytest.mark.parametrize("step", [-5, 4.7, 1e30, True, "abc"], ids=["negative", "fraction", "huge", "bool", "text"])
+def test_a_step_that_is_no_count_of_steps_is_refused_at_load(trained, tmp_path, step):
+    # -5, 4.7 and True were reported as the steps trained (evaluate's metrics.json, a warm start's record), 1e30 as a
+    # 31-digit count, "abc" a ValueError traceback after the evaluation had run
+    path = _save(tmp_path, {**trained, "step": step})
+    with pytest.raises(ConfigError, match=_err(path, "its entry step = " + re.escape(repr(step)) + r": must be an "
+                                                     r"integer >= 0 and <= 1e\+07 \(the training steps it holds\)$")):
+        load_trained(path, CPU)
+
+
+def test_a_resumed_checkpoint_s_step_is_checked_before_the_trainer_is_touched(trained, tmp_path):
+    cfg = tiny_cfg()
+    loaded = []
+    trainer = SimpleNamespace(model=build_model(cfg), step=0, load_state_dict=loaded.append,
+                              spec=SimpleNamespace(steps=10))
+    run_dir = tmp_path / "run"
+    state = {**trained, "step": -5, "opt_g": {}, "opt_d": {}, "sched_g": {}, "sched_d": {}, "rng": {}}
+    path = _save(run_dir, state, "checkpoint.pt")
+    with pytest.raises(ConfigError, match="^trainer.resume = " + re.escape(repr(str(path))) + ": its entry step = -5: "
+                       "must be an integer >= 0"):
+        resume_if_possible(trainer, cfg, run_dir)
+    assert loaded == []
+
+
+@pytest.mark.parametrize("dtype", [torch.int64, torch.int32, torch.uint8, torch.bool])
+def test_integer_weights_are_refused_naming_the_tensor_and_its_dtype(trained, tmp_path, dtype):
+    # int64 weights were copied into the float model without a word (every weight rounded: 0.03 -> 0)
+    state = copy.deepcopy(trained)
+    name = next(k for k, v in state["model"].items() if v.is_floating_point())
+    state["model"][name] = state["model"][name].to(dtype)
+    path = _save(tmp_path, state)
+    with pytest.raises(ConfigError, match=_err(path, r"its weights do not fit .*: tensor " + re.escape(repr(name)) +
+                                                     f" holds {str(dtype).replace('torch.', '')} values where the "
+                                                     r"model has float32 \(allowed: floating point\)")):
+        load_trained(path, CPU)
+
+
+def test_integer_buffers_of_the_model_itself_stay_allowed(tmp_path):
+    # a BatchNorm's num_batches_tracked is int64 in the model too: only a floating tensor stored as integers is wrong
+    module = torch.nn.BatchNorm1d(3)
+    from codesign.train.checkpoint import load_module_state
+    load_module_state(module, module.state_dict(), "checkpoint", tmp_path / "ck.pt", "its weights")
