@@ -61,6 +61,7 @@ Other flags:
 def main() -> None:
     """The console command (``codesign``, ``python -m codesign``): --version and --help answered here, a renamed key
     refused, anything else run by the Hydra entry point on the command line's overrides."""
+    from codesign.config.argv import expand_run_dirs, override_parse_problem
     from codesign.config.runtime import renamed_key_error
     from codesign.train import distributed
 
@@ -82,6 +83,11 @@ def main() -> None:
     if problem:
         print(f"codesign: configuration error: {problem}", file=sys.stderr)
         raise SystemExit(2)
+    sys.argv[1:] = expand_run_dirs(sys.argv[1:])  # ~ in hydra.run.dir / hydra.sweep.dir, as in every path key
+    unparsed = override_parse_problem(sys.argv[1:])
+    if unparsed:  # Hydra's message, then the hint; Hydra's exit status
+        print(unparsed, file=sys.stderr)
+        raise SystemExit(1)
     # from here on SIGINT / SIGTERM raise Interrupted: run_experiment reports one during a run; one before it
     # (Hydra composing the config, the imports) or after it is reported here, without a traceback
     with interruptible():

@@ -59,6 +59,16 @@ def require_numbers(key: str, value: Any, allowed: str, length: int | None = Non
     return [require_number(f"{key}[{i}]", v, **bounds) for i, v in enumerate(items)]
 
 
+def refuse_repeats(key: str, values: Sequence) -> None:
+    """ConfigError naming ``key`` when a value of list ``values`` appears twice (a laser strength listed twice was
+    evaluated twice, its rows duplicated)."""
+    seen: set = set()
+    for value in values:
+        if value in seen:
+            raise ConfigError(key, list(values), f"lists {value:g} twice: give each value once")
+        seen.add(value)
+
+
 class OutputWriteError(OSError):
     """An output file could not be written; the file that was there before (if any) is unchanged."""
 

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 from codesign.config.store import register, spec_node
 from codesign.data.params import FIGURE_VALUES, LASER_STRENGTHS, fixed_scene_params
-from codesign.errors import ConfigError, require_number, require_numbers
+from codesign.errors import ConfigError, refuse_repeats, require_number, require_numbers
 from codesign.spec_base import SpecMixin
 
 MAX_ANGLE = round(math.pi / 2, 4)  # rad
@@ -38,6 +38,7 @@ class SimulateSpec(SpecMixin):
                                                      hi=1e12)))
         if not self.laser_strengths:
             raise ConfigError(f"{p}.laser_strengths", [], "must be a non-empty list of laser strengths >= 0")
+        refuse_repeats(f"{p}.laser_strengths", self.laser_strengths)  # each would be simulated again
         # an incidence beyond 90 degrees from the axis never reaches the aperture
         put("laser_angle_rad", tuple(require_numbers(f"{p}.laser_angle_rad", self.laser_angle_rad,
                                                      "must be [n_u, n_v] in radians", 2, lo=-MAX_ANGLE,

@@ -29,11 +29,14 @@ from codesign.config.runtime import (
 from codesign.errors import ConfigError, OutputWriteError
 from codesign.io import files as io
 from codesign.optics.masks.records import check_mask_init
+from codesign.optics.memory import grid_estimate
 from codesign.optics.measured import MEASURED_DEFAULTS, load_measured
 from codesign.optics.spec import OpticsSpec
 from codesign.experiments import rundir
 from codesign.experiments.protocol import Experiment
+from codesign.experiments.specs import material_of
 from codesign.train import distributed
+from codesign.train import memory as train_memory
 from codesign.signals import Interrupted, TrainingInterrupted, interruptible
 
 log = logging.getLogger("codesign")
@@ -130,6 +133,54 @@ def check_measured_psf(cfg: DictConfig, task: str) -> None:
     OmegaConf.update(cfg, "optics.psf_file", str(Path(measured.path).resolve()), merge=False)
     if measured.dark_path is not None:
         OmegaConf.update(cfg, "optics.psf_dark_file", str(Path(measured.dark_path).resolve()), merge=False)
+
+
+def check_scene_spectrum(cfg: DictConfig, task: str) -> None:
+    """optics.scene_spectrum is the light of the scenes a camera images: refused by an experiment that reads the
+    optics but no sensor (psf, tolerance: the mask's PSF at the design wavelength and its laser lines), where it was
+    ignored without a word."""
+    reads = read_keys(task)
+    optics = cfg.get("optics")
+    if optics is None or optics.get("scene_spectrum") is None or "optics" not in reads or "sensor" in reads:
+        return
+    raise ConfigError("optics.scene_spectrum", OmegaConf.to_container(optics.scene_spectrum, resolve=True),
+                      f"+experiment={task} computes the mask's PSF at optics.wavelength_m (and its laser lines) and "
+                      f"images no scene, so it never reads the scene's spectrum: leave it null (the experiments that "
+                      f"image scenes through the camera read it)")
+
+
+def check_material(cfg: DictConfig, task: str) -> None:
+    """material.*: its coefficients checked and its index at the design wavelength computed before any work (psf
+    read it only after its PSF, for its laser lines: an index of 1e6 passed)."""
+    if "material" not in read_keys(task) or cfg.get("material") is None:
+        return
+    material = material_of(cfg)
+    wavelength = (cfg.get("optics") or {}).get("wavelength_m")
+    if isinstance(wavelength, (int, float)) and not isinstance(wavelength, bool) and 1e-8 <= wavelength <= 1e-4:
+        material.index(wavelength)  # an unphysical wavelength is named by the optics' own check
+
+
+def check_optics_memory(cfg: DictConfig, task: str, device: torch.device) -> None:
+    """The optics grids' memory (codesign/optics/memory.py) against what ``device`` has free, before anything is
+    allocated: a pupil grid of 40,000 samples across passed every check, then was killed allocating 12.7 GB. An
+    optics config the spec refuses is left to the experiment's own checks (their order, their messages)."""
+    if "optics" not in read_keys(task) or cfg.get("optics") is None:
+        return
+    try:
+        spec = OpticsSpec.from_config(to_plain(cfg.optics))
+    except ConfigError:
+        return
+    need = grid_estimate(spec, double=cfg.get("precision") == "float64")
+    free, source = train_memory.available_bytes(device)
+    if free is None or need.bytes <= free:
+        return
+    gib = 2**30
+    raise ConfigError(need.key, getattr(spec, need.key.split(".", 1)[1]), f"the optics grids need about "
+                      f"{need.bytes / gib:.1f} GiB (a {need.pupil_n} x {need.pupil_n} pupil grid, the {need.focal_n} x "
+                      f"{need.focal_n} focal window, {need.complex_name}, {need.wavelengths} wavelength(s)), more than "
+                      f"the {free / gib:.1f} GiB available ({source}): raise optics.pupil_pitch_m, or lower "
+                      f"optics.pupil_n, optics.focal_n or the wavelengths (optics.laser_wavelengths_m, "
+                      f"optics.scene_spectrum)")
 
 
 def to_plain(node) -> dict:
@@ -244,10 +295,13 @@ def _prepare(cfg: DictConfig, run_dir: Path, ctx) -> tuple[str, torch.device]:
     root = run_spec(cfg)
     check_logging(cfg)
     check_measured_psf(cfg, task)
+    check_scene_spectrum(cfg, task)
+    check_material(cfg, task)
     if "mask" in read_keys(task):  # a mask.init record read whole, and made for these optics, before any work
         check_mask_init(to_plain(cfg.get("mask")), to_plain(cfg.get("optics")))
     threads = set_threads(root.threads)
     device = resolve_device(root.device, ctx.local_rank if ctx.enabled else None)
+    check_optics_memory(cfg, task, device)  # before anything allocates the grids
     deterministic = set_deterministic(root.deterministic, device)
     if ctx.is_main:  # the other ranks write nothing
         io.check_writable_dir(run_dir)  # before any work: never an hour of training, then a failed write

@@ -24,12 +24,14 @@ import torch
 
 from codesign.config.store import register, spec_node
 from codesign.optics.metrics import require_band_frequencies
-from codesign.errors import ConfigError, require_number
+from codesign.errors import ConfigError, require_number, round_down
 from codesign.optics.materials import Material
 from codesign.fab.surface import Plate, phase_of_height
 from codesign.optics import OpticalSystem, RadialMTF, metrics
 from codesign.spec_base import SpecMixin
 
+# a detuned wavelength's samples reach this many sigma (10^6 samples pass 6 sigma with probability 2e-3)
+DETUNING_SIGMAS = 6
 SOURCES = ("depth_scale", "level_noise", "shift", "rotation", "wavelength", "defocus")
 _SIGMA_KEYS = {"depth_scale": "depth_scale", "level_noise": "level_noise_m", "shift": "shift_m",
                "rotation": "rotation_deg", "wavelength": "wavelength_m", "defocus": "defocus_m"}
@@ -58,9 +60,9 @@ class ToleranceSpec(SpecMixin):
 
     def __post_init__(self) -> None:
         p = self.prefix
+        # samples_per_source >= 1: 0 ran the analysis, wrote samples.csv, then failed on a zero-size array
         for k, hi in (("samples", 10**6), ("samples_per_source", 10**6), ("batch", 1024)):
-            lo = 0 if k == "samples_per_source" else 1
-            object.__setattr__(self, k, require_number(f"{p}.{k}", getattr(self, k), lo=lo, hi=hi, integer=True))
+            object.__setattr__(self, k, require_number(f"{p}.{k}", getattr(self, k), lo=1, hi=hi, integer=True))
         for source, key in _SIGMA_KEYS.items():
             hi = {"depth_scale": 0.5, "rotation_deg": 45.0}.get(key, 1e-3)
             require_number(f"{p}.{key}", getattr(self, key), lo=0, hi=hi)
@@ -69,6 +71,22 @@ class ToleranceSpec(SpecMixin):
                 raise ConfigError(f"{p}.lsr_ceiling", self.lsr_ceiling, "must be auto or a number > 0")
             require_number(f"{p}.lsr_ceiling", self.lsr_ceiling, lo=0, lo_open=True)
         object.__setattr__(self, "seed", require_number(f"{p}.seed", self.seed, lo=0, hi=2**63 - 1, integer=True))
+
+    def check_detuning(self, optics) -> None:
+        """tolerance.wavelength_m against the design's OpticsSpec, before any work: its samples reach the design
+        wavelength +- DETUNING_SIGMAS sigma, each one the window must carry (a wider sigma failed mid-run, named as a
+        sample's optics.wavelength_m = -5.5e-07)."""
+        sigma, lam = self.wavelength_m, optics.wavelength_m
+        shortest = max(1e-8, optics.focal_extent_m * optics.pupil_pitch_m / optics.focal_length_m,  # aliasing
+                       2 * optics.focal_pitch_m * optics.aperture_diameter_m / optics.focal_length_m)  # sampling
+        most = min((lam - shortest) / DETUNING_SIGMAS, (1e-4 - lam) / DETUNING_SIGMAS)
+        if sigma <= max(most, 0.0):
+            return
+        allowed = f"<= {round_down(most):.3g} m" if most > 0 else "0 (the design wavelength is the window's limit)"
+        raise ConfigError(f"{self.prefix}.wavelength_m", sigma, f"its samples reach optics.wavelength_m +- "
+                          f"{DETUNING_SIGMAS} sigma = {lam:.4g} +- {DETUNING_SIGMAS * sigma:.3g} m, beyond the "
+                          f"{shortest:.3g}..1e-04 m the optics window carries (a shorter wavelength aliases or is "
+                          f"undersampled on it): must be >= 0 and {allowed}")
 
     def sigma(self, source: str) -> float:
         """The 1-sigma error of ``source`` (one of SOURCES), in that source's unit."""

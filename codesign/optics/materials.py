@@ -19,6 +19,11 @@ from codesign.spec_base import SpecMixin
 log = logging.getLogger("codesign.optics")
 
 FORMULAS = ("sellmeier", "cauchy", "constant")
+# The highest refractive index of a transparent optical material: germanium's ~4 in the infrared (silicon ~3.5,
+# the visible's highest, e.g. rutile, below 3); an index of 1e6 made a 2 pi step a millionth of a wavelength deep.
+MAX_INDEX = 5.0
+INDEX_RANGE = f"a mask material needs 1 < n <= {MAX_INDEX:g} (no optical material has more: germanium, ~4 in the " \
+              f"infrared, is the highest)"
 _COEFF_ALLOWED = {
     "sellmeier": "must be a list of [B_i, lambda_i_um] pairs: n^2 - 1 = sum B_i lambda^2 / (lambda^2 - lambda_i^2), "
                  "lambda in um",
@@ -62,6 +67,9 @@ class Material(SpecMixin):
             if self.formula == "constant" and len(coeffs) != 1:
                 raise ConfigError(f"{p}.coefficients", coeffs, allowed)
             coeffs = tuple(require_number(f"{p}.coefficients[{i}]", c) for i, c in enumerate(coeffs))
+            if self.formula == "constant" and coeffs[0] > MAX_INDEX:  # n <= 1 is named with the wavelength by index()
+                raise ConfigError(f"{p}.coefficients", list(coeffs), f"give n = {coeffs[0]:g} at every wavelength: "
+                                  f"{INDEX_RANGE}")
         object.__setattr__(self, "coefficients", coeffs)
         lo_hi = require_list(f"{p}.valid_um", self.valid_um, "must be [low, high] in um with 0 < low < high")
         if len(lo_hi) != 2 or not 0 < require_number(f"{p}.valid_um[0]", lo_hi[0]) < \
@@ -84,6 +92,9 @@ class Material(SpecMixin):
         if not (math.isfinite(n) and n > 1):
             raise ConfigError(f"{self.prefix}.coefficients", list(self.coefficients),
                               f"give n = {n:.6g} at {lam:.4g} um: a mask material needs n > 1")
+        if n > MAX_INDEX:
+            raise ConfigError(f"{self.prefix}.coefficients", list(self.coefficients),
+                              f"give n = {n:.6g} at {lam:.4g} um: {INDEX_RANGE}")
         return float(n)
 
     def check_wavelength(self, wavelength_m: float) -> None:

@@ -231,6 +231,9 @@ class OpticsSpec(SpecMixin):
         object.__setattr__(self, "psf_energy", require_number(f"{p}.psf_energy", self.psf_energy, lo=0,
                                                               lo_open=True, hi=1))
         require_choice(f"{p}.psf_centre", self.psf_centre, ("design", "centroid", "frame"))
+        if self.psf_file is None and self.psf_energy != 1.0:  # it scales the measured frame alone: was ignored
+            raise ConfigError(f"{p}.psf_energy", self.psf_energy, f"describes {p}.psf_file, which is null: give the "
+                              f"measured PSF with {p}.psf_file=PATH, or leave {p}.psf_energy at 1 (the default)")
 
     # ---- derived quantities -------------------------------------------------------------------------------
     @property

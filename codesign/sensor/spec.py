@@ -12,6 +12,7 @@ PLANCK_J_S = 6.62607015e-34
 LIGHT_M_S = 299792458.0
 PATHS = ("direct", "full")
 DOWNSAMPLERS = ("area", "bicubic_aa")
+BIT_DEPTHS = (8, 24)  # the ADC resolutions of real image sensors (8-16 bit; scientific cameras up to 24)
 
 
 @dataclass(frozen=True)
@@ -72,10 +73,10 @@ class SensorSpec(SpecMixin):
         require_number(f"{p}.read_noise_std_e", self.read_noise_std_e, lo=0)
         require_number(f"{p}.dark_current_mean_e", self.dark_current_mean_e, lo=0)
         require_number(f"{p}.pixel_pitch_m", self.pixel_pitch_m, lo=0, lo_open=True)
-        for key, lo, hi in (("bit_depth", 1, 32), ("resolution", 8, 65536), ("image_size", 8, 65536),
-                            ("padded_size", 8, 65536)):
+        for key, lo, hi in (("resolution", 8, 65536), ("image_size", 8, 65536), ("padded_size", 8, 65536)):
             object.__setattr__(self, key, require_number(f"{p}.{key}", getattr(self, key), lo=lo, hi=hi,
                                                          integer=True))
+        self._check_bit_depth()
         if self.padded_size < self.image_size:
             raise ConfigError(f"{p}.padded_size", self.padded_size, f"must be >= {p}.image_size ({self.image_size})")
         if self.resolution < self.image_size:
@@ -88,6 +89,25 @@ class SensorSpec(SpecMixin):
         for key in ("pixel_integration", "background_veil", "laser_halo"):
             if not isinstance(getattr(self, key), bool):
                 raise ConfigError(f"{p}.{key}", getattr(self, key), "must be true or false")
+
+    def _check_bit_depth(self) -> None:
+        """bit_depth: what real sensors digitize with, and a full scale above the black level (the read-noise
+        offset): a 1-bit sensor read every pixel as full scale (1 DN) and reported none of them saturated."""
+        p, (lo, hi) = self.prefix, BIT_DEPTHS
+        allowed = (f"must be an integer >= {lo} and <= {hi} (image sensors digitize with 8 to 16 bits, scientific "
+                   f"cameras up to {hi})")
+        try:
+            bits = require_number(f"{p}.bit_depth", self.bit_depth, lo=lo, hi=hi, integer=True)
+        except ConfigError:
+            raise ConfigError(f"{p}.bit_depth", self.bit_depth, allowed) from None
+        object.__setattr__(self, "bit_depth", bits)
+        black = self.gain_dn_per_e * (self.read_noise_mean_e + self.dark_current_mean_e)
+        if self.saturation_dn <= black:
+            need = max(lo, math.floor(math.log2(black + 1)) + 1)
+            raise ConfigError(f"{p}.bit_depth", bits, f"its full scale 2^{bits} - 1 = {self.saturation_dn:.0f} DN is "
+                              f"not above the black level {black:.4g} DN ({p}.gain_dn_per_e x ({p}.read_noise_mean_e "
+                              f"+ {p}.dark_current_mean_e)): every pixel would read full scale; need bit_depth >= "
+                              f"{need}")
 
     # ---- derived -------------------------------------------------------------------------------------------
     @property

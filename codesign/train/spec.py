@@ -7,6 +7,8 @@ from codesign.config.store import register, spec_node
 from codesign.errors import ConfigError, require_number
 from codesign.spec_base import SpecMixin
 
+MAX_STEPS = 10**7  # generator updates: 20x the paper's 500,000 (trainer=paper)
+
 
 @dataclass(frozen=True)
 class TrainerSpec(SpecMixin):
@@ -54,7 +56,8 @@ class TrainerSpec(SpecMixin):
 
     def __post_init__(self) -> None:
         p = self.prefix
-        require_number(f"{p}.steps", self.steps, lo=1, integer=True)
+        # bounded: 1e12 steps was accepted (while 2.5 was refused) and would never end; 20x the paper's 500k
+        require_number(f"{p}.steps", self.steps, lo=1, hi=MAX_STEPS, integer=True)
         for k in ("lr_weights", "lr_biases"):
             require_number(f"{p}.{k}", getattr(self, k), lo=0, lo_open=True, hi=1)
         betas = list(self.betas) if hasattr(self.betas, "__len__") and not isinstance(self.betas, str) else None

@@ -133,6 +133,8 @@ def _read(path: Any, key: str, allowed: str) -> Any:
     nested no deeper than Python reads; ConfigError naming ``key`` otherwise."""
     if not isinstance(path, (str, os.PathLike)):
         raise ConfigError(key, path, allowed)
+    if not os.fspath(path).strip():  # Path('') is '.', which was refused as "a directory"
+        raise ConfigError(key, path, f"{allowed}; an empty path names no file (null for none)")
     file = Path(path).expanduser()
     try:
         info = file.stat()

@@ -33,9 +33,12 @@ class ZernikeSpec(PhaseFitSpec):
         require_max_coeff(f"{p}.max_coeff_rad", self.max_coeff_rad)
 
 
+MAX_COEFF_LIMIT = 1e4  # rad: the widest coefficients' box a config may set (the config's bound on a phase)
+
+
 def require_max_coeff(key: str, value) -> float:
-    """The coefficients' box [rad RMS]: > 0, at most the config's bound on a phase (1e4 rad)."""
-    return require_number(key, value, lo=0, lo_open=True, hi=1e4)
+    """The coefficients' box [rad RMS]: > 0, at most the config's bound on a phase (MAX_COEFF_LIMIT)."""
+    return require_number(key, value, lo=0, lo_open=True, hi=MAX_COEFF_LIMIT)
 
 
 def noll_to_nm(j: int) -> tuple[int, int]:
@@ -157,9 +160,14 @@ class ZernikeMask(Mask):
         if len(coeffs) != n_terms:
             raise ConfigError(f"{prefix}.coeffs", coeffs, f"must hold n_terms = {n_terms} coefficients, it holds "
                               f"{len(coeffs)}")
+        bound, box = MAX_COEFF_LIMIT, "the widest box max_coeff_rad may set"  # a record without its own box
         if "max_coeff_rad" in record:
-            require_max_coeff(f"{prefix}.max_coeff_rad", record["max_coeff_rad"])
+            bound, box = require_max_coeff(f"{prefix}.max_coeff_rad", record["max_coeff_rad"]), "its max_coeff_rad"
         require_phases(f"{prefix}.coeffs", coeffs)
+        for i, c in enumerate(coeffs):  # 1e5 rad in a box of 50 was accepted: no design of the family reaches it
+            if abs(c) > bound:
+                raise ConfigError(f"{prefix}.coeffs[{i}]", c, f"outside the coefficients' box ({box}): must be "
+                                  f">= -{bound:g} and <= {bound:g} rad")
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any], grid: PupilGrid, aperture_diameter_m: float,
