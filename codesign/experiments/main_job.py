@@ -39,14 +39,13 @@ from codesign.config.runtime import check_seed, to_container
 from codesign.design.merit import published_reference
 from codesign.design.search_spec import SearchSpec
 from codesign.errors import ConfigError
-from codesign.experiments.specs import material_of, metrics_spec
+from codesign.experiments.specs import eval_settings, material_of, metrics_spec
 from codesign.fab.laser_lines import lines_summary, run_lines
 from codesign.io import files as io
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask
 from codesign.optics.masks import FAMILIES, published_mask_config
 from codesign.train import distributed
-from codesign.train.evaluation import eval_settings
-from codesign.train.data import SimulatedData
+from codesign.train.data import build_simulated_data
 from codesign.train.lsr_constraint import CodesignSpec
 from codesign.train.memory import check_training_fits
 from codesign.train.model_setup import build_model
@@ -158,7 +157,7 @@ class _Job:
 def _build(cfg: DictConfig, run_dir: Path, device: torch.device) -> _Job:
     """Every setting checked before any work, the published mask's certified peak (the worst line's with
     codesign.lsr_over=wavelengths), the ceiling from it, the stage folders and the progress line."""
-    settings = stage_settings.settings(cfg)  # as composed (init.checkpoint=auto as typed): what the user gave
+    settings = stage_settings.settings(to_container(cfg))  # as composed: init.checkpoint=auto as typed
     for stage in STAGES:  # a restart reuses a stage only with the settings it was made with: checked first
         stage_settings.check_stage(run_dir / stage, stage, settings, STAGE_UNREAD.get(stage, ()))
     job = _check(cfg, device)
@@ -210,7 +209,7 @@ def _check(cfg: DictConfig, device: torch.device) -> _Job:
     probe, model = _stage_cfg(cfg, published_cfg), build_model(cfg)
     if init.checkpoint:
         load_initial_weights(model, init.checkpoint, cfg)
-    check_training_fits(model, SimulatedData(probe, device, seed), spec, device, "joint")
+    check_training_fits(model, build_simulated_data(probe, device, seed), spec, device, "joint")
     return _Job(cfg, Path(), device, seed, cs, spec, init, asked, search, mask_cfg, published_cfg)
 
 

@@ -14,8 +14,6 @@ import json
 import logging
 from pathlib import Path
 
-from omegaconf import DictConfig, OmegaConf
-
 from codesign.errors import ConfigError
 from codesign.io import files as io
 
@@ -39,11 +37,10 @@ def _skipped(key: str, prefixes: tuple) -> bool:
     return any(key == p or key.startswith(p + ".") for p in prefixes)
 
 
-def settings(cfg) -> dict:
-    """The settings a stage records: ``cfg`` (a DictConfig or a plain dict) resolved and flattened to dotted keys,
-    as JSON stores them (tuples as lists), less EXECUTION."""
-    plain = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else cfg
-    flat = json.loads(json.dumps(_flat(plain), default=str))
+def settings(values: dict) -> dict:
+    """The settings a stage records: the run's config ``values`` (plain containers, interpolations resolved: the
+    experiment's to_container) flattened to dotted keys, as JSON stores them (tuples as lists), less EXECUTION."""
+    flat = json.loads(json.dumps(_flat(values), default=str))
     return {k: v for k, v in flat.items() if not _skipped(k, EXECUTION)}
 
 

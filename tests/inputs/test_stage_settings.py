@@ -8,8 +8,9 @@ import logging
 
 import pytest
 
-from codesign.errors import ConfigError
 import codesign.experiments as experiments
+from codesign.config.runtime import to_container
+from codesign.errors import ConfigError
 from codesign.train import stage_settings
 from tests.inputs._run import compose_cfg, config_error
 from tests.inputs._run import fresh_run_folder_state  # noqa: F401 (autouse: the guard's records, fresh per test)
@@ -86,7 +87,7 @@ def _recorded_stage(run_dir, stage: str, *overrides: str) -> None:
     """A finished stage of a killed main job, its record as the main job writes it for ``overrides``."""
     cfg = compose_cfg(*SMOKE, *overrides)
     experiments.apply_debug(cfg, frozenset())
-    stage_settings.begin_stage(run_dir / stage, stage, stage_settings.settings(cfg))
+    stage_settings.begin_stage(run_dir / stage, stage, stage_settings.settings(to_container(cfg)))
     (run_dir / stage / "metrics.json").write_text("{}")
 
 
