@@ -2,7 +2,8 @@
 
 ``--help`` / ``-h`` prints codesign's own help (the experiments from their modules' EXPERIMENT summaries) and
 ``--version`` codesign's version, both before Hydra runs; ``--hydra-help``, ``--cfg job``, ``-m`` and the other flags
-are Hydra's.
+are Hydra's. Before Hydra reads the overrides, a leading ``~`` of hydra.run.dir / hydra.sweep.dir is expanded and an
+override Hydra cannot parse is reported with Hydra's message and a hint on quoting (codesign/config/argv.py).
 
 Under ``torchrun`` the process group is joined before Hydra composes the config, so that every rank agrees on
 rank 0's run directory (codesign/train/distributed.py).
