@@ -17,14 +17,24 @@ def save_png16(path: Path, values: np.ndarray, scale: float = 1.0) -> None:
     atomic_write_bytes(path, lambda fh: Image.fromarray(arr).save(fh, format="PNG"))
 
 
+def _read_tiff(path: Path, key: str) -> np.ndarray:
+    """The first image of a TIFF file; ConfigError naming ``key`` when the file holds none (a TIFF's magic number
+    over other bytes: tifffile then finds no page and returns an empty array, once described as "has shape (0,)")."""
+    import tifffile
+
+    with tifffile.TiffFile(path) as tif:
+        if not len(tif.pages):
+            raise ConfigError(key, str(path), "cannot be read as a TIFF (no image in it: its header is a TIFF's, its "
+                              "image directory is not): expected a single-channel 16-bit PNG or TIFF")
+        return tif.pages[0].asarray()
+
+
 def read_counts(path: Path, key: str = "input") -> np.ndarray:
     """The raw integer samples of a single-channel 16-bit PNG or TIFF, as float64 counts; ConfigError naming
     ``key`` and the file for anything else."""
     try:
         if path.suffix.lower() in (".tif", ".tiff"):
-            import tifffile
-
-            arr = tifffile.imread(path)
+            arr = _read_tiff(path, key)
         else:
             from PIL import Image
 

@@ -145,6 +145,9 @@ def _read(path: Path, key: str) -> tuple[np.ndarray, str]:
     if not isinstance(raw, np.ndarray) or raw.dtype.kind not in "fiu":
         what = raw.dtype if isinstance(raw, np.ndarray) else type(raw).__name__
         raise ConfigError(key, str(path), f"holds {what} values: expected real numbers (float or integer samples)")
+    if raw.dtype.kind in "iu" and raw.dtype.itemsize == 1:  # as an 8-bit PNG is refused (read_counts)
+        raise ConfigError(key, str(path), f"has {raw.dtype} samples: 8-bit integers cannot hold a PSF's range (its "
+                          f"peak over its halo); {ALLOWED} (or 16-bit integer counts)")
     if raw.ndim != 2:
         raise ConfigError(key, str(path), f"has shape {raw.shape}: expected one 2-D frame (H, W)")
     if raw.dtype == np.uint16 and (raw == SATURATED).any():

@@ -190,3 +190,30 @@ def test_scenes_smaller_than_the_crop_are_counted_in_one_warning(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error", SceneLoadWarning)  # no small scene: no warning
         build_scene_sampler(cfg, "all", torch.Generator())
+
+
+@pytest.mark.parametrize("head", [b"II*\x00", b"MM\x00*"], ids=["little-endian", "big-endian"])
+def test_a_tiff_header_over_garbage_cannot_be_read_as_a_tiff(tmp_path, head):
+    # random bytes behind a TIFF's magic number: tifffile finds no page and returns an empty array, which was
+    # described as "has shape (0,): expected one channel (H, W)"
+    path = tmp_path / "a.tif"
+    path.write_bytes(head + np.random.default_rng(0).bytes(4096))
+    with pytest.raises(ConfigError, match="^input = " + re.escape(repr(str(path))) + r": cannot be read as a TIFF "
+                                          r"\(no image in it: .*\): expected a single-channel 16-bit PNG or TIFF$"):
+        read_counts(path)
+
+
+@pytest.mark.parametrize("dtype", [np.int8, np.uint8])
+def test_an_8_bit_npy_psf_is_refused_as_an_8_bit_png_is(tmp_path, dtype):
+    # an 8-bit PNG is refused (it cannot hold a PSF's range); the same samples saved as .npy were taken
+    from codesign.optics import OpticsSpec
+    from codesign.optics.measured import load_measured
+
+    frame = np.zeros((64, 64), dtype)
+    frame[30:34, 30:34] = 100
+    path = tmp_path / "psf.npy"
+    np.save(path, frame)
+    spec = OpticsSpec.with_samples_across(192, focal_n=160).replace(psf_file=str(path), psf_pitch_m=5.4e-6)
+    with pytest.raises(ConfigError, match="^optics.psf_file = " + re.escape(repr(str(path))) +
+                       f": has {np.dtype(dtype).name} samples: 8-bit integers cannot hold a PSF's range"):
+        load_measured(spec)
