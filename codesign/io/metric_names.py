@@ -7,8 +7,9 @@ published system's figure; laser strengths are written ``alpha_l_0``, ``alpha_l_
 
 Until issue 39 the matched scores were ``*_affine``, the published system's figures ``*_baseline`` (which clashed
 with ``+experiment=baseline``) and simulate wrote ``alpha_l_1e+06``. ``upgrade`` renames those keys (at any depth)
-and says which it renamed; ``python -m codesign.io.metric_names FILE...`` rewrites files in place (atomically;
-``--check`` only lists what it would rename and exits 1 when anything is old).
+and says which it renamed; ``python -m codesign.io.metric_names FILE...`` rewrites files in place (every file read and
+checked before any is rewritten, each atomically, NaN / Infinity kept; ``--check`` only lists what it would rename
+and exits 1 when anything is old; a file that cannot be read or renamed: exit 2, nothing rewritten).
 """
 from __future__ import annotations
 
@@ -59,24 +60,63 @@ def read_metrics(path: Path) -> dict:
     return upgrade(json.loads(Path(path).read_text()))[0]
 
 
+PROG = "python -m codesign.io.metric_names"
+
+
+def _upgraded(path: Path) -> tuple[Any, dict[str, str]]:
+    """(the file's JSON under today's names, {old: new}); ValueError with why the file cannot be rewritten."""
+    if path.is_dir():
+        raise ValueError("is a folder, not a JSON file")
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise ValueError("no such file") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise ValueError(f"cannot be read ({getattr(err, 'strerror', None) or err})") from None
+    try:
+        data = json.loads(text)  # NaN and Infinity read as floats, and written back as they were (allow_nan)
+    except json.JSONDecodeError as err:
+        raise ValueError(f"is not JSON ({err})") from None
+    try:
+        return upgrade(data)
+    except ValueError as err:  # an old key and its new name in one object
+        raise ValueError(f"cannot be renamed: {err}") from None
+
+
+def _rewrite(path: Path, data: Any) -> None:
+    """``data`` written to ``path`` atomically, in the file's key order, NaN / Infinity kept (io.write_json would
+    write them as null)."""
+    from codesign.io.files import atomic_write_bytes
+
+    text = json.dumps(data, indent=2, allow_nan=True) + "\n"
+    atomic_write_bytes(path, lambda f: f.write(text.encode()))
+
+
 def main(argv: list[str] | None = None) -> int:
     """Rename the old metric names in the given JSON files (``--check``: only list them, exit 1 if any); returns the
-    exit status."""
-    ap = argparse.ArgumentParser(prog="python -m codesign.io.metric_names", description=__doc__.split("\n\n")[0])
+    exit status: 2, nothing rewritten, when any file cannot be read or renamed (every file is checked first)."""
+    ap = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
     ap.add_argument("files", nargs="+", type=Path, help="JSON files (metrics.json, results files)")
     ap.add_argument("--check", action="store_true", help="list what would be renamed; exit 1 if anything would")
     args = ap.parse_args(argv)
-    from codesign.io.files import write_json
-
-    old = 0
+    upgraded, bad = [], []
     for path in args.files:
-        data, renamed = upgrade(json.loads(path.read_text()))
+        try:
+            upgraded.append((path, *_upgraded(path)))
+        except ValueError as err:
+            bad.append(f"{PROG}: {path}: {err}")
+    if bad:
+        for line in bad:
+            print(f"{line}; nothing was rewritten (every file is checked before any is)", file=sys.stderr)
+        return 2
+    old = 0
+    for path, data, renamed in upgraded:
         if not renamed:
             continue
         old += 1
         print(f"{path}: " + ", ".join(f"{k} -> {v}" for k, v in sorted(renamed.items())))
         if not args.check:
-            write_json(path, data)
+            _rewrite(path, data)
     return 1 if args.check and old else 0
 
 
