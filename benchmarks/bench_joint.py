@@ -20,6 +20,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import torch
+from omegaconf import OmegaConf
 
 from benchmarks.common import Report, cuda_sync, device, finish, joint_trainer, markdown_table
 
@@ -136,7 +137,7 @@ def measure_preset(overrides: list[str], dev: torch.device, warmup: int, repeats
                 tr.codesign = codesign
 
         frozen = timed_steps(tr, frozen_step, warmup, repeats, sync)
-        cfg, data = tr.data.cfg, tr.data
+        cfg, data = OmegaConf.create(tr.config), tr.data
         info = {"model": tr.model.summary().get("variant", tr.model.kind), "model_size": str(cfg.model.size),
                 "image_size": data.image_size, "padded_size": data.padded_size,
                 "batch_size": int(cfg.data.batch_size), "pupil_n": tr.codesign.camera.system.grid.n,

@@ -97,12 +97,12 @@ def measure(scale: str) -> dict:
     from codesign.data.params import laser_preset_name
     from codesign.train.evaluation import Evaluator
     from codesign.camera import field_of_view as centre
-    from codesign.train.data import SimulatedData
+    from codesign.train.data import build_simulated_data
     from codesign.models import classical_wiener, otf_from_kernel, parameter_count
 
     dev = device()
     p = plan(scale, dev)
-    data = SimulatedData(_config("sgan_b", "tiny", p, 1), dev, 0)  # physics + scenes: the same for all
+    data = build_simulated_data(_config("sgan_b", "tiny", p, 1), dev, 0)  # physics + scenes: the same for all
     start = data.state_dict()
     names = data.source.split_names("test")
     scenes = data.source.fixed_batch(names, data.camera.scene_size)

@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 import torch
+from omegaconf import OmegaConf
 
 from benchmarks.common import (Report, bench_trainer, compose, cuda_sync, device, finish, joint_trainer,
                                markdown_table, peak_cuda_mib, timeit)
@@ -38,7 +39,7 @@ GPU_SIZE = ["model.size=paper", "data.image_size=256", "data.padded_size=384", "
 def joint_step(dev: torch.device, options: dict, steps: int) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         tr = joint_trainer(GPU_SIZE if dev.type == "cuda" else [], dev, Path(tmp), **options)
-        cfg = tr.data.cfg
+        cfg = OmegaConf.create(tr.config)
         sync = cuda_sync(dev)
         peak_cuda_mib(dev, reset=True)
         t0 = time.perf_counter()

@@ -299,12 +299,12 @@ def bench_trainer(cfg, dev: torch.device, run_dir: Path, codesign=None, **option
     ``codesign``: called with the data and the trainer spec, it returns the MaskCodesign (None: the mask stays
     frozen); ``options``: further TrainerSpec fields (amp, channels_last, compile)."""
     from codesign.config.runtime import to_container
-    from codesign.train.data import SimulatedData
+    from codesign.train.data import build_simulated_data
     from codesign.train.model_setup import build_trainer
     from codesign.train.spec import TrainerSpec
 
     model = fresh_model(cfg)
-    data = SimulatedData(cfg, dev, 0)
+    data = build_simulated_data(cfg, dev, 0)
     spec = TrainerSpec.from_config(to_container(cfg.trainer)).replace(
         steps=10**6, val_every=0, checkpoint_every=0, image_every=0, **options)
     return build_trainer(cfg, model, data, run_dir, dev, 0, spec=spec,

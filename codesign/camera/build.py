@@ -60,12 +60,14 @@ def build_camera(cfg: DictConfig, device, dtype=torch.float32) -> Camera:
         raise ConfigError("optics.scene_spectrum", [list(p) for p in optics.scene_spectrum], "a measured PSF "
                           "(optics.psf_file) is the scene's PSF as measured: set optics.scene_spectrum=null, or "
                           "optics.psf_file=null to compute the band's PSF from the mask")
-    material = Material.from_config(to_container(cfg.get("material")))  # fused silica when a config has none
+    # the material is read where a wavelength other than the design's needs it (fused silica when a config has none)
+    other = optics.scene_spectrum is not None or not optics.is_design_wavelength(sensor.wavelength_laser_m)
+    material = Material.from_config(to_container(cfg.get("material"))) if other else None
     return Camera(system, mask, SensorSimulator(sensor, optics), device, measured,
                   laser_line(material, system, sensor), scene_spectrum(material, system))
 
 
-def scene_spectrum(material: Material, system: OpticalSystem) -> tuple | None:
+def scene_spectrum(material: Material | None, system: OpticalSystem) -> tuple | None:
     """(LaserLines of optics.scene_spectrum's wavelengths through ``material``, their weights), or None for the
     design wavelength."""
     spectrum = system.spec.scene_spectrum
@@ -79,7 +81,7 @@ def scene_spectrum(material: Material, system: OpticalSystem) -> tuple | None:
     return lines, tuple(w for _, w in spectrum)
 
 
-def laser_line(material: Material, system: OpticalSystem, sensor: SensorSpec) -> LaserLines | None:
+def laser_line(material: Material | None, system: OpticalSystem, sensor: SensorSpec) -> LaserLines | None:
     """The LaserLines of the laser's line (sensor.wavelength_laser_m) when it is not the design wavelength: the
     mask's surface (optics.wrap_waves, ``material``) seen there; None at the design wavelength."""
     lam, spec = sensor.wavelength_laser_m, system.spec

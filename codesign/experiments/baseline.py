@@ -12,15 +12,15 @@ from codesign.io import files as io
 from codesign.io.tensorboard import open_writer
 from codesign.train import distributed
 from codesign.train.checkpoint import CHECKPOINT_NAME
-from codesign.train.data import SimulatedData
-from codesign.train.evaluation import eval_settings, run_evaluation
+from codesign.train.data import build_simulated_data
+from codesign.train.evaluation import run_evaluation
 from codesign.train.mask_pool import build_mask_pool
 from codesign.train.memory import check_training_fits
 from codesign.train.resume import initial_checkpoint, load_initial_weights, resume_if_possible
 from codesign.train.model_setup import build_model, build_trainer, distributed_metrics, run_metrics
 from codesign.train.spec import InitSpec, TrainerSpec
 from codesign.train.optim import init_weights
-from codesign.experiments.specs import camera_reports
+from codesign.experiments.specs import camera_reports, eval_settings
 from codesign.experiments.protocol import Experiment
 
 log = logging.getLogger("codesign.restoration")
@@ -78,7 +78,7 @@ def _build(cfg: DictConfig, run_dir: Path, device: torch.device) -> dict:
     start = initial_checkpoint(init.checkpoint, cfg)
     warm = load_initial_weights(model, start, cfg) if start else {}
     ctx = distributed.current()
-    data = SimulatedData(cfg, device, seed, ctx)
+    data = build_simulated_data(cfg, device, seed, ctx)
     data.use_pool(build_mask_pool(cfg, data.camera, seed))  # data.masks: one restorer for a pool of masks
     sampling = camera_reports(data.camera, cfg, log) if ctx.is_main else {}
     memory = check_training_fits(model, data, spec, device, "baseline")  # before any training
@@ -86,7 +86,7 @@ def _build(cfg: DictConfig, run_dir: Path, device: torch.device) -> dict:
     resume_if_possible(trainer, cfg, run_dir)
     # purge_step drops the events a killed run logged after its last checkpoint; rank 0 alone writes
     trainer.writer = open_writer(run_dir, tensorboard_enabled(cfg) and ctx.is_main, purge_step=trainer.step)
-    common = run_metrics(cfg, model, device)
+    common = run_metrics(model, device, data)
     log.info("network %s (%s, %s): generators %.2fM parameters, critics %.2fM; %d steps, batch %d, %d px padded to %d; "
              "VGG loss %s", common["network"], common["variant"], common["size"], common["parameters_generators"] / 1e6,
              common["parameters_critics"] / 1e6, spec.steps, int(cfg.data.batch_size), data.image_size,

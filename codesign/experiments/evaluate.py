@@ -12,12 +12,12 @@ from codesign.config.runtime import check_seed, explicit_keys, mask_typed, tenso
 from codesign.errors import ConfigError
 from codesign.io import files as io
 from codesign.io.tensorboard import log_summary, open_writer
-from codesign.train.data import SimulatedData
-from codesign.train.evaluation import eval_settings, run_evaluation
+from codesign.train.data import build_simulated_data
+from codesign.train.evaluation import run_evaluation
 from codesign.train.checkpoint import nonfinite_summary, stored_config_error
 from codesign.train.resume import apply_checkpoint_mask, load_trained
 from codesign.train.model_setup import run_metrics
-from codesign.experiments.specs import camera_reports, with_measured_psf
+from codesign.experiments.specs import camera_reports, eval_settings, with_measured_psf
 from codesign.experiments.protocol import Experiment
 
 log = logging.getLogger("codesign.evaluate")
@@ -74,7 +74,7 @@ def simulated_data(merged: DictConfig, cfg: DictConfig, typed: frozenset[str], p
     """The simulator of the merged configuration; a value it refuses that came from the checkpoint is named as
     stored in that file (it used to read as if typed here: "data.padded_size = 64: must be >= data.image_size")."""
     try:
-        return SimulatedData(merged, device, seed)
+        return build_simulated_data(merged, device, seed)
     except ConfigError as err:
         if from_this_run(err, cfg, typed, any_size):
             raise
@@ -134,7 +134,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     if not mask_typed(typed):  # a co-designed checkpoint's learned mask, unless a mask is given here
         apply_checkpoint_mask(data.camera.mask, state, path)
         data.camera.invalidate()
-    metrics = {**run_metrics(merged, model, device), "checkpoint": str(path), "steps": int(state["step"]),
+    metrics = {**run_metrics(model, device, data), "checkpoint": str(path), "steps": int(state["step"]),
                **camera_reports(data.camera, merged, log)}
     metrics.update(run_evaluation(ev, CheckedRestorer(model, path), generators, data, run_dir, seed))
     io.write_json(run_dir / "metrics.json", metrics)

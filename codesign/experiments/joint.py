@@ -33,8 +33,8 @@ from codesign.optics.masks import published_mask_config
 from codesign.train import distributed
 from codesign.train.base_tuning import tune_base_nsr
 from codesign.train.checkpoint import CHECKPOINT_NAME
-from codesign.train.data import SimulatedData
-from codesign.train.evaluation import conditions, eval_settings, run_evaluation
+from codesign.train.data import SimulatedData, build_simulated_data
+from codesign.train.evaluation import conditions, run_evaluation
 from codesign.train.mask_codesign import MaskCodesign
 from codesign.train.memory import check_training_fits
 from codesign.train.resume import initial_checkpoint, load_initial_weights, resume_if_possible
@@ -43,7 +43,7 @@ from codesign.train.spec import InitSpec, TrainerSpec
 from codesign.train.summary import comparison_figure, joint_summary, restorer_scores
 from codesign.train.optim import init_weights
 from codesign.experiments.main_job import IMAGES_FILE, run_protocol, save_images
-from codesign.experiments.specs import material_of, metrics_spec
+from codesign.experiments.specs import eval_settings, material_of, metrics_spec
 from codesign.experiments.protocol import Experiment
 
 log = logging.getLogger("codesign.joint")
@@ -195,7 +195,7 @@ def _build(cfg: DictConfig, run_dir: Path, device: torch.device) -> _Joint:
     init = InitSpec.from_config(to_container(cfg.get("init")) or {})
     model, warm = _network(cfg, init, seed)
     ctx = distributed.current()
-    data = SimulatedData(cfg, device, seed, ctx)
+    data = build_simulated_data(cfg, device, seed, ctx)
     camera, system = data.camera, data.camera.system
     reference = published_reference(to_container(cfg.mask), system)
     monitor = MaskMonitor(system, reference, ms.mtf_band, ms.lsr_p, ms.lsr_grids)
@@ -214,7 +214,7 @@ def _build(cfg: DictConfig, run_dir: Path, device: torch.device) -> _Joint:
     job.mask = MaskCodesign(camera=camera, spec=cs, lsr_max=lsr_max, lsr_p=ms.lsr_p, lsr_grids=ms.lsr_grids,
                             steps=spec.steps, device=device, monitor=monitor, dist=ctx, lines=constrained)
     job.trainer = build_trainer(cfg, model, data, run_dir, device, seed, ctx, spec, codesign=job.mask)
-    job.common = run_metrics(cfg, model, device)
+    job.common = run_metrics(model, device, data)
     _log_start(job)
     job.trainer.steps_after = spec.steps if cs.compare_published else 0  # the ETA covers the published training too
     return job
@@ -360,7 +360,7 @@ def _published_train(cfg, published_cfg, init, spec, steps, seed, device, run_di
     pub_spec = TrainerSpec.from_config({**to_container(cfg.trainer), "steps": steps, "time_budget_s": None,
                                         "resume": None})
     model, warm = _network(pub_cfg, init, seed)  # the same initial weights as the joint network
-    data = SimulatedData(pub_cfg, device, seed, ctx)
+    data = build_simulated_data(pub_cfg, device, seed, ctx)
     if not warm:
         _tune_base(model, data, eval_settings(pub_cfg))
     trainer = build_trainer(pub_cfg, model, data, sub, device, seed, ctx, pub_spec)

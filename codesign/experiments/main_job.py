@@ -39,14 +39,13 @@ from codesign.config.runtime import check_seed, to_container
 from codesign.design.merit import published_reference
 from codesign.design.search_spec import SearchSpec
 from codesign.errors import ConfigError
-from codesign.experiments.specs import material_of, metrics_spec
+from codesign.experiments.specs import eval_settings, material_of, metrics_spec
 from codesign.fab.laser_lines import lines_summary, run_lines
 from codesign.io import files as io
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask
 from codesign.optics.masks import FAMILIES, published_mask_config
 from codesign.train import distributed
-from codesign.train.evaluation import eval_settings
-from codesign.train.data import SimulatedData
+from codesign.train.data import build_simulated_data
 from codesign.train.lsr_constraint import CodesignSpec
 from codesign.train.memory import check_training_fits
 from codesign.train.model_setup import build_model
@@ -210,7 +209,7 @@ def _check(cfg: DictConfig, device: torch.device) -> _Job:
     probe, model = _stage_cfg(cfg, published_cfg), build_model(cfg)
     if init.checkpoint:
         load_initial_weights(model, init.checkpoint, cfg)
-    check_training_fits(model, SimulatedData(probe, device, seed), spec, device, "joint")
+    check_training_fits(model, build_simulated_data(probe, device, seed), spec, device, "joint")
     return _Job(cfg, Path(), device, seed, cs, spec, init, asked, search, mask_cfg, published_cfg)
 
 

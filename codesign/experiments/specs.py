@@ -19,6 +19,7 @@ from codesign.optics.metrics import require_band_frequencies
 from codesign.optics.spec import OpticsSpec
 
 export_log = logging.getLogger("codesign.export")
+evaluate_log = logging.getLogger("codesign.evaluate")
 
 
 def metrics_spec(cfg) -> MetricsSpec:
@@ -72,8 +73,35 @@ def plate_settings(cfg: DictConfig) -> tuple:
     design = levels_of_design(mask_cfg)
     # an 8-level design is built as 8 levels (a continuous surface has none: its phase steps are kept as they are)
     if ex.levels is None and design is not None and design <= 256 and spec.wrap_waves is not None:
-        export_log.info("export.levels = null: the design has %d levels, so has the "
-                        "plate (export.levels chooses others)", design)
+        export_log.info("export.levels = null: the design has %d levels, so has the plate (export.levels chooses "
+                        "others)", design)
         ex = ex.replace(levels=design)
     dtype = resolve_dtype("precision", cfg.get("precision"))
     return spec, ex, material, mask_cfg, dtype
+
+
+def eval_settings(cfg) -> dict:
+    """Validate ``evaluate.*`` (and load LPIPS / DISTS when given), before any training or simulation: the settings
+    codesign.train.evaluation.run_evaluation takes."""
+    # here, not at the top: the experiments that evaluate no network (psf, export, ...) never load the networks
+    from codesign.models import quality
+    from codesign.train.evaluation import EvaluateSpec
+
+    ev = EvaluateSpec.from_config(dict(cfg.get("evaluate") or {}))
+    warn_heldout_over_folder(cfg, ev.scenes)
+    return {"scenes": ev.scenes, "split": ev.split, "max_scenes": ev.max_scenes, "lasers": list(ev.laser_strengths),
+            "stages": list(ev.stages), "tuning": ev.tuning_size, "batch_size": ev.batch_size,
+            "perceptual": quality.perceptual_metrics(ev.lpips_weights, ev.dists_weights),
+            "overrides": {} if ev.laser_angle_rad is None else {"laser_angle_rad": list(ev.laser_angle_rad)}}
+
+
+def warn_heldout_over_folder(cfg, scenes: str) -> None:
+    """A warning line when the scores will be the shipped photographs' (evaluate.scenes=heldout, the default) while
+    the run names a folder of scenes (data.scenes=folder): they used to be reported without a word about the folder.
+    Warned, not refused: scoring the fixed held-out set while the folder trains (or tunes the baselines) is a
+    legitimate choice, and the one that keeps scores comparable across runs."""
+    data = cfg.get("data") or {}
+    if scenes == "heldout" and data.get("scenes") == "folder":
+        evaluate_log.warning("evaluate.scenes = heldout: the scores are on the photographs shipped for evaluation "
+                             "(codesign/data/heldout/), not on data.folder = %s (data.scenes = folder); give "
+                             "evaluate.scenes=data to score that folder's evaluate.split", data.get("folder"))

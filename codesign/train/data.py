@@ -19,7 +19,7 @@ from omegaconf import DictConfig
 
 from codesign.camera import Camera, build_camera
 from codesign.data.params import preset_params, sample_scene_params
-from codesign.data.scenes import SceneSampler, build_scene_sampler, build_scene_source
+from codesign.data.scenes import DataConfig, SceneSampler, SceneSource, build_scene_sampler, build_scene_source
 from codesign.errors import ConfigError
 from codesign.train.distributed import SINGLE, DistContext
 
@@ -30,6 +30,14 @@ def _to_device(x: torch.Tensor, device: torch.device) -> torch.Tensor:
     return x.to(device)
 
 
+def build_simulated_data(cfg: DictConfig, device: torch.device, seed: int, dist: DistContext = SINGLE,
+                         camera: Camera | None = None) -> "SimulatedData":
+    """The SimulatedData of a composed config: through ``camera`` (default: build_camera of ``cfg``, checked first)
+    on the scenes and parameters of ``cfg.data``."""
+    camera = camera if camera is not None else build_camera(cfg, device, torch.float32)
+    return SimulatedData(camera, DataConfig.from_config(cfg.data), device, seed, dist)
+
+
 class SimulatedData:
     """Simulated training / validation / evaluation batches through ``camera``.
 
@@ -37,19 +45,22 @@ class SimulatedData:
     saturated and laser maps (B,1,n,n). P = data.padded_size, n = data.image_size. While the camera's mask is
     trainable, a training batch also carries ``otf`` and ``psf`` (the window PSF) with their graphs.
 
-    ``dist``: under torchrun a training batch is this rank's share of the global batch of data.batch_size (see
-    codesign/train/distributed.py); validation and evaluation batches are whole (rank 0 runs those).
+    ``data``: the data.* settings (scenes, batch size, flips, the Sec. 6.2 parameter ranges); ``source``: their
+    SceneSource (built from ``data`` when None; pass one to share its cache). ``dist``: under torchrun a training
+    batch is this rank's share of the global batch of data.batch_size (see codesign/train/distributed.py);
+    validation and evaluation batches are whole (rank 0 runs those). ``build_simulated_data`` builds one from a
+    composed config.
     """
 
-    def __init__(self, cfg: DictConfig, device: torch.device, seed: int, dist: DistContext = SINGLE,
-                 camera: Camera | None = None):
-        self.cfg, self.device, self.seed, self.dist = cfg, device, seed, dist
-        self.camera = camera if camera is not None else build_camera(cfg, device, torch.float32)
+    def __init__(self, camera: Camera, data: DataConfig, device: torch.device, seed: int,
+                 dist: DistContext = SINGLE, source: SceneSource | None = None):
+        self.device, self.seed, self.dist = device, seed, dist
+        self.camera, self.params = camera, data.params
         self.camera.check_padding()
-        self.source = build_scene_source(cfg.data)
+        self.source = source if source is not None else build_scene_source(data)
         self.scene_gen = torch.Generator().manual_seed(seed)
         self.param_gen = torch.Generator().manual_seed(seed + 1)
-        self.sampler = build_scene_sampler(cfg.data, "train", self.scene_gen, crop_size=self.camera.scene_size,
+        self.sampler = build_scene_sampler(data, "train", self.scene_gen, crop_size=self.camera.scene_size,
                                            source=self.source)
         if self.sampler.batch_size % dist.world:
             raise ConfigError("data.batch_size", self.sampler.batch_size, f"must be divisible by the number of "
@@ -96,7 +107,7 @@ class SimulatedData:
         """Sec. 6.2 parameters, the laser's spot placed over ``camera``'s sensor (default the run's)."""
         camera = self.camera if camera is None else camera
         side = camera.sensor.side_m
-        return sample_scene_params(batch, generator, self.source.config.params, sensor_width_m=side,
+        return sample_scene_params(batch, generator, self.params, sensor_width_m=side,
                                    sensor_height_m=side, focal_length_m=camera.optics.focal_length_m)
 
     def train_draw(self, step: int, camera: Camera | None = None) -> tuple:

@@ -396,28 +396,6 @@ class EvaluateSpec(SpecMixin):
 register("evaluate", "default", spec_node(EvaluateSpec))
 
 
-def eval_settings(cfg) -> dict:
-    """Validate ``evaluate.*`` (and load LPIPS / DISTS when given), before any training or simulation."""
-    ev = EvaluateSpec.from_config(dict(cfg.get("evaluate") or {}))
-    warn_heldout_over_folder(cfg, ev.scenes)
-    return {"scenes": ev.scenes, "split": ev.split, "max_scenes": ev.max_scenes, "lasers": list(ev.laser_strengths),
-            "stages": list(ev.stages), "tuning": ev.tuning_size, "batch_size": ev.batch_size,
-            "perceptual": quality.perceptual_metrics(ev.lpips_weights, ev.dists_weights),
-            "overrides": {} if ev.laser_angle_rad is None else {"laser_angle_rad": list(ev.laser_angle_rad)}}
-
-
-def warn_heldout_over_folder(cfg, scenes: str) -> None:
-    """A warning line when the scores will be the shipped photographs' (evaluate.scenes=heldout, the default) while
-    the run names a folder of scenes (data.scenes=folder): they used to be reported without a word about the folder.
-    Warned, not refused: scoring the fixed held-out set while the folder trains (or tunes the baselines) is a
-    legitimate choice, and the one that keeps scores comparable across runs."""
-    data = cfg.get("data") or {}
-    if scenes == "heldout" and data.get("scenes") == "folder":
-        log.warning("evaluate.scenes = heldout: the scores are on the photographs shipped for evaluation "
-                    "(codesign/data/heldout/), not on data.folder = %s (data.scenes = folder); give "
-                    "evaluate.scenes=data to score that folder's evaluate.split", data.get("folder"))
-
-
 def run_evaluation(ev: dict, model, generators, data, run_dir: Path, seed: int, keep: tuple[str, ...] = ()) -> dict:
     """Tune the baselines per condition on training-split crops, then score every method on the held-out
     photographs (evaluate.scenes=heldout) or the chosen split of the data source (evaluate.scenes=data).

@@ -23,24 +23,24 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from codesign.camera import Camera
+from codesign.config.runtime import to_container
 from codesign.data.scenes import DataConfig
 from codesign.errors import ConfigError
 from codesign.optics.masks import FAMILIES, build_mask, load_record, published_mask_config
 from codesign.optics.lines import LaserLines
-from codesign.optics.materials import material_of
+from codesign.optics.materials import Material
 from codesign.sensor.simulator import SensorSimulator
 from codesign.sensor.spec import SensorSpec, kernel_size
 from codesign.train.mask_draws import random_family_masks
 
 log = logging.getLogger("codesign.train")
 
-def pool_settings(cfg: DictConfig) -> dict | None:
-    """The checked data.masks / mask_every / mask_draws / mask_jitter, or None when data.masks is null; every
-    member's family ("masks": (member, family) pairs, None for 'published' and 'defocus:R')."""
-    dc = DataConfig.from_config(cfg.data)  # the list and the numbers, checked under their keys
+def pool_settings(dc: DataConfig) -> dict | None:
+    """The checked data.masks / mask_every / mask_draws / mask_jitter of ``dc``, or None when data.masks is null;
+    every member's family ("masks": (member, family) pairs, None for 'published' and 'defocus:R')."""
     if dc.masks is None:
         return None
     members = [(str(m), _check_item(f"data.masks[{i}]", m)) for i, m in enumerate(dc.masks)]
@@ -85,17 +85,17 @@ def random_member(key: str, item: str) -> tuple[str, int]:
     return parts[1], count
 
 
-def _member_masks(item: str, kind: str | None, cfg: DictConfig, system, draws: int, jitter: float, rng,
+def _member_masks(item: str, kind: str | None, published: dict, system, draws: int, jitter: float, rng,
                   lsr_range: tuple[float, float]) -> list:
     """(name, frozen Mask) of the member ``item`` (``kind``: its record's family) and its ``draws`` random draws
-    around it; a 'random:FAMILY:N' member is N random masks of the family (codesign/train/mask_draws.py)."""
+    around it; a 'random:FAMILY:N' member is N random masks of the family (codesign/train/mask_draws.py).
+    ``published``: the mask settings of the published mask under the run's conventions (published_mask_config)."""
     grid, aperture_m = system.grid, system.spec.aperture_diameter_m
     if item.startswith("random:"):
         family, count = random_member("data.masks", item)
         return random_family_masks(family, count, system, aperture_m, rng, lsr_range)
-    mask_cfg = OmegaConf.to_container(cfg.mask, resolve=True)
     if item == "published":
-        mask = build_mask(published_mask_config(mask_cfg), grid, aperture_m, prefix="data.masks")
+        mask = build_mask(published, grid, aperture_m, prefix="data.masks")
     elif item.startswith("defocus:"):
         mask = build_mask({**FAMILIES["spline"].Spec.defaults(), "kind": "spline"}, grid, aperture_m,
                           prefix="data.masks")
@@ -165,15 +165,15 @@ def scaled_sensor(sensor: SensorSpec, optics, scale: int, key: str = "data.scale
     return sensor.replace(resolution=resolution, padded_size=padded)
 
 
-def laser_lines(cfg: DictConfig, base: Camera) -> list[tuple]:
+def laser_lines(material: Material | None, base: Camera) -> list[tuple]:
     """(name, sensor spec, LaserLines or None) of every laser line the pool's lasers shine at: each of
     optics.laser_wavelengths_m when it is set (the lines the mask must protect against: the restorer meets their
-    PSFs too), else the run's own (sensor.wavelength_laser_m); name None for the run's own alone."""
+    PSFs too), seen through ``material`` (material.*; needed then only), else the run's own
+    (sensor.wavelength_laser_m); name None for the run's own alone."""
     system, sensor = base.system, base.simulator.sensor
     wavelengths = system.spec.laser_wavelengths_m
     if not wavelengths:
         return [(None, sensor, base.laser_line)]
-    material = material_of(cfg)
     out = []
     for lam in wavelengths:
         line = None if system.spec.is_design_wavelength(lam) else LaserLines(system, material.index, (lam,))
@@ -185,9 +185,10 @@ def build_mask_pool(cfg: DictConfig, base: Camera, seed: int) -> MaskPool | None
     """The pool of ``data.masks`` (times ``data.scales``, times the laser lines of optics.laser_wavelengths_m) around
     ``base`` (the run's camera), or None when data.masks is null; every member built and its optics computed before
     training starts."""
-    settings = pool_settings(cfg)
+    dc = DataConfig.from_config(cfg.data)  # the list and the numbers, checked under their keys
+    settings = pool_settings(dc)
     if settings is None:
-        scales = DataConfig.from_config(cfg.data).scales
+        scales = dc.scales
         if scales is not None:
             raise ConfigError("data.scales", list(scales), "trains over pixel scales with a pool of masks: set "
                               "data.masks too (e.g. [published]), or leave data.scales null")
@@ -197,11 +198,13 @@ def build_mask_pool(cfg: DictConfig, base: Camera, seed: int) -> MaskPool | None
                           "(optics.psf_file) fixes the optics (leave one of them null)")
     system, sensor = base.system, base.simulator.sensor
     scales = settings["scales"] or (None,)
-    lines = laser_lines(cfg, base)
+    lines_at = system.spec.laser_wavelengths_m  # the material only where the lines need it
+    lines = laser_lines(Material.from_config(to_container(cfg.get("material"))) if lines_at else None, base)
+    published = published_mask_config(to_container(cfg.mask))
     rng = np.random.default_rng(seed + 424243)
     names, cameras = [], []
     for item, kind in settings["masks"]:
-        for name, mask in _member_masks(item, kind, cfg, system, settings["draws"], settings["jitter"], rng,
+        for name, mask in _member_masks(item, kind, published, system, settings["draws"], settings["jitter"], rng,
                                         settings["lsr"]):
             for line_name, laser_sensor, line in lines:
                 donor = None

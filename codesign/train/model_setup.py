@@ -37,10 +37,11 @@ def distributed_metrics(trainer) -> dict:
             "parameters_max_rank_difference": trainer.replica_diff}
 
 
-def run_metrics(cfg, model, device) -> dict:
-    """The restorer, its size and where it ran: the keys every training or evaluation metrics.json starts with."""
+def run_metrics(model, device, data) -> dict:
+    """The restorer, its size and where it ran: the keys every training or evaluation metrics.json starts with;
+    the input sizes are ``data``'s (the SimulatedData it trains or is evaluated on: data.image_size, padded_size)."""
     return {**model.summary(), "device": str(device),
             "threads": torch.get_num_threads(), "torch": torch.__version__,
             "parameters_generators": sum(parameter_count(g) for g in model.generators()),
             "parameters_critics": sum(parameter_count(d) for d in model.critics()),
-            "image_size": int(cfg.data.image_size), "padded_size": int(cfg.data.padded_size)}
+            "image_size": int(data.image_size), "padded_size": int(data.padded_size)}

@@ -13,8 +13,8 @@ import codesign.__main__ as entry
 from codesign.config.argv import expand_run_dirs
 from codesign.errors import ConfigError
 from codesign.sensor.spec import SensorSpec
+from codesign.experiments.specs import eval_settings
 from codesign.train import memory as train_memory
-from codesign.train.evaluation import eval_settings
 from tests.inputs._run import compose_cfg, config_error
 
 ERR = "codesign: configuration error: "

@@ -11,8 +11,9 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from codesign.train.checkpoint import PRETRAINED, PRETRAINED_DIR, load_checkpoint
-from codesign.train.data import SimulatedData
-from codesign.train.evaluation import eval_settings, run_evaluation
+from codesign.train.data import build_simulated_data
+from codesign.experiments.specs import eval_settings
+from codesign.train.evaluation import run_evaluation
 from codesign.train.resume import initial_checkpoint, load_trained
 from tests.conftest import REPO_ROOT
 
@@ -46,7 +47,7 @@ def evaluation(tmp_path_factory):
     cfg.data.masks = None  # imaging through the typed mask alone
     cfg.evaluate = {"scenes": "data", "split": "test", "max_scenes": 4, "laser_strengths": [0.0, 1.0e6],
                     "stages": [], "tuning_size": 4}
-    data = SimulatedData(cfg, CPU, 0)
+    data = build_simulated_data(cfg, CPU, 0)
     return run_evaluation(eval_settings(cfg), model, generators, data, tmp_path_factory.mktemp("eval"), 0)
 
 

@@ -8,7 +8,7 @@ from codesign.train.lsr_constraint import CodesignSpec, LSRConstraint
 from codesign.optics.masks import published_mask_config
 from codesign.design.merit import MetricsSpec
 from codesign.optics import build_mask
-from codesign.train.data import SimulatedData
+from codesign.train.data import build_simulated_data
 from codesign.train.distributed import SINGLE
 from codesign.train.mask_codesign import MaskCodesign
 from codesign.train.model_setup import build_model
@@ -34,7 +34,7 @@ def tiny_trainer(tmp_path, *overrides: str, seed: int = 0, device: torch.device 
     torch.manual_seed(seed)
     model = build_model(cfg)
     init_weights(model)
-    data = SimulatedData(cfg, device, seed)
+    data = build_simulated_data(cfg, device, seed)
     spec = TrainerSpec.from_config(dict(cfg.trainer)).replace(**spec_changes)
     return Trainer(model=model, data=data, spec=spec, run_dir=tmp_path, device=device, config={"test": 1}, seed=seed)
 
@@ -50,7 +50,7 @@ def joint_trainer(tmp_path, *overrides: str, seed: int = 0, lsr_max: float | Non
     torch.manual_seed(seed)
     model = build_model(cfg)
     init_weights(model)
-    data = SimulatedData(cfg, device, seed, dist)
+    data = build_simulated_data(cfg, device, seed, dist)
     spec = TrainerSpec.from_config(dict(cfg.trainer)).replace(steps=steps, val_every=0, checkpoint_every=0,
                                                               image_every=0)
     cs = CodesignSpec.from_config({**dict(cfg.codesign), "warmup_fraction": 0.0, **codesign})

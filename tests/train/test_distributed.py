@@ -15,7 +15,7 @@ import torch
 from codesign.config import resolvers
 from codesign.train import distributed
 from codesign.train.distributed import DistContext
-from codesign.train.data import SimulatedData
+from codesign.train.data import build_simulated_data
 from codesign.errors import ConfigError
 from tests.cli import run_codesign, run_torchrun
 from tests.train._util import CPU, tiny_cfg
@@ -30,8 +30,8 @@ def _out(res) -> str:
 # ---- the shares of a global batch -----------------------------------------------------------------------------
 def test_rank_shares_of_a_training_batch_are_the_single_process_batch():
     cfg = tiny_cfg("data.batch_size=4")
-    whole = SimulatedData(cfg, CPU, 3).train_batch(5)
-    shares = [SimulatedData(cfg, CPU, 3, DistContext(r, 2, r)).train_batch(5) for r in range(2)]
+    whole = build_simulated_data(cfg, CPU, 3).train_batch(5)
+    shares = [build_simulated_data(cfg, CPU, 3, DistContext(r, 2, r)).train_batch(5) for r in range(2)]
     for key in ("scene", "irradiance", "sensor", "saturated"):
         joined = torch.cat([s[key] for s in shares])
         assert joined.shape == whole[key].shape
@@ -54,7 +54,7 @@ def test_a_samples_noise_does_not_depend_on_its_batch():
 
 def test_global_batch_must_split_evenly():
     with pytest.raises(ConfigError) as err:
-        SimulatedData(tiny_cfg("data.batch_size=2"), CPU, 0, DistContext(0, 3, 0))
+        build_simulated_data(tiny_cfg("data.batch_size=2"), CPU, 0, DistContext(0, 3, 0))
     assert str(err.value) == ("data.batch_size = 2: must be divisible by the number of processes (3): it is the "
                               "global batch, split evenly across the ranks")
 

@@ -8,7 +8,7 @@ from omegaconf import OmegaConf
 from codesign.errors import ConfigError
 from codesign.experiments.evaluate import merged_eval_config
 from codesign.train import checkpoint as ckpt
-from codesign.train.data import SimulatedData
+from codesign.train.data import build_simulated_data
 from codesign.train.mask_pool import MaskPool, build_mask_pool
 from tests.train._util import CPU, tiny_cfg
 
@@ -18,7 +18,7 @@ POOL = "data.masks=[published,defocus:20,defocus:50]"
 @pytest.fixture(scope="module")
 def pooled():
     cfg = tiny_cfg(POOL, "data.mask_draws=1", "data.mask_jitter=0.1", "data.mask_every=3")
-    data = SimulatedData(cfg, CPU, 0)
+    data = build_simulated_data(cfg, CPU, 0)
     data.use_pool(build_mask_pool(cfg, data.camera, 0))
     return cfg, data
 
@@ -68,7 +68,7 @@ def test_training_batch_carries_its_members_otf_and_validation_keeps_the_configu
 
 def test_pool_batch_equals_a_direct_simulation_through_the_member():
     cfg = tiny_cfg(POOL, "data.mask_every=1")
-    a, b = SimulatedData(cfg, CPU, 3), SimulatedData(cfg, CPU, 3)
+    a, b = build_simulated_data(cfg, CPU, 3), build_simulated_data(cfg, CPU, 3)
     a.use_pool(build_mask_pool(cfg, a.camera, 3))
     pool = build_mask_pool(cfg, b.camera, 3)
     for step in range(4):
@@ -80,7 +80,7 @@ def test_pool_batch_equals_a_direct_simulation_through_the_member():
 
 def test_trainable_mask_refuses_a_pool(pooled):
     cfg, data = pooled
-    other = SimulatedData(cfg, CPU, 0)
+    other = build_simulated_data(cfg, CPU, 0)
     other.camera.set_trainable(True)
     with pytest.raises(ConfigError, match="trains a restorer over frozen masks"):
         other.use_pool(data.pool)
@@ -107,7 +107,7 @@ def test_shipped_checkpoint_is_found_by_name_or_named_as_missing(tmp_path, monke
 
 def test_random_family_members_lie_in_the_lsr_range_and_repeat_for_a_seed():
     cfg = tiny_cfg("data.masks=[random:zernike:2,random:halfring,random:pixel]", "data.mask_lsr=[1e-3,2e-2]")
-    data = SimulatedData(cfg, CPU, 0)
+    data = build_simulated_data(cfg, CPU, 0)
     pool = build_mask_pool(cfg, data.camera, 0)
     assert [n.split(" (")[0] for n in pool.names] == ["random:zernike 1", "random:zernike 2", "random:halfring 1",
                                                       "random:pixel 1"]
@@ -122,7 +122,7 @@ def test_random_family_members_lie_in_the_lsr_range_and_repeat_for_a_seed():
 @pytest.mark.parametrize("item", ["random:cube", "random:spline:0", "random:spline:x", "random:"])
 def test_a_bad_random_member_is_named(item):
     cfg = tiny_cfg(f"data.masks=[published,'{item}']")
-    data = SimulatedData(cfg, CPU, 0)
+    data = build_simulated_data(cfg, CPU, 0)
     with pytest.raises(ConfigError, match=rf"^data\.masks\[1\] = '{item}': a random member is 'random:FAMILY' or "
                        r"'random:FAMILY:N', FAMILY one of halfring, pixel, spiral, spline, zernike"):
         build_mask_pool(cfg, data.camera, 0)
@@ -132,7 +132,7 @@ def test_pixel_scales_bin_the_same_sensor_and_pad_for_the_kernel():
     """data.scales: each member at every scale S, a crop of data.image_size px of the sensor binned to S px a side:
     the same pitch, a network pixel of resolution / S sensor pixels, and padding that holds the kernel."""
     cfg = tiny_cfg("data.masks=[published]", "data.scales=[48,96,192]", "data.mask_every=1")
-    data = SimulatedData(cfg, CPU, 0)
+    data = build_simulated_data(cfg, CPU, 0)
     pool = build_mask_pool(cfg, data.camera, 0)
     data.use_pool(pool)
     assert pool.names == ["published @ 48 px", "published @ 96 px", "published @ 192 px"]
@@ -153,17 +153,17 @@ def test_pixel_scales_bin_the_same_sensor_and_pad_for_the_kernel():
 
 def test_pixel_scales_are_checked():
     cfg = tiny_cfg("data.scales=[48,96]")
-    data = SimulatedData(cfg, CPU, 0)
+    data = build_simulated_data(cfg, CPU, 0)
     with pytest.raises(ConfigError, match=r"^data\.scales = \[48, 96\]: trains over pixel scales with a pool of "
                        r"masks: set data.masks too \(e\.g\. \[published\]\), or leave data\.scales null$"):
         build_mask_pool(cfg, data.camera, 0)
     cfg = tiny_cfg("data.masks=[published]", "data.scales=[48,3000]")
-    data = SimulatedData(cfg, CPU, 0)
+    data = build_simulated_data(cfg, CPU, 0)
     with pytest.raises(ConfigError, match=r"^data\.scales = 3000: must be <= sensor\.resolution \(2532\)"):
         build_mask_pool(cfg, data.camera, 0)
     with pytest.raises(ConfigError, match=r"^data\.scales = \[48, 48\]: must be a non-empty list of integer pixel "
                        r"scales in \[8, sensor\.resolution\], or null \(each scale once\)$"):
-        SimulatedData(tiny_cfg("data.scales=[48,48]"), CPU, 0)
+        build_simulated_data(tiny_cfg("data.scales=[48,48]"), CPU, 0)
 
 
 def test_finer_scales_reuse_the_far_psf_of_the_coarsest_whose_sensor_is_largest():
@@ -173,7 +173,7 @@ def test_finer_scales_reuse_the_far_psf_of_the_coarsest_whose_sensor_is_largest(
     from codesign.data.params import preset_params
 
     cfg = tiny_cfg("data.masks=[published]", "data.scales=[48,192]", "sensor.laser_halo=true")
-    data = SimulatedData(cfg, CPU, 0)
+    data = build_simulated_data(cfg, CPU, 0)
     coarse, fine = build_mask_pool(cfg, data.camera, 0).cameras
     assert fine.halo_donor is coarse and coarse.halo_donor is None
     scenes = data.sampler.sample(None, fine.scene_size)
@@ -193,7 +193,7 @@ def test_the_pool_shines_its_lasers_at_every_configured_line():
     from codesign.data.params import preset_params
 
     cfg = tiny_cfg("data.masks=[published]", "optics.laser_wavelengths_m=[633e-9,532e-9]", "data.mask_every=1")
-    data = SimulatedData(cfg, CPU, 0)
+    data = build_simulated_data(cfg, CPU, 0)
     pool = build_mask_pool(cfg, data.camera, 0)
     assert pool.names == ["published @ laser 633 nm", "published @ laser 532 nm"]
     red, green = pool.cameras
@@ -211,7 +211,7 @@ def test_a_released_member_images_the_same_when_it_serves_again():
     from codesign.data.params import preset_params
 
     cfg = tiny_cfg(POOL, "data.mask_every=1")
-    data = SimulatedData(cfg, CPU, 0)
+    data = build_simulated_data(cfg, CPU, 0)
     pool = build_mask_pool(cfg, data.camera, 0)
     assert all(not c.simulator._cache for c in pool.cameras)  # released after the pool's optics were computed
     first = pool.cameras[pool.index(0)]

@@ -5,7 +5,7 @@ import torch
 from omegaconf import OmegaConf
 
 from codesign.train.checkpoint import save_checkpoint
-from codesign.train.data import SimulatedData
+from codesign.train.data import build_simulated_data
 from codesign.train.model_setup import build_model
 from codesign.train.optim import init_weights
 from codesign.train.resume import load_trained
@@ -24,7 +24,7 @@ def _trained_checkpoint(tmp_path):
     init_weights(model)
     spec = TrainerSpec.from_config(dict(cfg.trainer)).replace(steps=2, val_every=0, checkpoint_every=0,
                                                               image_every=0)
-    tr = Trainer(model=model, data=SimulatedData(cfg, CPU, 0), spec=spec, run_dir=tmp_path, device=CPU,
+    tr = Trainer(model=model, data=build_simulated_data(cfg, CPU, 0), spec=spec, run_dir=tmp_path, device=CPU,
                  config=OmegaConf.to_container(cfg, resolve=True), seed=0)
     for _ in range(2):
         tr.train_step()
