@@ -121,10 +121,10 @@ def evaluate_mask(system: OpticalSystem, mask, band: tuple[float, float], p: flo
     return out, arrays
 
 
-def published_reference(mask_cfg: dict, system):
-    """The frozen published mask on ``system``'s grid, under the configured conventions: every comparison's
-    baseline."""
-    return build_mask(published_mask_config(mask_cfg), system.grid, system.spec.aperture_diameter_m).freeze()
+def published_reference(settings: dict, system):
+    """The frozen published mask on ``system``'s grid, under the conventions of the mask ``settings`` (the mask
+    block, as build_mask takes it): every comparison's baseline."""
+    return build_mask(published_mask_config(settings), system.grid, system.spec.aperture_diameter_m).freeze()
 
 
 class MaskMonitor:

@@ -11,7 +11,6 @@ import logging
 import math
 from dataclasses import dataclass, field
 
-from codesign.config.runtime import to_container
 from codesign.config.store import document
 from codesign.errors import ConfigError, require_choice, require_list, require_number
 from codesign.spec_base import SpecMixin
@@ -108,12 +107,6 @@ class Material(SpecMixin):
         """The material's name, formula, source and refractive index at ``wavelength_m`` [m], for metrics.json."""
         return {"material": self.name, "material_formula": self.formula, "material_source": self.source,
                 "refractive_index": self.index(wavelength_m)}
-
-
-def material_of(cfg) -> Material:
-    """The run's Material (``cfg.material``; a configuration without that block, e.g. a checkpoint's from before
-    it existed, has the default: fused silica)."""
-    return Material.from_config(to_container(cfg.get("material")))
 
 
 # the options material=NAME are conf/material/*.yaml; their keys are these fields (docs/config.md)

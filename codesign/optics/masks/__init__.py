@@ -45,21 +45,22 @@ def families() -> tuple[str, ...]:
     return tuple(sorted(FAMILIES))
 
 
-def _from_freeform(cfg: Mapping[str, Any], prefix: str) -> dict:
-    """mask=freeform (basis pixel|zernike) as the pixel or Zernike family's config."""
-    extra = sorted(set(cfg) - set(FREEFORM_KEYS))
+def _from_freeform(settings: Mapping[str, Any], prefix: str) -> dict:
+    """mask=freeform (basis pixel|zernike) as the pixel or Zernike family's settings (the mask block)."""
+    extra = sorted(set(settings) - set(FREEFORM_KEYS))
     if extra:
         hint = f" (to switch masks use the config group, e.g. mask=halfring, not {prefix}.kind=...)" \
             if set(extra) & set(HalfRingMask.Spec.defaults()) else ""
-        raise ConfigError(f"{prefix}.{extra[0]}", cfg[extra[0]], f"unknown key for a freeform mask; allowed: "
+        raise ConfigError(f"{prefix}.{extra[0]}", settings[extra[0]], f"unknown key for a freeform mask; allowed: "
                           f"{', '.join(sorted(FREEFORM_KEYS))}{hint}")
-    basis = require_choice(f"{prefix}.basis", cfg.get("basis", "pixel"), ("pixel", "zernike"))
+    basis = require_choice(f"{prefix}.basis", settings.get("basis", "pixel"), ("pixel", "zernike"))
     keep = ("init", "init_convention", "levels", "defocus_rad") + (("n_terms", "max_coeff_rad") if basis == "zernike"
                                                                      else ())
     # every freeform key is checked for either basis (pixel ignores n_terms and max_coeff_rad): a bad value is a
     # typo whichever basis runs
-    ZernikeMask.Spec.from_config({k: cfg[k] for k in FREEFORM_KEYS if k in cfg and k not in ("kind", "basis")}, prefix)
-    return {"kind": basis, **{k: cfg[k] for k in keep if k in cfg}}
+    keys = [k for k in FREEFORM_KEYS if k in settings and k not in ("kind", "basis")]
+    ZernikeMask.Spec.from_config({k: settings[k] for k in keys}, prefix)
+    return {"kind": basis, **{k: settings[k] for k in keep if k in settings}}
 
 
 def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix: str = "mask") -> Mask:
@@ -106,10 +107,10 @@ def _say(level: int, text: str) -> None:
         log.log(level, "%s", text)
 
 
-def design_levels(cfg: Mapping[str, Any], record: Mapping[str, Any], prefix: str = "mask") -> int | None:
+def design_levels(settings: Mapping[str, Any], record: Mapping[str, Any], prefix: str = "mask") -> int | None:
     """The levels a record's design is built with: its own (an 8-level design stays one), unless ``levels`` is set
     in the config (quantizing it anew, said when it differs)."""
-    ours, theirs = cfg.get("levels"), record.get("levels")
+    ours, theirs = settings.get("levels"), record.get("levels")
     where = f"{prefix}.init {getattr(record, 'path', '(record)')}"
     if ours is None:
         if theirs is not None:
@@ -122,30 +123,30 @@ def design_levels(cfg: Mapping[str, Any], record: Mapping[str, Any], prefix: str
     return ours
 
 
-def levels_of_design(cfg: Mapping[str, Any], prefix: str = "mask") -> int | None:
-    """The levels the design ``cfg`` names is built with (``levels``, else its record's): for a fabrication export
-    that makes a plate of its levels unless told otherwise."""
-    init = cfg.get("init")
-    if cfg.get("levels") is not None or not isinstance(init, (str, os.PathLike)) or init in NAMED_STARTS:
-        return cfg.get("levels")
+def levels_of_design(settings: Mapping[str, Any], prefix: str = "mask") -> int | None:
+    """The levels the design ``settings`` (a mask block) names is built with (``levels``, else its record's): for a
+    fabrication export that makes a plate of its levels unless told otherwise."""
+    init = settings.get("init")
+    if settings.get("levels") is not None or not isinstance(init, (str, os.PathLike)) or init in NAMED_STARTS:
+        return settings.get("levels")
     return load_record(init, f"{prefix}.init", f"must be null or {RECORD_PATH}").get("levels")
 
 
-def config_of_design(cfg: Mapping[str, Any], prefix: str = "mask") -> dict:
-    """The mask config that builds the design ``cfg`` names: with ``init`` a record of another family than the
+def config_of_design(settings: Mapping[str, Any], prefix: str = "mask") -> dict:
+    """The mask config that builds the design ``settings`` names: with ``init`` a record of another family than the
     configured one (e.g. a spline best_mask.json under the default mask=halfring), that family's defaults and the
-    record; otherwise ``cfg`` itself. For experiments that take a finished design of any family (export,
+    record; otherwise ``settings`` itself. For experiments that take a finished design of any family (export,
     tolerance); the others keep refusing a family mismatch, where it is more likely a mistake."""
-    cfg = dict(cfg)
-    init = cfg.get("init")
+    settings = dict(settings)
+    init = settings.get("init")
     if not isinstance(init, (str, os.PathLike)) or init in NAMED_STARTS:
-        return cfg
+        return settings
     record = load_record(init, f"{prefix}.init", f"must be null or {RECORD_PATH}")
-    kind = cfg.get("basis") if cfg.get("kind") == "freeform" else cfg.get("kind")
+    kind = settings.get("basis") if settings.get("kind") == "freeform" else settings.get("kind")
     if record["kind"] == kind:
-        return cfg
+        return settings
     return {**FAMILIES[record["kind"]].Spec.defaults(), "kind": record["kind"], "init": init,
-            "levels": cfg.get("levels")}  # a typed mask.levels holds for any family's design (design_levels)
+            "levels": settings.get("levels")}  # a typed mask.levels holds for any family's design (design_levels)
 
 
 def record_phase(record: dict, grid, aperture_diameter_m: float) -> torch.Tensor:
@@ -158,14 +159,14 @@ def record_phase(record: dict, grid, aperture_diameter_m: float) -> torch.Tensor
     return mask.freeze().phase().detach()
 
 
-def published_mask_config(mask_cfg: Mapping[str, Any]) -> dict:
-    """The published five half-ring mask under the configured conventions (m_range, atan/atan2, signs) when the
-    configured mask is a half ring; under its init_convention for the pixel and Zernike families."""
+def published_mask_config(settings: Mapping[str, Any]) -> dict:
+    """The settings of the published five half-ring mask under the conventions of mask ``settings`` (m_range,
+    atan/atan2, signs) when that mask is a half ring; under its init_convention for the pixel and Zernike families."""
     base = {**HalfRingMask.Spec.defaults(), "preset": "published"}
-    if mask_cfg.get("kind") == "halfring":
+    if settings.get("kind") == "halfring":
         keep = ("m_range", "convention", "harmonic_sign", "strategy", "table_size", "r_bounds")
-        return {**base, **{k: mask_cfg[k] for k in keep if k in mask_cfg}}
-    return {**base, "convention": mask_cfg.get("init_convention", "atan2")}
+        return {**base, **{k: settings[k] for k in keep if k in settings}}
+    return {**base, "convention": settings.get("init_convention", "atan2")}
 
 
 def published_halfring(grid, aperture_diameter_m: float, **kw: Any) -> HalfRingMask:

@@ -293,13 +293,13 @@ class Mask(torch.nn.Module):
         raise NotImplementedError(f"{type(self).__name__}.on_grid")  # pragma: no cover - every family has one
 
 
-def check_family_keys(cls: type[Mask], cfg: Mapping[str, Any], prefix: str) -> None:
+def check_family_keys(cls: type[Mask], settings: Mapping[str, Any], prefix: str) -> None:
     """ConfigError for a key the family does not have, with a hint when it belongs to another family."""
     allowed = {f.name for f in fields(cls.Spec)} - {"prefix"}
-    extra = sorted(set(cfg) - allowed)
+    extra = sorted(set(settings) - allowed)
     if extra:
         others = [k for k, c in FAMILIES.items() if c is not cls and extra[0] in {f.name for f in fields(c.Spec)}]
         hint = f" (it is a key of mask={others[0]}: choose the family with the config group, mask={others[0]}, " \
-               f"not {prefix}.kind=...)" if others and "kind" in cfg else ""
-        raise ConfigError(f"{prefix}.{extra[0]}", cfg[extra[0]],
+               f"not {prefix}.kind=...)" if others and "kind" in settings else ""
+        raise ConfigError(f"{prefix}.{extra[0]}", settings[extra[0]],
                           f"unknown key for a {cls.kind} mask; allowed: {', '.join(sorted(allowed))}{hint}")

@@ -312,15 +312,15 @@ def init_allowed(kind: Any) -> str:
     return f"must be {'one of ' + ', '.join(named) + ' or ' if named else 'null or '}{RECORD_PATH}"
 
 
-def check_mask_init(mask_cfg: Mapping[str, Any], optics_cfg: Mapping[str, Any], prefix: str = "mask") -> None:
+def check_mask_init(settings: Mapping[str, Any], optics_settings: Mapping[str, Any], prefix: str = "mask") -> None:
     """The record ``mask.init`` names, if any, read whole and made for the configured optics; for the runner, before
     any work (build_mask reads it again, to build the mask)."""
-    init = mask_cfg.get("init")
+    init = settings.get("init")
     if not isinstance(init, (str, os.PathLike)) or init in NAMED_STARTS:
         return
-    kind = mask_cfg.get("basis", "pixel") if mask_cfg.get("kind") == "freeform" else mask_cfg.get("kind")
+    kind = settings.get("basis", "pixel") if settings.get("kind") == "freeform" else settings.get("kind")
     record = load_record(init, f"{prefix}.init", init_allowed(kind))
-    check_design_optics(record, OpticsSpec.from_config(optics_cfg), f"{prefix}.init", init)
+    check_design_optics(record, OpticsSpec.from_config(optics_settings), f"{prefix}.init", init)
 
 
 def optics_record(spec) -> dict:

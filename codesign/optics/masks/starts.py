@@ -11,11 +11,11 @@ from codesign.optics.masks.base import PhaseFitSpec
 from codesign.optics.masks.halfring import HalfRingMask
 
 
-def named_start(name: str, grid: PupilGrid, aperture_diameter_m: float, cfg: Mapping[str, Any],
+def named_start(name: str, grid: PupilGrid, aperture_diameter_m: float, settings: Mapping[str, Any],
                 prefix: str = "mask") -> torch.Tensor | None:
     """The (n, n) phase of a named start of a phase-fitting family: published (the half-ring phase under
-    ``cfg``'s init_convention), zero (None) or defocus (``cfg``'s defocus_rad)."""
-    spec = PhaseFitSpec(**{k: cfg[k] for k in ("init_convention", "defocus_rad") if k in cfg}, prefix=prefix)
+    ``settings``'s init_convention), zero (None) or defocus (``settings``'s defocus_rad)."""
+    spec = PhaseFitSpec(**{k: settings[k] for k in ("init_convention", "defocus_rad") if k in settings}, prefix=prefix)
     if name == "zero":
         return None
     if name == "defocus":
