@@ -11,6 +11,8 @@ on every family, and in what time, is measured in docs/codesign.md Sec. 5 (bench
 """
 from __future__ import annotations
 
+import faulthandler
+import io
 import logging
 import math
 import re
@@ -32,6 +34,20 @@ CONSTRAINED = ("LD_MMA", "LD_CCSAQ", "LD_SLSQP", "LN_COBYLA", "GN_ISRES", "GN_AG
 LOCAL = tuple(a for a in CONSTRAINED if a.startswith("L"))
 OWN = ("AL_LBFGS",)  # codesign's augmented Lagrangian on nlopt's LD_LBFGS
 ALGORITHMS = CONSTRAINED + OWN
+# the most parameters an nlopt algorithm runs on (nlopt 2.11, measured on a quadratic with one constraint): above,
+# it refuses (AGS), crashes the process without a word (the original DIRECT, ISRES's population out of memory) or
+# takes hours and gigabytes (SLSQP). A family's parameters: half rings 10, spiral 3, Zernike 36, spline 11025
+# (debug=smoke) to 42025, pixel 31109 to 125081.
+SIZE_LIMITS = {
+    "GN_AGS": (10, "nlopt's AGS takes at most 10 dimensions (invalid_argument above)"),
+    "GN_ORIG_DIRECT": (33, "nlopt's original DIRECT crashes the process (a segmentation fault) from 34 parameters"),
+    "GN_ORIG_DIRECT_L": (33, "nlopt's original DIRECT crashes the process (a segmentation fault) from 34 "
+                             "parameters"),
+    "GN_ISRES": (1000, "ISRES holds a population of 20 (n + 1) points of n parameters: 11025 parameters need ~19 GB "
+                       "(the process crashes), and above ~1000 one generation outlasts any evaluation budget"),
+    "LD_SLSQP": (500, "SLSQP's dense quasi-Newton matrix takes n^2 memory and n^3 time per step (500 parameters: 21 s "
+                      "of its own per 100 evaluations; 11025: over 4 GB)"),
+}
 _NLOPT_NAMES = frozenset(a for a in dir(nlopt) if re.match(r"^(G[ND]?|L[ND])_|^(LD_|LN_)?AUGLAG", a))
 RESULTS = {nlopt.SUCCESS: "SUCCESS", nlopt.STOPVAL_REACHED: "STOPVAL_REACHED", nlopt.FTOL_REACHED: "FTOL_REACHED",
            nlopt.XTOL_REACHED: "XTOL_REACHED", nlopt.MAXEVAL_REACHED: "MAXEVAL_REACHED",
@@ -58,6 +74,26 @@ def check_algorithm(key: str, name, allowed: tuple[str, ...]) -> str:
                else "is a global algorithm; the polish needs a local one")
         raise ConfigError(key, name, f"nlopt's {name} {why}; allowed: {listed}")
     return name
+
+
+def check_size(key: str, name: str, n: int, family: str, allowed: tuple[str, ...]) -> None:
+    """ConfigError naming ``key`` when algorithm ``name`` cannot run a ``family`` mask of ``n`` parameters
+    (SIZE_LIMITS), with the algorithms of ``allowed`` that can: refused before the search, not a crash in it."""
+    limit, why = SIZE_LIMITS.get(name, (None, ""))
+    if limit is not None and n > limit:
+        fits = [a for a in allowed if SIZE_LIMITS.get(a, (n,))[0] >= n]
+        raise ConfigError(key, name, f"cannot search a {family} mask of {n} parameters (at most {limit}: {why}); "
+                          f"allowed for this mask: {', '.join(fits)}")
+
+
+def _crash_report() -> None:
+    """Python's fault handler on: a crash inside nlopt's C code (which SIZE_LIMITS keep the searches away from)
+    then prints "Fatal Python error: Segmentation fault" and where the search was, not nothing."""
+    if not faulthandler.is_enabled():
+        try:
+            faulthandler.enable()
+        except (AttributeError, ValueError, io.UnsupportedOperation):  # a stderr without a file descriptor
+            pass
 
 
 def _outcome(algorithm: str, code, exc, evaluations: int) -> dict:
@@ -129,6 +165,7 @@ def run_nlopt(problem, algorithm: str, x0: np.ndarray, lower: np.ndarray, upper:
             return ev.constraints[name]
         return c
 
+    _crash_report()
     opt = nlopt.opt(getattr(nlopt, algorithm), x0.size)
     opt.set_lower_bounds(lower)
     opt.set_upper_bounds(upper)
@@ -234,8 +271,9 @@ def run_start(problem, label: str, x0: np.ndarray, bounds, algorithm: str, local
     t0, start = time.perf_counter(), problem.evaluations
     out = {"start": label, "stages": run_stages(problem, algorithm, x0, bounds, schedule, max_evals, xtol_rel,
                                                 ftol_rel)}
-    if algorithm.startswith("G") and local_algorithm and polish_evals > 0:
-        seed, _ = problem.result_x(start=True)
+    polish = algorithm.startswith("G") and local_algorithm and polish_evals > 0
+    seed = problem.result_x(start=True)[0] if polish else None
+    if seed is not None:  # None: the global stage made no evaluation, nothing to polish
         out["polish"] = run_stages(problem, local_algorithm, seed, bounds, schedule[-1:], polish_evals, xtol_rel,
                                    ftol_rel)
     best, least = problem.start_best, problem.start_least

@@ -4,7 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from codesign.config.store import register, spec_node
-from codesign.design.optimize import ALGORITHMS, LOCAL, check_algorithm
+from codesign.design.optimize import ALGORITHMS, LOCAL, check_algorithm, check_size
 from codesign.errors import ConfigError, require_choice, require_list, require_number
 from codesign.spec_base import SpecMixin
 
@@ -151,6 +151,15 @@ class SearchSpec(SpecMixin):
         """The nlopt algorithm for ``n`` parameters: the configured one, or with auto LN_COBYLA up to DERIVATIVE_FREE
         parameters and AL_LBFGS beyond."""
         return self.algorithm if self.algorithm != "auto" else ("LN_COBYLA" if n <= DERIVATIVE_FREE else "AL_LBFGS")
+
+    def check_size(self, n: int, family: str) -> None:
+        """The algorithm (and a global one's polish, local_algorithm) able to run a ``family`` mask of ``n``
+        parameters (optimize.SIZE_LIMITS); ConfigError naming the key and the algorithms that can, before the
+        search (GN_ISRES on a spline mask crashed the process without a word, GN_AGS and LD_SLSQP failed in it)."""
+        algorithm = self.resolved_algorithm(n)
+        check_size(f"{self.prefix}.algorithm", algorithm, n, family, ALGORITHMS)
+        if algorithm.startswith("G") and self.local_algorithm is not None and self.polish_max_evals > 0:
+            check_size(f"{self.prefix}.local_algorithm", self.local_algorithm, n, family, LOCAL)
 
     def resolved_starts(self, n: int) -> int:
         """The number of starts for ``n`` parameters: the configured one, or 4 for small vectors and 1 for large

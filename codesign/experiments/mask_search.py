@@ -101,6 +101,7 @@ def _build(cfg: DictConfig, run_dir: Path, device: torch.device) -> _Job:
     mask_cfg = to_container(cfg.mask)
     system = OpticalSystem(spec, dtype=resolve_dtype("search.precision", s.precision), device=device)
     mask = build_mask(mask_cfg, system.grid, spec.aperture_diameter_m)
+    s.check_size(mask.vector_size, mask.kind)  # an algorithm that cannot run this many parameters: refused now
     published = published_reference(mask_cfg, system)  # the same conventions: only the parameters differ
     lines = run_lines(material_of(cfg), system, "search.lsr_over" if s.lsr_over == "wavelengths" else None)
     monitor = MaskMonitor(system, published, ms.mtf_band, ms.lsr_p, ms.lsr_grids)
