@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import pytest
 
@@ -39,7 +40,6 @@ def test_a_bad_file_stops_the_command_before_any_file_is_rewritten(tmp_path, cap
     assert main([str(good), str(path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1, err
-    import re
     assert re.fullmatch(re.escape(f"{PROG}{path}: ") + why + re.escape("; nothing was rewritten (every file is "
                                                                        "checked before any is)"), err[0]), err[0]
     assert good.read_text() == before  # the first file was rewritten before the second failed
