@@ -27,7 +27,7 @@ from codesign.data.scenes import build_scene_source
 from codesign.data.params import alpha_tag, fixed_scene_params
 from codesign.data.simulate_spec import SimulateSpec
 from codesign.design.merit import evaluate_mask, published_reference
-from codesign.errors import ConfigError
+from codesign.errors import ConfigError, require_number
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask
 from codesign.optics.masks import Mask
 from codesign.train.checkpoint import PRETRAINED, load_checkpoint
@@ -69,6 +69,10 @@ def compose(*overrides: str, experiment: str | None = None) -> DictConfig:
     return cfg
 
 
+# what a mask argument takes, as a message says it
+MASK = "a Mask (codesign.published_mask(), configured_mask(cfg), build_mask(...))"
+
+
 def _config(cfg: DictConfig | None) -> DictConfig:
     return compose() if cfg is None else cfg
 
@@ -80,9 +84,11 @@ def build_camera(cfg: DictConfig | None = None, device: str | torch.device = "cp
     (e.g. a search's design; one built on another pupil grid is sampled onto the camera's). ``cam.frozen_optics()``
     holds the PSF state; ``cam(scenes, params, seed)`` simulates a batch (scenes: (N, 1, S, S) radiance in [0, 1]
     with S = camera.scene_size; params: a SceneParams, e.g. from fixed_scene_params)."""
+    _check_cfg("build_camera cfg", cfg)
+    _check_kind("build_camera mask", mask, Mask, MASK)
     cam = _camera_of(_config(cfg), torch.device(device), dtype)
     if mask is not None:
-        cam.use_mask(mask)
+        cam.use_mask(_on_system_grid(mask, cam.system))
     return cam
 
 
@@ -122,11 +128,13 @@ def psf_and_lsr(mask: Mask | None = None, system: OpticalSystem | None = None,
     ``lsr_sampled``, ``lsr_smooth`` (the differentiable p-norm LSR), ``bsr``, ``mtf_mean``, ``mtf_min`` (over
     metrics.mtf_band, frequency normalized to the incoherent cutoff), ``psf_energy_in_window`` and the rest of
     evaluate_mask's keys."""
+    _check_cfg("psf_and_lsr cfg", cfg)
+    _check_kind("psf_and_lsr mask", mask, Mask, MASK, "None (the published mask)")
+    _check_kind("psf_and_lsr system", system, OpticalSystem, "an OpticalSystem (codesign.optical_system(cfg))")
     cfg = _config(cfg)
     system = system or optical_system(cfg)
     mask = mask if mask is not None else published_mask(system, cfg)
-    if mask.grid.n != system.grid.n or abs(mask.grid.pitch - system.grid.pitch) > 1e-12 * system.grid.pitch:
-        mask = mask.on_grid(system.grid, system.spec.aperture_diameter_m)  # e.g. a design from a coarser search
+    mask = _on_system_grid(mask, system)  # e.g. a design from a coarser search, or a float64 grid's
     ms = metrics_spec(cfg)
     values, arrays = evaluate_mask(system, mask, ms.mtf_band, ms.lsr_p, ms.lsr_grids)
     return {**values, "psf": arrays["psf"], "psf_uncoded": arrays["psf_uncoded"], "phase": arrays["phase"]}
@@ -152,6 +160,9 @@ def sensor_image(scene: str | int = 0, alpha_l: float = 1e6, cfg: DictConfig | N
     the padded grid (1, 1, p, p), p = data.padded_size, the image centred (codesign.camera.field_of_view crops it):
     ``sensor`` (counts / full scale, 0..1, the network input), ``scene`` (the target radiance, 0..1) and
     ``irradiance`` (the scene through the optics)."""
+    _check_cfg("sensor_image cfg", cfg)
+    _check_kind("sensor_image cam", cam, Camera, "a Camera (codesign.build_camera(cfg))")
+    seed, alpha_l = _check_seed("sensor_image seed", seed), _check_alpha("sensor_image alpha_l", alpha_l)
     cfg = _config(cfg)
     cam = cam or build_camera(cfg)
     sim = cam.simulator
@@ -163,6 +174,62 @@ def sensor_image(scene: str | int = 0, alpha_l: float = 1e6, cfg: DictConfig | N
     sp = fixed_scene_params(1, device=cam.device, **values)
     with torch.no_grad():
         return cam(scenes, sp, seed=int(cfg.seed) if seed is None else seed)
+
+
+# ---- the arguments' checks: each as the command line checks the key it stands for, a wrong one a ConfigError
+# naming the function and the argument (``sensor_image seed``), the value and what is allowed, before any work (an
+# object of the wrong kind was an AttributeError from deep inside, a number out of range accepted (seed=-5) or a
+# RuntimeError in the simulation (alpha_l=1e300))
+
+class _Shown:
+    """A value as a message shows it: its repr when short, else its type (a tensor, a module)."""
+
+    def __init__(self, value: Any):
+        self.value = value
+
+    def __repr__(self) -> str:
+        text = repr(self.value)
+        return text if len(text) <= 80 else f"<a {type(self.value).__name__}>"
+
+
+def _check_kind(where: str, value: Any, kind: type, what: str, none: str = "None") -> None:
+    """``value`` None or a ``kind``; else ConfigError naming ``where`` (function and argument) with ``what`` (and
+    ``none``: what None means)."""
+    if value is not None and not isinstance(value, kind):
+        raise ConfigError(where, _Shown(value), f"must be {what} or {none}")
+
+
+def _check_cfg(where: str, value: Any) -> None:
+    """A configuration argument: None (the default one) or a composed DictConfig."""
+    _check_kind(where, value, DictConfig, "a configuration (codesign.compose(...))")
+
+
+def _check_seed(where: str, seed: Any) -> int | None:
+    """A noise seed: None (the configuration's) or an integer in the command line's root ``seed`` range."""
+    if seed is None:
+        return None
+    try:
+        return require_number(where, seed, lo=0, hi=1e9, integer=True)
+    except ConfigError as err:
+        raise ConfigError(where, seed, f"{err.allowed} (the noise seed, as the command line's seed)") from None
+
+
+def _check_alpha(where: str, alpha_l: Any) -> float:
+    """A laser strength alpha_l in simulate.laser_strengths' range."""
+    try:
+        return require_number(where, alpha_l, lo=0, hi=1e12)
+    except ConfigError as err:
+        raise ConfigError(where, alpha_l, f"{err.allowed} (the laser strength, as simulate.laser_strengths)") from None
+
+
+def _on_system_grid(mask, system):
+    """``mask`` on ``system``'s pupil grid: sampled there by its family (Mask.on_grid) when it was built on another
+    grid: another size or pitch (a search on a coarser one), or another precision or device (a float64 grid's mask
+    in a float32 system was a RuntimeError)."""
+    grid, own = system.grid, mask.grid
+    same = (own.n == grid.n and abs(own.pitch - grid.pitch) <= 1e-12 * grid.pitch
+            and own.rho.dtype == grid.rho.dtype and own.rho.device == grid.rho.device)
+    return mask if same else mask.on_grid(grid, system.spec.aperture_diameter_m)
 
 
 def _new_run_dir(task: str) -> Path:
@@ -223,6 +290,7 @@ def restore_image(counts, checkpoint: str | Path = "pretrained", mask: Mask | No
     from codesign.models.capture import RestoreSpec, capture_factor, capture_geometry, restore_capture
     from codesign.train.resume import apply_checkpoint_mask, load_trained
 
+    _check_kind("restore_image mask", mask, Mask, MASK, "None (the checkpoint's own mask)")
     given = {} if input_bin is None else {"input_bin": input_bin}  # None: RestoreSpec's default, a raw capture
     spec = RestoreSpec(bin=bin, tile=tile, prefix="restore_image", **given)
     x = torch.as_tensor(counts, dtype=torch.float64)
@@ -234,7 +302,7 @@ def restore_image(counts, checkpoint: str | Path = "pretrained", mask: Mask | No
     if mask is None:
         apply_checkpoint_mask(cam.mask, state, checkpoint)
     else:  # on the checkpoint's pupil grid (sampled onto it by its family when it was designed on another)
-        cam.use_mask(mask)
+        cam.use_mask(_on_system_grid(mask, cam.system))
     psf = cam.frozen_optics().state.psf
     factor = capture_factor(spec, ckpt_cfg)
     geometry = capture_geometry(tuple(x.shape[-2:]), factor, cam.sensor.pixel_pitch_m * spec.input_bin,
