@@ -355,14 +355,23 @@ def written_by_this_run(run_dir: Path) -> list[str]:
 
 def interrupt_line(stop: Interrupted, run_dir: Path, ctx, task: str | None) -> str:
     """The one line an interrupted run prints after "codesign: ": a training, its checkpoint and the resume command;
-    any other run, what stopped it and the files it had finished (each complete: every write is atomic)."""
+    the main job between its stages, the stages it finished (reused on resume) and the resume command; any other
+    run, what stopped it and the files it had finished (each complete: every write is atomic)."""
     if isinstance(stop, TrainingInterrupted):
         return f"{stop} (checkpoint {stop.checkpoint}); resume with: {resume_command(run_dir, ctx)}"
     kept = written_by_this_run(run_dir)
     shown = ", ".join(kept[:_LISTED]) + (f" and {len(kept) - _LISTED} more" if len(kept) > _LISTED else "")
     what = stop.detail or f"+experiment={task} stopped before it finished"
-    files = f"kept in {run_dir}: {shown}" if kept else "no output file written"
-    return f"{stop.name}: {what}; {files} (the run is not finished)"
+    stages = getattr(stop, "finished_stages", None)  # the main job's (main_job.note_finished_stages): resumable
+    if stages is None:
+        files = f"kept in {run_dir}: {shown}" if kept else "no output file written"
+        return f"{stop.name}: {what}; {files} (the run is not finished)"
+    if stages:
+        done = f"finished stages kept in {run_dir}: {', '.join(stages)} (each reused when the run resumes)" + (
+            f", and {shown}" if kept else "")
+    else:
+        done = "no stage finished, " + (f"kept: {shown}" if kept else "no output file written")
+    return f"{stop.name}: {what}; {done} (the run is not finished); resume with: {resume_command(run_dir, ctx)}"
 
 
 def resolved_config_yaml(cfg: DictConfig) -> str:

@@ -44,6 +44,7 @@ from codesign.fab.laser_lines import lines_summary, run_lines
 from codesign.io import files as io
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask
 from codesign.optics.masks import FAMILIES, published_mask_config
+from codesign.signals import Interrupted, TrainingInterrupted
 from codesign.train import distributed
 from codesign.train.data import build_simulated_data
 from codesign.train.lsr_constraint import CodesignSpec
@@ -120,9 +121,28 @@ def run_protocol(cfg: DictConfig, run_dir: Path, device: torch.device, train) ->
     build (every setting checked, the published mask's certified peak and the ceiling from it), design, train the
     restorer stages and the arms, report."""
     job = _build(cfg, run_dir, device)
-    designed_cfg, design = _design_stage(job)
-    _train_stages(job, designed_cfg, train)
+    try:
+        designed_cfg, design = _design_stage(job)
+        _train_stages(job, designed_cfg, train)
+    except Interrupted as stop:  # between stages, or in the design's search: say what is kept and how to go on
+        note_finished_stages(stop, job.stages)
+        raise
     return _report(job, design)
+
+
+def note_finished_stages(stop: Interrupted, stages: dict) -> None:
+    """Tell an interrupt of the main job (``stages``: name -> folder) which stages finished (their metrics.json):
+    kept, and reused when the same command runs on this run folder; the interrupt line then lists them and the
+    command that resumes (codesign/experiments/__init__.py interrupt_line). A stage's folder holds no file of the
+    run folder itself, so the line listed only stage_seconds.json. A training stage's own interrupt
+    (TrainingInterrupted: its checkpoint and the resume command) already says it."""
+    if isinstance(stop, TrainingInterrupted):
+        return
+    done = []
+    for folder in dict.fromkeys(stages.values()):  # a stage may serve as another (no design stage: one folder)
+        if (folder / "metrics.json").is_file():
+            done.append(f"{folder.name}/")
+    stop.finished_stages = done
 
 
 @dataclass

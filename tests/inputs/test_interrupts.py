@@ -15,6 +15,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -239,3 +240,61 @@ def test_ctrl_c_in_a_mask_search_process_exits_130_with_a_partial_record(tmp_pat
     assert len(err.strip().splitlines()) == 1 and err.startswith("codesign: SIGINT: the search stopped in start 0")
     assert json.loads((run_dir / "best_mask.partial.json").read_text())["partial"] is True
     assert not (run_dir / "metrics.json").exists() and no_temp_files(run_dir)
+
+
+# ---- the main job between its stages ----------------------------------------------------------------------------
+FIVE = ("design", "restorer", "published_restorer", "designed", "codesigned")
+
+
+def _main_job_folder(tmp_path) -> tuple[Path, dict]:
+    """A main job's run folder whose first five stages finished (their metrics.json), the last not started."""
+    from codesign.experiments.main_job import STAGES
+
+    run_dir = tmp_path / "run"
+    stages = {s: run_dir / s for s in STAGES}
+    for s in FIVE:
+        stages[s].mkdir(parents=True)
+        (stages[s] / "metrics.json").write_text("{}")
+    (run_dir / "stage_seconds.json").write_text("{}")
+    return run_dir, stages
+
+
+def test_sigint_between_the_main_job_s_stages_lists_the_finished_stages_and_the_resume_command(tmp_path, monkeypatch):
+    # the line said only "kept in RUN: stage_seconds.json" (the stages are folders) and gave no resume command, while
+    # the five finished stages were kept and are reused by the same command
+    from codesign.experiments import main_job
+    from codesign.signals import Interrupted
+    from codesign.train import distributed
+
+    run_dir, stages = _main_job_folder(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["codesign", "+experiment=joint", "debug=smoke", f"hydra.run.dir={run_dir}"])
+    monkeypatch.setattr(main_job, "_build", lambda cfg, rd, device: SimpleNamespace(stages=stages))
+    monkeypatch.setattr(main_job, "_design_stage", lambda job: ({}, None))
+
+    def last_stage_starts(job, designed_cfg, train):
+        raise Interrupted(signal.SIGINT)  # as the last stage starts: outside any training loop
+
+    monkeypatch.setattr(main_job, "_train_stages", last_stage_starts)
+    with pytest.raises(Interrupted) as info:
+        main_job.run_protocol(None, run_dir, torch.device("cpu"), None)
+    line = experiments.interrupt_line(info.value, run_dir, distributed.current(), "joint")
+    assert line == (f"SIGINT: +experiment=joint stopped before it finished; finished stages kept in {run_dir}: "
+                    f"design/, restorer/, published_restorer/, designed/, codesigned/ (each reused when the run "
+                    f"resumes), and stage_seconds.json (the run is not finished); resume with: python -m codesign "
+                    f"+experiment=joint debug=smoke hydra.run.dir={run_dir}")
+
+
+def test_an_interrupt_before_any_stage_finished_still_gives_the_resume_command(tmp_path, monkeypatch):
+    from codesign.experiments.main_job import STAGES, note_finished_stages
+    from codesign.signals import Interrupted
+    from codesign.train import distributed
+
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    monkeypatch.setattr(sys, "argv", ["codesign", "+experiment=joint"])
+    stop = Interrupted(signal.SIGTERM)
+    note_finished_stages(stop, {s: run_dir / s for s in STAGES})
+    line = experiments.interrupt_line(stop, run_dir, distributed.current(), "joint")
+    assert line == (f"SIGTERM: +experiment=joint stopped before it finished; no stage finished, no output file "
+                    f"written (the run is not finished); resume with: python -m codesign +experiment=joint "
+                    f"hydra.run.dir={run_dir}")
