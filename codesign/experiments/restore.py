@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+from omegaconf import OmegaConf
 
 from codesign.camera import build_camera, field_of_view
 from codesign.config.runtime import explicit_keys, mask_typed, tensorboard_enabled, to_container, with_typed_mask
@@ -155,6 +156,27 @@ def restore_fixed_size(model, generators, camera, images, files, path):
     return restored
 
 
+def warn_other_mask(model, ckpt_cfg, state: dict, cfg, typed: frozenset, path) -> bool:
+    """Warn (and return True) when the mask typed here (mask=... / mask.*=...) is not the one the checkpoint's
+    network was trained on and the network cannot know it: trained on one mask (no data.masks pool) and not
+    conditioned on the mask (Restorer.mask_conditioned: model=wiener_naf takes the mask's OTF as an input). Warned,
+    not refused: the captures may well have come through another mask (what typing one says), and restoring them
+    with a network trained on another is a legitimate test of how far it carries; but it went unsaid."""
+    if not mask_typed(typed) or model.mask_conditioned or OmegaConf.select(ckpt_cfg, "data.masks"):
+        return False
+    own, here = to_container(ckpt_cfg.get("mask")), to_container(cfg.get("mask"))
+    learned = state.get("mask") is not None  # a co-designed checkpoint: its network learned its learned mask
+    if own == here and not learned:
+        return False
+    trained = "its learned (co-designed) mask" if learned else f"a {own.get('kind')} mask"
+    log.warning("checkpoint %s: its network (model.kind=%s) was trained on %s only (no data.masks pool) and is not "
+                "conditioned on the mask; this run restores through the typed mask=%s%s, which the network never saw: "
+                "expect worse restorations (omit mask=... to restore through the checkpoint's own mask, or use a "
+                "restorer for any mask: checkpoint=pretrained, model=wiener_naf)", path, model.kind, trained,
+                here.get("kind"), "" if here.get("kind") != own.get("kind") else " (other settings)")
+    return True
+
+
 def run(cfg, run_dir: Path, device: torch.device) -> float:
     """Check the inputs and the checkpoint, build its camera (with the typed mask or measured PSF), restore every
     capture, then write the restored PNGs (only once all are finite), metrics.json and TensorBoard images."""
@@ -164,6 +186,7 @@ def run(cfg, run_dir: Path, device: torch.device) -> float:
     spec = RestoreSpec.from_config(to_container(cfg.get("restore")) or {})
     model, generators, ckpt_cfg, state = load_trained(cfg.checkpoint, device)
     typed = explicit_keys()
+    warn_other_mask(model, ckpt_cfg, state, cfg, typed, cfg.checkpoint)
     ckpt_cfg = with_measured_psf(ckpt_cfg, cfg, typed)  # the Wiener stage's OTF then is the measured PSF's
     ckpt_cfg = with_typed_mask(ckpt_cfg, cfg, typed)  # the captures came through this mask (a pool-trained restorer)
     try:

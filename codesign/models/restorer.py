@@ -55,6 +55,9 @@ class Restorer(nn.Module):
     kind: ClassVar[str] = ""
     method: ClassVar[str] = ""  # the column name in evaluation tables and metrics keys (psnr_<method>_...)
     any_size: ClassVar[bool] = False  # restores any (H, W) with the OTF on that grid (codesign/models/capture.py)
+    # takes the mask as an input (the OTF), built to restore through any mask: restore / evaluate through another
+    # mask than the one it was trained on without a warning (the others learn their mask into their weights)
+    mask_conditioned: ClassVar[bool] = False
     spec: Any
 
     def __init_subclass__(cls, **kwargs):

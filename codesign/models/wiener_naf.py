@@ -150,6 +150,7 @@ class WienerNAF(Restorer):
     kind = "wiener_naf"
     method = "wiener_naf"
     any_size = True
+    mask_conditioned = True
 
     def __init__(self, spec: WienerNAFSpec | None = None):
         super().__init__()
