@@ -45,3 +45,16 @@ def test_mask_search_refuses_the_pair_before_any_work(monkeypatch, capsys, tmp_p
     assert line.startswith(f"{ERR}search.algorithm = 'GN_AGS': cannot search a zernike mask of 36 parameters (at "
                            f"most 10: nlopt's AGS takes at most 10 dimensions")
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.slow  # 5 s: the command line that crashed (exit 139, nothing printed); twin: the in-process test above
+def test_cli_mask_search_of_a_spline_mask_with_isres(tmp_path):
+    from tests.cli import run_codesign
+
+    run_dir = tmp_path / "run"
+    proc = run_codesign("+experiment=mask_search", "debug=smoke", "threads=1", "mask=spline",
+                        "search.algorithm=GN_ISRES", f"hydra.run.dir={run_dir}")
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines()[-1].startswith(
+        f"{ERR}search.algorithm = 'GN_ISRES': cannot search a spline mask of 11025 parameters (at most 1000: ")
+    assert "Traceback" not in proc.stderr and not run_dir.exists()
