@@ -16,7 +16,7 @@ from codesign.train.data import build_simulated_data
 from codesign.train.evaluation import run_evaluation
 from codesign.train.mask_pool import build_mask_pool
 from codesign.train.memory import check_training_fits
-from codesign.train.resume import initial_checkpoint, load_initial_weights, resume_if_possible
+from codesign.experiments.resume import initial_checkpoint, load_initial_weights, resume_if_possible
 from codesign.train.model_setup import build_model, build_trainer, distributed_metrics, run_metrics
 from codesign.train.spec import InitSpec, TrainerSpec
 from codesign.train.optim import init_weights

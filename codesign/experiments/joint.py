@@ -37,7 +37,7 @@ from codesign.train.data import SimulatedData, build_simulated_data
 from codesign.train.evaluation import conditions, run_evaluation
 from codesign.train.mask_codesign import MaskCodesign
 from codesign.train.memory import check_training_fits
-from codesign.train.resume import initial_checkpoint, load_initial_weights, resume_if_possible
+from codesign.experiments.resume import initial_checkpoint, load_initial_weights, resume_if_possible
 from codesign.train.model_setup import build_model, build_trainer, distributed_metrics, run_metrics
 from codesign.train.spec import InitSpec, TrainerSpec
 from codesign.train.summary import comparison_figure, joint_summary, restorer_scores

@@ -51,7 +51,7 @@ from codesign.train.lsr_constraint import CodesignSpec
 from codesign.train.memory import check_training_fits
 from codesign.train.model_setup import build_model
 from codesign.train.protocol_summary import protocol_summary, summary_record, systems_figure
-from codesign.train.resume import initial_checkpoint, load_initial_weights
+from codesign.experiments.resume import initial_checkpoint, load_initial_weights
 from codesign.train.spec import InitSpec, TrainerSpec
 from codesign.train import stage_settings
 

@@ -12,7 +12,8 @@ from omegaconf import OmegaConf
 
 from codesign.errors import ConfigError
 from codesign.train.checkpoint import save_checkpoint
-from codesign.train.resume import apply_checkpoint_mask, check_resume_config, load_trained, resume_if_possible
+from codesign.train.resume import apply_checkpoint_mask, load_trained
+from codesign.experiments.resume import check_resume_config, resume_if_possible
 from codesign.train.model_setup import build_model
 from codesign.optics import OpticalSystem, OpticsSpec
 from codesign.optics.masks import HalfRingMask

@@ -19,7 +19,8 @@ from codesign.errors import ConfigError
 from codesign.io.captures import save_png16
 from codesign.train.checkpoint import load_checkpoint, save_checkpoint
 from codesign.train.model_setup import build_model
-from codesign.train.resume import load_initial_weights, load_trained, resume_if_possible
+from codesign.train.resume import load_trained
+from codesign.experiments.resume import load_initial_weights, resume_if_possible
 from tests.inputs._run import compose_cfg, config_error
 from tests.train._util import tiny_cfg
 

@@ -26,7 +26,7 @@ from tests.inputs._run import fresh_run_folder_state  # noqa: F401 (autouse: the
 from codesign.train import distributed
 from codesign.train.checkpoint import save_checkpoint
 from codesign.train.model_setup import build_model
-from codesign.train.resume import resume_if_possible
+from codesign.experiments.resume import resume_if_possible
 from tests.cli import run_codesign
 from tests.inputs._run import WorkStarted, compose_cfg, config_error, stop_before_work
 from tests.train._util import tiny_cfg

@@ -12,7 +12,7 @@ from codesign.models import SGAN, ModelSpec, otf_from_kernel
 from codesign.models.fill import push_pull_fill, replicate_outside_field, valid_pixels
 from codesign.models.sandwich import coordinates, downsample2
 from codesign.models.wiener import classical_wiener
-from codesign.train.resume import _with_added_keys
+from codesign.experiments.resume import _with_added_keys
 from codesign.train.optim import init_weights
 
 

@@ -14,7 +14,8 @@ from codesign.train.checkpoint import PRETRAINED, PRETRAINED_DIR, load_checkpoin
 from codesign.train.data import build_simulated_data
 from codesign.experiments.specs import eval_settings
 from codesign.train.evaluation import run_evaluation
-from codesign.train.resume import initial_checkpoint, load_trained
+from codesign.train.resume import load_trained
+from codesign.experiments.resume import initial_checkpoint
 from tests.conftest import REPO_ROOT
 
 CPU = torch.device("cpu")

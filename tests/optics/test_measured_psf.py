@@ -23,7 +23,7 @@ from codesign.experiments.specs import with_measured_psf
 from codesign.optics import OpticsSpec
 from codesign.optics.measured import centroid_px, integrate_axis, load_measured, resample
 from codesign.train.checkpoint import save_checkpoint
-from codesign.train.resume import check_resume_config, load_initial_weights
+from codesign.experiments.resume import check_resume_config, load_initial_weights
 from codesign.train.model_setup import build_model
 from codesign.train.optim import init_weights
 from tests.inputs._run import compose_cfg, config_error

@@ -81,7 +81,7 @@ def test_checkpoints_written_before_the_lines_resume_and_warm_start(tmp_path):
     from omegaconf import OmegaConf
 
     from codesign.config.runtime import to_container
-    from codesign.train.resume import check_resume_config
+    from codesign.experiments.resume import check_resume_config
 
     cfg = compose_cfg("+experiment=joint", "debug=smoke")
     old = to_container(cfg)

@@ -7,7 +7,7 @@ import pytest
 from codesign.config.runtime import to_container
 from codesign.errors import ConfigError
 from codesign.train.model_setup import build_model
-from codesign.train.resume import check_resume_config
+from codesign.experiments.resume import check_resume_config
 from tests.inputs._run import compose_cfg
 
 
