@@ -12,9 +12,6 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 # a temporary run folder, this checkout's absolute path, a user's home: written here so that it does not match itself
 MACHINE_PATH = re.compile(r"/(?:tmp/[A-Za-z0-9_.-]+/|work/main|root/|home/)")
-# folders whose files still name machine paths, each scrubbed by the session that owns it (issue 58): the check below
-# skips them and the strict xfail after it fails as soon as one is clean, so that it leaves this set
-PENDING = ("benchmarks/results/pretrained/", "benchmarks/results/restorers/")
 TOP_LEVEL = {".ci", ".gitignore", "LICENSE", "README.md", "pyproject.toml", "install.sh", "codesign", "conf", "tests",
              "docs", "benchmarks", "examples", "outputs", "data"}
 
@@ -55,14 +52,7 @@ def _machine_paths_in(names: list[str]) -> str:
 def test_no_committed_file_names_a_path_of_the_machine_it_was_written_on():
     """Results files, logs and pages record commands as they ran: the paths in them are relative to the repository,
     or placeholders (<tmp>/RUN/..., <out>/..., /path/to/...)."""
-    problems = _machine_paths_in([name for name in _tracked() if not name.startswith(PENDING)])
-    assert not problems, problems
-
-
-@pytest.mark.parametrize("folder", PENDING)
-@pytest.mark.xfail(strict=True, reason="its files still name machine paths: scrub them, then drop it from PENDING")
-def test_a_pending_folder_is_clean(folder):
-    problems = _machine_paths_in([name for name in _tracked() if name.startswith(folder)])
+    problems = _machine_paths_in(_tracked())
     assert not problems, problems
 
 
