@@ -101,10 +101,12 @@ class Camera(torch.nn.Module):
 
     @property
     def image_size(self) -> int:
+        """Side of the network's image in pixels (data.image_size, e.g. 256): the sensor simulated or binned to it."""
         return self.simulator.sensor.image_size
 
     @property
     def padded_size(self) -> int:
+        """Side of the zero-padded grid the OTF and the Wiener deconvolution live on (data.padded_size, e.g. 384)."""
         return self.simulator.sensor.padded_size
 
     @property
@@ -254,6 +256,8 @@ class Camera(torch.nn.Module):
         return None if t is None else {"age": t["age"], "values": t["values"]}
 
     def load_halo_state(self, state: dict | None) -> None:
+        """Restore what ``halo_state`` kept (None: no training halo); the halos themselves are recomputed from the
+        stored mask values when next needed."""
         self._halo_train = None if state is None else {"age": int(state["age"]), "values": state["values"],
                                                        "halo": None, "line_halo": None}
 

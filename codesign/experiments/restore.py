@@ -51,6 +51,8 @@ SUFFIXES = (".png", ".tif", ".tiff")
 
 
 def input_files(path) -> list[Path]:
+    """The captures ``input=PATH`` names: the file itself, or a folder's PNG/TIFF files sorted by name (hidden ones
+    skipped); a ConfigError for a missing path, another suffix, an empty folder or two files of one output name."""
     if not path:
         raise ConfigError("input", path, "give a 16-bit PNG/TIFF sensor image or a folder of them: input=PATH")
     p = Path(str(path)).expanduser()

@@ -114,6 +114,7 @@ def earlier_results(run_dir: Path) -> list[str]:
 
 
 def shown_names(names: list[str]) -> str:
+    """The first four of ``names`` joined by commas, then "and N more": the file list of a refusal message."""
     return ", ".join(names[:4]) + (f" and {len(names) - 4} more" if len(names) > 4 else "")
 
 
@@ -262,6 +263,7 @@ def _write_state(run_dir: Path, task: str, state: str) -> None:
 
 
 def remove_if_empty(folder: Path) -> None:
+    """Remove ``folder`` if it is empty (made for a refused run's lock); leave it if another run wrote there since."""
     try:
         folder.rmdir()
     except OSError:  # not empty: another run's now

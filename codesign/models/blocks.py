@@ -24,6 +24,7 @@ class InstanceNorm(nn.InstanceNorm2d):
         super().__init__(channels, affine=True)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Instance-normalized ``x`` (B, C, H, W), or ``x`` itself where the map is 1x1."""
         if x.shape[-1] * x.shape[-2] == 1:
             return x
         return super().forward(x)
@@ -41,6 +42,7 @@ def conv_norm_act(cin: int, cout: int, kernel: int, stride: int = 1, norm: bool 
 
 
 def activation(name: str) -> nn.Module:
+    """The in-place activation named ``name``: ``relu`` (generators) or ``leaky_relu`` with slope 0.2 (critics)."""
     if name == "relu":
         return nn.ReLU(inplace=True)
     if name == "leaky_relu":
@@ -63,6 +65,7 @@ class ResBlock(nn.Module):
         self.body = conv_pair(channels, kernel)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """ReLU(x + body(x)), the same shape as ``x``."""
         return F.relu(x + self.body(x))
 
 
@@ -76,6 +79,7 @@ class SpectralBranch(nn.Module):
                                   nn.Conv2d(2 * cout, 2 * cout, 1))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """The spectral map of ``x`` (B, cin, H, W) as (B, cout, H, W) in ``x``'s dtype (FFTs in float32 at least)."""
         h, w = x.shape[-2:]
         # FFTs in float32 at least: half-precision rfft2 needs power-of-two sizes and loses the small coefficients
         wide = torch.promote_types(x.dtype, torch.float32)
@@ -94,6 +98,7 @@ class ResFFTBlock(nn.Module):
         self.spectral = SpectralBranch(channels, channels)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """ReLU(x + spatial(x) + spectral(x)), the same shape as ``x``."""
         return F.relu(x + self.spatial(x) + self.spectral(x))
 
 
@@ -110,6 +115,8 @@ class FFTConvBlock(nn.Module):
         self.act = activation(act)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """act(norm(conv(x) + spectral(x))): (B, cout, H', W') on the strided conv's grid (the spectral branch
+        average-pooled by 2 for stride 2 and cropped to it)."""
         y = self.conv(x)
         s = self.spectral(x)
         if self.stride == 2:
@@ -145,6 +152,7 @@ class EfficientAttention(nn.Module):
         return torch.bmm(context.transpose(1, 2), q).view(b, c, h, w)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """f + R(E): ``x`` plus the projected attention, (B, C, H, W); equal to ``x`` at initialization."""
         return x + self.proj(self.attend(x))
 
 

@@ -40,6 +40,8 @@ class PatchDiscriminator(nn.Module):
         self.out = nn.Conv2d(cin, 1, 4, 1, 1)
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """(the critic's score map (B, 1, h, w), one value per 70 x 70 patch; the activation of every level, for
+        the feature-matching loss)."""
         feats = []
         for level in self.levels:
             x = level(x)

@@ -85,6 +85,8 @@ class LevelHead(nn.Module):
 
     @torch.no_grad()
     def set_weight(self, weight: torch.Tensor) -> None:
+        """Install a fitted weight (N_FEATURES,) (``fit_weight``) and note on the host whether the head is fitted
+        (a zero weight: gain exactly 1)."""
         self.weight.copy_(weight)
         self.fitted = bool(self.weight.any())
 

@@ -140,11 +140,14 @@ class VGGPerceptualLoss(nn.Module):
         self.train(False)
 
     def train(self, mode: bool = True):
+        """Set this module's mode as nn.Module.train does, but keep the frozen VGG features in eval mode."""
         super().train(mode)
         self.features.eval()  # frozen feature extractor; VGG has no dropout/BN here, but keep it explicit
         return self
 
     def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """Scalar loss between ``x`` and ``y`` (B,1,H,W, same shape): the mean over layers of mean |V_t(x) - V_t(y)|,
+        both through one VGG pass; ValueError if the shapes differ."""
         if x.shape != y.shape:
             raise ValueError(f"shapes differ: {tuple(x.shape)} vs {tuple(y.shape)}")
         b = x.shape[0]

@@ -22,6 +22,7 @@ class LayerNorm2d(nn.Module):
         self.eps = eps
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``x`` (B, C, H, W) normalized over C at each pixel, then scaled and shifted per channel."""
         mu = x.mean(1, keepdim=True)
         var = (x - mu).square().mean(1, keepdim=True)
         return (x - mu) * torch.rsqrt(var + self.eps) * self.weight[:, None, None] + self.bias[:, None, None]
@@ -51,6 +52,7 @@ class NAFBlock(nn.Module):
         self.gamma = nn.Parameter(torch.zeros(1, c, 1, 1))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """The block's output, the shape of ``x`` (B, c, H, W): the gated branch, then the gated feed-forward."""
         y = x + self.beta * self.project(simple_gate(self.depthwise(self.expand(self.norm1(x)))))
         return y + self.gamma * self.ffn_out(simple_gate(self.ffn_in(self.norm2(y))))
 
@@ -87,6 +89,8 @@ class NAFUNet(nn.Module):
         self.multiple = 2 ** len(encoder)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, out_channels, H, W) for ``x`` (B, in_channels, H, W) of any H, W (replicate-padded to a multiple of
+        2^levels inside, cropped back)."""
         h, w = x.shape[-2:]
         ph, pw = -h % self.multiple, -w % self.multiple
         if ph or pw:

@@ -35,11 +35,13 @@ def _check(x: torch.Tensor, y: torch.Tensor, min_size: int = 1) -> None:
 
 
 def mse(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """(B,) mean squared error of each image pair over C, H, W."""
     _check(x, y)
     return (x - y).square().mean((1, 2, 3))
 
 
 def one_minus_mse(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """(B,) 1 - MSE, the paper's 1-MSE (1 for identical images, higher is better)."""
     return 1 - mse(x, y)
 
 
@@ -148,6 +150,7 @@ class LPIPS(nn.Module):
         self.eval()
 
     def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """(B,) LPIPS distance of each image pair (B,C,H,W) in [0,1], both through one VGG16 pass; >= 16 px."""
         _check(x, y, 16)
         b = x.shape[0]
         z = (_gray_to_rgb(torch.cat([x, y], 0)) * 2 - 1 - self.shift.to(x.dtype)) / self.scale.to(x.dtype)
@@ -248,6 +251,7 @@ class OneMinus(nn.Module):
         self.metric = metric
 
     def forward(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """(B,) similarity 1 - metric(x, y) in ``x``'s dtype, the metric moved to ``x``'s device on first use."""
         if next(self.metric.buffers()).device != x.device:
             self.metric.to(x.device)
         with torch.no_grad():

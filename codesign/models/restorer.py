@@ -43,9 +43,12 @@ class TrainContext:
         self.critics = critics or []
 
     def run(self, module, *args):
+        """``module(*args)``: this default runs it plainly (the trainer's context adds autocast and float32 outputs)."""
         return module(*args)
 
     def gradient_penalty(self, critic, real, fake, cond=None):  # pragma: no cover - trainers override it
+        """The WGAN-GP term of ``critic`` between ``real`` and ``fake`` (conditioned on ``cond``); only a trainer's
+        context computes it (its random draws), this default raises."""
         raise NotImplementedError
 
 
@@ -67,13 +70,16 @@ class Restorer(nn.Module):
 
     @classmethod
     def from_config(cls, cfg: Mapping) -> "Restorer":  # pragma: no cover - abstract
+        """The restorer of a ``model`` config block (its ``kind`` this class's), its spec validated."""
         raise NotImplementedError
 
     # ---- parts ------------------------------------------------------------------------------------------------
     def generators(self) -> list[nn.Module]:  # pragma: no cover - abstract
+        """The modules the generator optimizer updates, EMA'd and passed to ``forward_with``, in a fixed order."""
         raise NotImplementedError
 
     def critics(self) -> list[nn.Module]:
+        """The modules the critic optimizer updates; none by default (an objective without an adversarial term)."""
         return []
 
     @property
@@ -102,6 +108,7 @@ class Restorer(nn.Module):
         raise NotImplementedError  # pragma: no cover - abstract
 
     def forward(self, sensor: torch.Tensor, otf: torch.Tensor) -> dict:
+        """``forward_with`` the own generators, in their current mode: at least "restored" (B, 1, P, P)."""
         return self.forward_with(self.generators(), sensor, otf)
 
     def restore(self, sensor: torch.Tensor, otf: torch.Tensor, generators: list[nn.Module] | None = None) -> dict:
@@ -118,9 +125,12 @@ class Restorer(nn.Module):
 
     # ---- training -----------------------------------------------------------------------------------------------
     def generator_losses(self, batch: dict, out: dict, ctx: TrainContext) -> dict:  # pragma: no cover - abstract
+        """The generator's loss terms for ``out`` (of ``forward_with``) against ``batch``, with "generator_total"."""
         raise NotImplementedError
 
     def critic_losses(self, batch: dict, out: dict, ctx: TrainContext) -> dict:  # pragma: no cover - abstract
+        """The critics' loss terms for ``out`` against ``batch``, with "critic_total" (only when ``critics()`` is not
+        empty)."""
         raise NotImplementedError
 
     # ---- reporting ----------------------------------------------------------------------------------------------
@@ -137,6 +147,7 @@ class Restorer(nn.Module):
 
 
 def parameter_count(module: nn.Module) -> int:
+    """Number of scalar parameters of ``module`` (trainable or not)."""
     return sum(p.numel() for p in module.parameters())
 
 
@@ -149,6 +160,7 @@ def _discover() -> None:
 
 
 def restorer_kinds() -> tuple[str, ...]:
+    """The registered ``model.kind`` names, sorted, after importing every module of codesign.models."""
     _discover()
     return tuple(sorted(REGISTRY))
 

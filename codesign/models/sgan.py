@@ -129,6 +129,7 @@ class SGAN(Restorer):
 
     # ---- parts --------------------------------------------------------------------------------------------------
     def generators(self) -> list[nn.Module]:
+        """[G1, G_v, G2]: the three stages of the sandwich, in the order ``forward_with`` runs them."""
         return [self.g1, self.gv, self.g2]
 
     def critics(self) -> list[nn.Module]:
@@ -137,6 +138,7 @@ class SGAN(Restorer):
 
     @property
     def adversarial(self) -> bool:
+        """Whether the critics are trained: the variant weights the adversarial term (model.loss.adv > 0)."""
         return self.weights.adv > 0
 
     def prepare_training(self, device: torch.device) -> None:
@@ -150,6 +152,7 @@ class SGAN(Restorer):
 
     @property
     def loss_status(self) -> str:
+        """The VGG loss's state as ``prepare_training`` left it: "on: <weights path>" or "off: <why>"."""
         return self._vgg_status
 
     @torch.no_grad()
@@ -268,14 +271,18 @@ class SGAN(Restorer):
 
     # ---- reporting ----------------------------------------------------------------------------------------------
     def summary(self) -> dict:
+        """The network's name (model.name, default its variant), its variant (sgan_b/e/f) and its size."""
         return {"network": self.spec.name, "variant": self.spec.variant, "size": self.spec.size}
 
     def scalars(self) -> dict[str, float]:
+        """Mean, min and max of G_v's learned Wiener noise powers gamma_i (``wiener/gamma_*``)."""
         gamma = self.gv.deconv.gamma.detach()
         return {"wiener/gamma_mean": float(gamma.mean()), "wiener/gamma_min": float(gamma.min()),
                 "wiener/gamma_max": float(gamma.max())}
 
     def check_input_size(self, padded_size: int, key: str = "data.padded_size") -> None:
+        """ConfigError naming ``key`` unless ``padded_size`` is even and its coarse half fits the UNet depth and the
+        critics' patches (ModelSpec.check_input_size)."""
         self.spec.check_input_size(padded_size, key)
 
 

@@ -169,14 +169,17 @@ class ModelSpec(SpecMixin):
 
     @property
     def generator_block(self) -> str:
+        """The UNets' residual block: "rft" (ResFFTBlock) for sgan_f, else "res" (ResBlock)."""
         return "rft" if self.variant == "sgan_f" else "res"
 
     @property
     def critic_block(self) -> str:
+        """The critics' downsampling block: "ftc" (FFTConvBlock) for sgan_f, else "conv" (Conv-IN-LeakyReLU)."""
         return "ftc" if self.variant == "sgan_f" else "conv"
 
     @property
     def depth(self) -> int:
+        """Number of UNet levels (len(widths)): the input side must be at least 2^depth."""
         return len(self.widths)
 
     def check_input_size(self, padded_size: int, key: str = "data.padded_size") -> None:

@@ -49,6 +49,7 @@ class Stage(nn.Module):
         self.attention = EfficientAttention(cout, key_channels) if attention else nn.Identity()
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """attention(residual(resample(x))): (B, cout, H', W') at half (E) or twice (D) the resolution of ``x``."""
         return self.attention(self.residual(self.resample(x)))
 
 
@@ -75,6 +76,7 @@ class UNetBody(nn.Module):
         self.out = zero_conv(widths[0] + stem_width, out_channels, 7)
 
     def forward(self, stem: torch.Tensor) -> torch.Tensor:
+        """(B, out_channels, H, W) from the head's output ``stem`` (B, stem_width, H, W), skips concatenated."""
         skips = [stem]
         x = stem
         for stage in self.encoder:
@@ -98,6 +100,7 @@ class ResUNet(nn.Module):
         self.body = UNetBody(stem_width, widths, out_channels, block, attention, key_channels)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """body(head(x)): (B, out_channels, H, W) for ``x`` (B, in_channels, H, W)."""
         return self.body(self.head(x))
 
 

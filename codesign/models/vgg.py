@@ -168,6 +168,7 @@ class ImageNetInput(nn.Module):
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B,3,H,W) ImageNet-normalized ``x``, grayscale replicated to 3 channels; ValueError for another shape."""
         if x.ndim != 4 or x.shape[1] not in (1, 3):
             raise ValueError(f"expected a (B,1,H,W) or (B,3,H,W) image, got shape {tuple(x.shape)}")
         x = x.expand(-1, 3, -1, -1) if x.shape[1] == 1 else x

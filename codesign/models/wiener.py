@@ -76,6 +76,7 @@ class FeatureExtractor(nn.Module):
                                  *[residual_block(block, features, kernel) for _ in range(residual_blocks)])
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, N, H, W) feature images of ``x`` (B, in_channels, H, W)."""
         return self.net(x)
 
 
@@ -96,9 +97,12 @@ class LearnableWiener(nn.Module):
 
     @property
     def gamma(self) -> torch.Tensor:
+        """(N,) the learned noise powers gamma_i = softplus(rho_i) + gamma_min, with their graph."""
         return F.softplus(self.rho) + self.gamma_min
 
     def forward(self, f: torch.Tensor, otf: torch.Tensor) -> torch.Tensor:
+        """Each feature of ``f`` (B, N, P, P) Wiener-deconvolved with ``otf`` (P, P // 2 + 1) at nsr_i =
+        gamma_i / E|F_i|^2, in float32 at least (autocast off)."""
         # in float32 at least, whatever autocast does around it: the FFTs and the division by |H|^2 + nsr (OTF
         # zeros, nsr down to 1e-8) are not safe in bfloat16's 8-bit mantissa
         with torch.autocast(f.device.type, enabled=False):
@@ -118,4 +122,5 @@ class DeconvModule(nn.Module):
         self.deconv = LearnableWiener(features, gamma_init)
 
     def forward(self, i_b: torch.Tensor, otf: torch.Tensor) -> torch.Tensor:
+        """(B, N, P, P) deconvolved features of the pre-restored irradiance ``i_b`` (B, 1, P, P), float32 at least."""
         return self.deconv(self.fe(i_b), otf)

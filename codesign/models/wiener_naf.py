@@ -124,6 +124,8 @@ class Conditioner(nn.Module):
         return wiener_filter(filled.expand(-1, nsr.numel(), -1, -1), otf, 1.0, nsr.view(1, -1, 1, 1)) * gain
 
     def forward(self, sensor: torch.Tensor, otf: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(guide (B, C * (GUIDES + K + F), H, W): filled, saturated, halo, bank, deconvolved features per channel;
+        base (B, C, H, W): the softmax mix of the bank) for ``sensor`` (B, C, H, W) and its ``otf``."""
         b, c, h, w = sensor.shape
         x = sensor.reshape(b * c, 1, h, w)
         otf = _fold_otf(otf, b, c)
@@ -163,9 +165,11 @@ class WienerNAF(Restorer):
 
     @classmethod
     def from_config(cls, cfg: Mapping) -> "WienerNAF":
+        """From a ``model`` block: every key a WienerNAFSpec field (no separate loss block)."""
         return cls(WienerNAFSpec.from_config(dict(cfg)))
 
     def generators(self) -> list[nn.Module]:
+        """[Conditioner (global: fill, bank, feature deconvolution), NAFUNet decoder (local)]; no critics."""
         return [self.front, self.decoder]
 
     # ---- restoring ----------------------------------------------------------------------------------------------
@@ -238,9 +242,12 @@ class WienerNAF(Restorer):
 
     # ---- reporting ----------------------------------------------------------------------------------------------
     def summary(self) -> dict:
+        """The network's name (model.name, default wiener_naf), variant "wiener_naf" and its size (tiny/cpu/paper)."""
         return {"network": self.spec.name, "variant": self.kind, "size": self.spec.size}
 
     def scalars(self) -> dict[str, float]:
+        """The bank's learned nsr and mixing weight per member (``bank/nsr_i``, ``bank/weight_i``) and the range of the
+        feature deconvolution's noise powers (``wiener/gamma_min``, ``wiener/gamma_max``)."""
         nsr = self.front.log_nsr.detach().exp()
         mix = torch.softmax(self.front.mix.detach(), 0)
         out = {f"bank/nsr_{i}": float(v) for i, v in enumerate(nsr)}
@@ -250,6 +257,7 @@ class WienerNAF(Restorer):
         return out
 
     def check_input_size(self, padded_size: int, key: str = "data.padded_size") -> None:
+        """ConfigError naming ``key`` below 8 pixels; any larger size works (the decoder pads to its own multiple)."""
         if padded_size < 8:
             raise ConfigError(key, padded_size, "too small for model=wiener_naf: at least 8 pixels")
 

@@ -92,16 +92,22 @@ class WienerUNet(Restorer):
 
     @classmethod
     def from_config(cls, cfg: Mapping) -> "WienerUNet":
+        """From a ``model`` block: every key a WienerUNetSpec field (no separate loss block)."""
         return cls(WienerUNetSpec.from_config(dict(cfg)))
 
     def generators(self) -> list[nn.Module]:
+        """[G_v (features + learnable Wiener), the refining UNet]; no critics."""
         return [self.gv, self.refine]
 
     def forward_with(self, generators, sensor: torch.Tensor, otf: torch.Tensor) -> dict:
+        """{"restored": (B, 1, P, P)}: the UNet's refinement of the Wiener-deconvolved features of ``sensor``
+        (B, 1, P, P), ``otf`` (P, P // 2 + 1) on the same grid."""
         gv, refine = generators
         return {"restored": refine(gv(sensor, otf))}
 
     def generator_losses(self, batch: dict, out: dict, ctx: TrainContext) -> dict:
+        """Charbonnier L1 (and the FFT loss when weighted) between the restoration and the scene over the whole
+        padded canvas."""
         s = self.spec
         terms = {"rec2": losses.charbonnier(out["restored"], batch["scene"], s.charbonnier_eps)}
         total = s.l1 * terms["rec2"]
@@ -112,14 +118,17 @@ class WienerUNet(Restorer):
         return terms
 
     def summary(self) -> dict:
+        """The network's name (model.name, default wiener_unet), variant "wiener_unet" and its size."""
         return {"network": self.spec.name, "variant": self.kind, "size": self.spec.size}
 
     def scalars(self) -> dict[str, float]:
+        """Mean, min and max of G_v's learned Wiener noise powers gamma_i (``wiener/gamma_*``)."""
         gamma = self.gv.deconv.gamma.detach()
         return {"wiener/gamma_mean": float(gamma.mean()), "wiener/gamma_min": float(gamma.min()),
                 "wiener/gamma_max": float(gamma.max())}
 
     def check_input_size(self, padded_size: int, key: str = "data.padded_size") -> None:
+        """ConfigError naming ``key`` when ``padded_size`` < 2^levels of this size's UNet (tiny 4, cpu 8, paper 16)."""
         need = 2 ** len(SIZES[self.spec.size][1])
         if padded_size < need:
             raise ConfigError(key, padded_size, f"too small for model.size={self.spec.size}: the UNet's "

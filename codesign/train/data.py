@@ -76,10 +76,12 @@ class SimulatedData:
 
     @property
     def padded_size(self) -> int:
+        """P, the side of every batch's maps and of the OTF's grid (data.padded_size)."""
         return self.camera.padded_size
 
     @property
     def image_size(self) -> int:
+        """n, the side of the sensor's field inside the padded maps (data.image_size)."""
         return self.camera.image_size
 
     # ---- batches --------------------------------------------------------------------------------------------
@@ -180,9 +182,11 @@ class SimulatedData:
 
     # ---- checkpointing of the random state ------------------------------------------------------------------
     def state_dict(self) -> dict:
+        """The scene and parameter generators' states and the seed: what a checkpoint keeps to resume the draws."""
         return {"scene_gen": self.scene_gen.get_state(), "param_gen": self.param_gen.get_state(), "seed": self.seed}
 
     def load_state_dict(self, state: dict) -> None:
+        """Restore what ``state_dict`` kept, so that a resumed run draws the batches an uninterrupted one would."""
         self.seed = int(state["seed"])  # the noise of step k is seeded from (seed, k)
         self.scene_gen.set_state(state["scene_gen"])
         self.param_gen.set_state(state["param_gen"])

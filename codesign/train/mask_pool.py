@@ -148,6 +148,7 @@ class MaskPool:
         return out
 
     def report(self) -> list[dict]:
+        """One row per member, {"mask": its name, "lsr_sampled": its sampled LSR}: the pool's record in metrics.json."""
         return [{"mask": n, "lsr_sampled": v} for n, v in zip(self.names, self.lsr())]
 
 

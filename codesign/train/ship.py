@@ -49,6 +49,8 @@ def shipped_state(checkpoint: str | Path, weights: str = "ema") -> dict:
 
 
 def main(argv=None) -> int:
+    """The command line: write ``out`` (never overwriting) from ``checkpoint``; exit status 0, or 2 with the reason on
+    stderr when the checkpoint is not a trained one."""
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("checkpoint", type=Path, help="a checkpoint.pt written by baseline or joint")
     p.add_argument("out", type=Path, help="the weights file to write (not overwritten)")
