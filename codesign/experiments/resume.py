@@ -9,6 +9,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from codesign.config.compare import described, differences, flat_keys
 from codesign.config.runtime import to_container
 from codesign.errors import ConfigError
 from codesign.models.restorer import REGISTRY, restorer_kinds
@@ -18,10 +19,13 @@ from codesign.train.checkpoint import CHECKPOINT_NAME, check_trained, load_check
 from codesign.train.resume import resume_trainer, warm_start
 
 log = logging.getLogger("codesign.train")
+SHOWN = 4  # differing leaves named with both values before "and N more"
 
 
-# Config blocks that must match between a checkpoint and the run that resumes it (trainer.* may change).
-RESUME_MUST_MATCH = ("model", "optics", "material", "mask", "sensor", "data.image_size", "data.padded_size",
+# Config blocks that must match between a checkpoint and the run that resumes it (trainer.* may change). The seed:
+# the training continues the same whatever it is (the checkpoint restores the random state), but the final
+# evaluation draws from it and the run records it as its own (issue 59).
+RESUME_MUST_MATCH = ("seed", "model", "optics", "material", "mask", "sensor", "data.image_size", "data.padded_size",
                      "data.batch_size", "data.scenes", "data.folder", "data.test_fraction", "data.split_seed")
 # model.name is a label: checkpoints written before it existed are named by their variant (null name = the variant)
 RESUME_MAY_DIFFER = ("model.name",)
@@ -30,9 +34,9 @@ RESUME_MAY_DIFFER = ("model.name",)
 def check_resume_config(saved: dict, cfg: DictConfig, key: str, extra_keys: tuple = (), path="checkpoint") -> None:
     """A checkpoint (``path``) resumed under a different model, physics or data geometry is a ConfigError naming
     the file and the keys."""
-    differ = _differing(saved, cfg, RESUME_MUST_MATCH + tuple(extra_keys), RESUME_MAY_DIFFER)
+    differ = _trained_with_other(saved, cfg, RESUME_MUST_MATCH + tuple(extra_keys), RESUME_MAY_DIFFER)
     if differ:
-        raise ConfigError(key, str(path), "was trained with different " + ", ".join(differ) + ": resume with the "
+        raise ConfigError(key, str(path), differ + ": resume with the "
                           "same settings, or start a new run directory")
 
 
@@ -103,9 +107,9 @@ def load_initial_weights(model, path, cfg: DictConfig, key: str = "init.checkpoi
     the checkpoint's step and mask family."""
     state = load_checkpoint(path, key)
     check_trained(state, path, key)
-    differ = _differing(state["config"], cfg, _must_match(cfg), INIT_MAY_DIFFER)
+    differ = _trained_with_other(state["config"], cfg, _must_match(cfg), INIT_MAY_DIFFER)
     if differ:
-        raise ConfigError(key, str(path), "was trained with different " + ", ".join(differ) + ": a warm start keeps "
+        raise ConfigError(key, str(path), differ + ": a warm start keeps "
                           "the network, the optics, the sensor and the image sizes (only the mask may change)")
     return warm_start(model, state, key, path)
 
@@ -154,10 +158,31 @@ def _plain(value):
 def _differing(saved: dict, cfg: DictConfig, must_match: tuple, may_differ: tuple) -> list[str]:
     """The keys of ``must_match`` whose values differ between a checkpoint's configuration (``saved``, with the keys
     added since it was written) and this run's, ``may_differ``'s leaves left out of both."""
+    return list(dict.fromkeys(k for k, *_ in _differences(saved, cfg, must_match, may_differ)))
+
+
+def _differences(saved: dict, cfg: DictConfig, must_match: tuple, may_differ: tuple) -> list[tuple[str, ...]]:
+    """(must_match key, dotted leaf, checkpoint's value, this run's value) for every differing leaf under
+    ``must_match``'s keys,
+    ``may_differ``'s leaves left out of both; the keys in ``must_match``'s order."""
     nodes = OmegaConf.create(_with_added_keys(saved)), OmegaConf.create(to_container(cfg))
     for node in nodes:
         for dotted in may_differ:
             parent, _, leaf = dotted.rpartition(".")
             if OmegaConf.select(node, parent) is not None:
                 OmegaConf.select(node, parent).pop(leaf, None)
-    return [k for k in must_match if _plain(OmegaConf.select(nodes[0], k)) != _plain(OmegaConf.select(nodes[1], k))]
+    out = []
+    for key in must_match:
+        old, new = (flat_keys(_plain(OmegaConf.select(n, key)), key + ".") for n in nodes)
+        out += [(key, *rest) for rest in differences(old, new)]
+    return out
+
+
+def _trained_with_other(saved: dict, cfg: DictConfig, must_match: tuple, may_differ: tuple) -> str:
+    """'was trained with different KEYS (LEAF = A there, B here; ...)', or '' when nothing differs: what a refused
+    resume or warm start says, both values of the first differing leaves named."""
+    differ = _differences(saved, cfg, must_match, may_differ)
+    if not differ:
+        return ""
+    keys = ", ".join(dict.fromkeys(k for k, *_ in differ))
+    return f"was trained with different {keys} ({described([d[1:] for d in differ], SHOWN)})"

@@ -24,6 +24,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
+from codesign.config.compare import described, differences, flat_keys
 from codesign.errors import ConfigError
 from codesign.io import files as io
 from codesign.experiments.runlinks import refuse_links
@@ -201,12 +202,6 @@ def check_earlier_run(run_dir: Path, task: str | None, key: str = "hydra.run.dir
 UNCOMPARED = ("hydra", "threads")
 
 
-def _flat(node, prefix: str = "") -> dict:
-    if isinstance(node, dict) and node:
-        return {k: v for key, value in node.items() for k, v in _flat(value, f"{prefix}{key}.").items()}
-    return {prefix[:-1]: node}
-
-
 def changed_settings(run_dir: Path, config) -> list[tuple[str, object, object]] | None:
     """(key, value recorded in ``run_dir``'s .hydra/config.yaml, value in ``config``) for every setting that
     differs; None when either is missing or unreadable (the run's settings cannot be told)."""
@@ -214,13 +209,10 @@ def changed_settings(run_dir: Path, config) -> list[tuple[str, object, object]] 
     if config is None or not recorded.is_file():
         return None
     try:
-        old = _flat(OmegaConf.to_container(OmegaConf.load(recorded), resolve=False))
+        old = flat_keys(OmegaConf.to_container(OmegaConf.load(recorded), resolve=False))
     except Exception:  # noqa: BLE001 - an unreadable record tells no settings
         return None
-    new = _flat(OmegaConf.to_container(config, resolve=False))
-    absent = "(absent)"
-    keys = sorted(k for k in set(old) | set(new) if k.split(".")[0] not in UNCOMPARED)
-    return [(k, old.get(k, absent), new.get(k, absent)) for k in keys if old.get(k, absent) != new.get(k, absent)]
+    return differences(old, flat_keys(OmegaConf.to_container(config, resolve=False)), UNCOMPARED)
 
 
 def _same_settings(run_dir: Path, task: str, results: list[str], config, key: str, choose: str) -> str:
@@ -236,10 +228,10 @@ def _same_settings(run_dir: Path, task: str, results: list[str], config, key: st
         raise ConfigError(key, str(run_dir), f"{finished} whose settings cannot be compared with this run's ({why}); "
                           f"{never}")
     if differ:
-        values = "; ".join(f"{k} = {old} there, {new} here" for k, old, new in differ[:3])
         more = f" and {len(differ) - 3} more" if len(differ) > 3 else ""
         raise ConfigError(key, str(run_dir), f"{finished} that was trained with different "
-                          f"{', '.join(k for k, _, _ in differ[:3])}{more}: {values}; {never}")
+                          f"{', '.join(k for k, _, _ in differ[:3])}{more}: {described(differ[:3], 3, quoted=False)}; "
+                          f"{never}")
     return f"{key} = '{run_dir}': holds a finished +experiment={task} run made with these same settings: it is " \
            f"run again in place, its checkpoint and finished parts reused"
 

@@ -14,6 +14,8 @@ import json
 import logging
 from pathlib import Path
 
+from codesign.config import compare
+from codesign.config.compare import covered, flat_keys
 from codesign.errors import ConfigError
 from codesign.io import files as io
 
@@ -23,33 +25,20 @@ RECORD = "stage_settings.json"
 # keys that change how a run executes (where, how fast, what it logs), never what it computes
 EXECUTION = ("hydra", "device", "threads", "deterministic", "logging", "debug", "task", "trainer.checkpoint_every",
              "trainer.compile", "trainer.channels_last")
-ABSENT = "(absent)"
 SHOWN = 6  # differing keys named with their values before "and N more"
-
-
-def _flat(node, prefix: str = "") -> dict:
-    if isinstance(node, dict) and node:
-        return {k: v for key, value in node.items() for k, v in _flat(value, f"{prefix}{key}.").items()}
-    return {prefix[:-1]: node}
-
-
-def _skipped(key: str, prefixes: tuple) -> bool:
-    return any(key == p or key.startswith(p + ".") for p in prefixes)
 
 
 def settings(values: dict) -> dict:
     """The settings a stage records: the run's config ``values`` (plain containers, interpolations resolved: the
     experiment's to_container) flattened to dotted keys, as JSON stores them (tuples as lists), less EXECUTION."""
-    flat = json.loads(json.dumps(_flat(values), default=str))
-    return {k: v for k, v in flat.items() if not _skipped(k, EXECUTION)}
+    flat = json.loads(json.dumps(flat_keys(values), default=str))
+    return {k: v for k, v in flat.items() if not covered(k, EXECUTION)}
 
 
 def differences(recorded: dict, current: dict, ignored: tuple = ()) -> list[tuple[str, object, object]]:
     """(key, recorded value, current value) for every key of either that differs, but the ``ignored`` keys (a
     prefix such as 'trainer' covers its whole block) and EXECUTION; a key one side lacks shows as ABSENT."""
-    keys = sorted(k for k in set(recorded) | set(current) if not _skipped(k, EXECUTION + tuple(ignored)))
-    return [(k, recorded.get(k, ABSENT), current.get(k, ABSENT)) for k in keys
-            if recorded.get(k, ABSENT) != current.get(k, ABSENT)]
+    return compare.differences(recorded, current, EXECUTION + tuple(ignored))
 
 
 def read_record(folder: Path) -> dict | None:
@@ -84,10 +73,8 @@ def check_stage(folder: Path, stage: str, current: dict, ignored: tuple = ()) ->
     if not differ:
         return
     key, old, new = differ[0]
-    each = "; ".join(f"{k} = {o!r} there, {n!r} here" for k, o, n in differ[:SHOWN])
-    more = f"; and {len(differ) - SHOWN} more key(s)" if len(differ) > SHOWN else ""
     raise ConfigError(key, new, f"the stage {stage}/ of this run folder ({folder.parent}) was made with other "
-                      f"settings, which a restart would reuse under this run's: {each}{more}; a stage is reused only "
+                      f"settings, which a restart would reuse under this run's: {compare.described(differ, SHOWN)}; a stage is reused only "
                       f"with the settings it was made with: restart with those, or start this run in a new folder "
                       f"(hydra.run.dir=PATH, or leave it unset: every run gets a new one)")
 

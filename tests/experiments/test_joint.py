@@ -170,6 +170,6 @@ def test_warm_start_from_other_image_sizes_is_refused_before_work(joint_run, tmp
                         f"init.checkpoint={ckpt}", "data.image_size=64", "data.padded_size=96")
     assert line == (
         f"codesign: configuration error: init.checkpoint = '{ckpt}': was trained with different data.image_size, "
-        "data.padded_size: a warm start keeps the network, the optics, the sensor and the image sizes (only the "
-        "mask may change)")
+        "data.padded_size (data.image_size = 96 there, 64 here; data.padded_size = 128 there, 96 here): a warm start "
+        "keeps the network, the optics, the sensor and the image sizes (only the mask may change)")
     assert not (tmp_path / "bad" / "checkpoint.pt").exists()

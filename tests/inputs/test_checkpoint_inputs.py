@@ -148,13 +148,27 @@ def test_learned_mask_of_another_mask_type(tmp_path):
         apply_checkpoint_mask(mask, state, tmp_path / "ck.pt")
 
 
-def test_resume_under_another_configuration_names_the_file_and_keys(trained, tmp_path):
+def test_resume_under_another_configuration_names_the_file_the_keys_and_both_values(trained, tmp_path):
+    """Issue 59: a resume refused names each differing setting with the checkpoint's value and this run's."""
     saved = copy.deepcopy(trained["config"])
     saved["model"]["variant"], saved["mask"]["convention"] = "sgan_f", "atan"
     path = tmp_path / "run" / "checkpoint.pt"
-    with pytest.raises(ConfigError, match="^trainer.resume = " + re.escape(repr(str(path))) + ": was trained with "
-                       "different model, mask: resume with the same settings, or start a new run directory$"):
+    with pytest.raises(ConfigError, match="^trainer.resume = " + re.escape(repr(str(path))) + re.escape(
+            ": was trained with different model, mask (model.variant = 'sgan_f' there, 'sgan_b' here; "
+            "mask.convention = 'atan' there, 'atan2' here): resume with the same settings, or start a new run "
+            "directory") + "$"):
         check_resume_config(saved, tiny_cfg(), "trainer.resume", path=path)
+
+
+def test_resume_under_another_seed_is_refused(trained, tmp_path):
+    """Issue 59: the final evaluation draws from the seed and the run records it as its own; the training itself
+    would continue the same (the checkpoint restores the random state)."""
+    saved = copy.deepcopy(trained["config"])
+    cfg = tiny_cfg()
+    saved["seed"] = int(cfg.seed) + 1
+    with pytest.raises(ConfigError, match=re.escape(f"was trained with different seed (seed = {cfg.seed + 1} there, "
+                                                    f"{cfg.seed} here): resume with the same settings")):
+        check_resume_config(saved, cfg, "trainer.resume", path=tmp_path / "checkpoint.pt")
 
 
 def test_resume_checks_the_file_before_touching_the_trainer(trained, tmp_path):
