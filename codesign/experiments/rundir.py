@@ -27,7 +27,7 @@ from omegaconf import OmegaConf
 from codesign.config.compare import described, differences, flat_keys
 from codesign.errors import ConfigError
 from codesign.io import files as io
-from codesign.experiments.runlinks import refuse_links
+from codesign.experiments.runlinks import refuse_dangling, refuse_links
 from codesign.experiments.runlock import LOCK, acquire_lock, release_lock
 
 STATE = ".codesign-run.json"  # {"task", "state": "running" | "finished", "pid"}: "finished" is a run's last write
@@ -269,6 +269,7 @@ def guard(folder: Path, task, key: str = "hydra.run.dir", config=None) -> list[s
     refusal is a ConfigError raised after the lock's changes are undone: the folder as it was, byte for byte.
     Returns the notes to show."""
     folder = Path(folder)
+    refuse_dangling(folder, key)
     io.check_writable_dir(folder, key)
     refuse_links(folder, key)  # before the lock, which opens a file in the folder
     remember(folder)

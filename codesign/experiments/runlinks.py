@@ -30,3 +30,15 @@ def refuse_links(folder: Path, key: str) -> None:
                       f"{os.readlink(first)}{more}; a run never writes through a link (it would change files "
                       f"outside its folder): replace the link by a real file or folder, or choose another folder "
                       f"with {key}=PATH")
+
+
+def refuse_dangling(folder: Path, key: str) -> None:
+    """ConfigError naming ``key`` when ``folder`` (or a folder on the way to it) is a symbolic link to nothing:
+    making the run folder would have to follow the link (mkdir fails on it, or creates its target elsewhere)."""
+    folder = Path(folder).absolute()
+    for path in (folder, *folder.parents):
+        if path.is_symlink() and not path.exists():
+            where = "is" if path == folder else f"lies under {path}, which is"
+            raise ConfigError(key, str(folder), f"{where} a symbolic link to {os.readlink(path)}, which does not "
+                              f"exist; a run never follows a link to make its folder: create the target folder "
+                              f"first, or choose another folder with {key}=PATH")

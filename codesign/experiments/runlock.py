@@ -70,6 +70,10 @@ def acquire_lock(run_dir: Path, task: str | None, key: str = "hydra.run.dir") ->
         return None  # this process holds it already (a second run in one process: the tests)
     run_dir.mkdir(parents=True, exist_ok=True)
     path = run_dir / LOCK
+    if os.path.lexists(path) and not path.is_file():  # a folder of the user's (a link is refused before the lock)
+        raise ConfigError(key, str(run_dir), f"{LOCK} there is a folder or other non-file, where a run keeps its "
+                          f"lock file: a run never replaces what is there: move it away, or choose another folder "
+                          f"with {key}=PATH")
     try:
         fd = _open_locked(path)
     except OSError as err:  # a file system without flock (some network mounts): run, but say what is missing

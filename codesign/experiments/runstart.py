@@ -15,10 +15,12 @@ from omegaconf import OmegaConf
 from codesign.errors import ConfigError
 from codesign.experiments.rundir import guard
 from codesign.experiments.runlock import acquire_lock
-from codesign.experiments.sweepdir import guard_sweep
+from codesign.experiments.sweepdir import check_job_folder, guard_sweep
 from codesign.io.logfile import write_text_nofollow
 
 RECORD_DIR = ".hydra"  # where Hydra would write the run's config record (its default hydra.output_subdir)
+# job folder -> job number of the jobs this process started in the current sweep (two jobs never share a folder)
+SWEEP_JOBS: dict[Path, object] = {}
 
 
 def _refuse(err: ConfigError) -> None:
@@ -56,6 +58,7 @@ class OutputDirCheck(Callback):
         """Hydra callback before a sweep: the launcher checked, the sweep's folder and every job folder already
         in it guarded, before Hydra writes multirun.yaml or a job's .hydra/ and log."""
         _check_launcher(config)
+        SWEEP_JOBS.clear()
         try:
             _show_notes(guard_sweep(config))
         except ConfigError as err:
@@ -72,6 +75,7 @@ class OutputDirCheck(Callback):
         key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
         try:
             if multirun:
+                check_job_folder(config, folder, SWEEP_JOBS)
                 _show_notes([n for n in [acquire_lock(folder, OmegaConf.select(config, "task"), key)] if n])
             write_hydra_record(config, folder, key)
         except ConfigError as err:

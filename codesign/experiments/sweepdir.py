@@ -8,13 +8,15 @@ experiment, a finished run, a link, a folder in use). Job folders made later are
 """
 from __future__ import annotations
 
+import os
+import re
 from pathlib import Path
 
 from omegaconf import OmegaConf
 
 from codesign.errors import ConfigError
 from codesign.experiments import rundir
-from codesign.experiments.runlinks import refuse_links
+from codesign.experiments.runlinks import refuse_dangling, refuse_links
 from codesign.experiments.runlock import LOCK, acquire_lock, release_lock
 from codesign.io import files as io
 
@@ -63,11 +65,76 @@ def _judge_job(job: Path, task) -> list[str]:
     return rundir.guard(job, task, KEY)  # no config: a job's settings are composed later, per job
 
 
+SUBDIR = "hydra.sweep.subdir"
+# the interpolations that differ from one job of a sweep to the next: a subdir without one puts every job in one folder
+PER_JOB = ("hydra.job.num", "hydra.job.override_dirname", "hydra.job.id")
+INSIDE = f"a relative path inside {KEY} that names each job's own folder (the default: ${{hydra.job.num}})"
+
+
+def _raw_subdir(config) -> str:
+    """hydra.sweep.subdir as typed, its interpolations unresolved (hydra.job.num is not set before the jobs)."""
+    sweep = OmegaConf.select(config, "hydra.sweep")
+    return str(OmegaConf.to_container(sweep, resolve=False).get("subdir", "")) if sweep is not None else ""
+
+
+def job_count(config) -> int | None:
+    """How many jobs the sweep's overrides make (a product of each swept key's choices); None when it cannot be
+    told before Hydra's sweeper runs (a glob, a sweeper plugin's own parameters)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    overrides = [str(o) for o in (OmegaConf.select(config, "hydra.overrides.task") or [])]
+    params = OmegaConf.select(config, "hydra.sweeper.params") or {}
+    overrides += [f"{k}={v}" for k, v in params.items()]
+    count = 1
+    try:
+        for override in OverridesParser.create().parse_overrides(overrides):
+            if override.is_sweep_override():
+                count *= len(list(override.sweep_string_iterator()))
+    except Exception:  # noqa: BLE001 - a sweep only Hydra's sweeper can expand: judged as each job starts
+        return None
+    return count
+
+
+def check_subdir(config) -> None:
+    """ConfigError before any job unless hydra.sweep.subdir stays inside the sweep's folder (a job writing
+    outside it was never judged by the guard: it overwrote another sweep's finished job) and, for more than one
+    job, differs from job to job (two jobs in one folder overwrite each other's results)."""
+    raw = _raw_subdir(config)
+    plain = os.path.normpath(re.sub(r"\$\{[^}]*\}", "x", raw)) if raw.strip() else "."
+    if os.path.isabs(plain) or plain == "." or plain == ".." or plain.startswith(".." + os.sep):
+        raise ConfigError(SUBDIR, raw, f"leaves the sweep's folder ({KEY}): a job never writes outside it (the "
+                          f"guard judges only that folder): use {INSIDE}")
+    count = job_count(config)
+    if not any(name in raw for name in PER_JOB) and (count or 0) > 1:
+        raise ConfigError(SUBDIR, raw, f"is the same for each of the sweep's {count} jobs: two jobs never share a "
+                          f"folder (each would overwrite the other's results): use {INSIDE}")
+
+
+def check_job_folder(config, folder: Path, seen: dict[Path, object]) -> None:
+    """As a job starts: ConfigError unless its folder (``folder``, resolved) lies inside the sweep's folder and
+    no earlier job of this sweep ran there (``seen``: job folder -> job number, this process's jobs)."""
+    if OmegaConf.select(config, KEY) is None:
+        return  # no sweep folder to stay inside (a launcher's own layout)
+    top = Path(str(OmegaConf.select(config, KEY))).absolute()
+    folder = Path(os.path.normpath(Path(folder).absolute()))
+    if top not in folder.parents:
+        raise ConfigError(SUBDIR, _raw_subdir(config), f"puts this job in {folder}, outside the sweep's folder "
+                          f"{top}: a job never writes outside it: use {INSIDE}")
+    num = OmegaConf.select(config, "hydra.job.num")
+    if seen.get(folder, num) != num:
+        raise ConfigError(SUBDIR, _raw_subdir(config), f"puts job {num} in {folder}, where job {seen[folder]} of "
+                          f"this sweep ran: two jobs never share a folder (each would overwrite the other's "
+                          f"results): use {INSIDE}")
+    seen[folder] = num
+
+
 def guard_sweep(config) -> list[str]:
     """Guard the sweep's top folder (locked for this process) and every job folder already in it; ConfigError
     after undoing what the locks changed. Returns the notes to show."""
     top = Path(str(OmegaConf.select(config, KEY))).absolute()
     task = OmegaConf.select(config, "task")
+    check_subdir(config)
+    refuse_dangling(top, KEY)
     io.check_writable_dir(top, KEY)
     refuse_links(top, KEY)  # before the lock, which opens a file in the folder
     rundir.remember(top)
