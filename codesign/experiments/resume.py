@@ -51,6 +51,21 @@ def resume_if_possible(trainer, cfg: DictConfig, run_dir: Path, extra_keys: tupl
         check_trained(state, path, "trainer.resume", resume=True)
         check_resume_config(state["config"], cfg, "trainer.resume", extra_keys, path)
         resume_trainer(trainer, state, path)
+        changed = trainer_changes(state["config"], cfg)
+        if changed:
+            log.warning("trainer.resume = %r: resumed with other training settings than the checkpoint's: %s", str(path),
+                        changed)
+
+
+def trainer_changes(saved, cfg: DictConfig) -> str:
+    """'KEY = OLD there, NEW here; ...' for every trainer.* key of this run that differs from the checkpoint's
+    (``saved``, its stored config; trainer.resume itself left out), or '': a resume may change them (more steps,
+    another learning rate), and then says so, since the continued training is no longer the one started."""
+    saved = _plain(saved)
+    old = flat_keys(_plain(saved.get("trainer")) if isinstance(saved, dict) else None, "trainer.")
+    new = flat_keys(to_container(cfg).get("trainer"), "trainer.")
+    differ = differences(old, new, ("trainer.resume",))
+    return described(differ, len(differ)) if differ else ""
 
 
 # What a network's starting weights must share with the run they start (init.checkpoint): the network itself, and
