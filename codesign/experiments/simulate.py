@@ -109,15 +109,37 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     return seconds
 
 
+def _readable_scenes(source, count: int, size: int) -> list[str]:
+    """The first ``count`` test scenes (then any scenes) that decode: a file that fails (non-finite pixels, a
+    truncated file: probed as readable, found corrupt only when decoded) is skipped with the SceneLoadWarning every
+    corrupt file gets (SceneSource drops it from its splits); ConfigError(data.folder) when none is left."""
+    from codesign.data.images import UnreadableImage
+    from codesign.errors import ConfigError
+
+    names: list[str] = []
+    for split in ("test", "all"):
+        for name in source.split_names(split):
+            if len(names) == count:
+                return names
+            if name in names:
+                continue
+            try:
+                source.image(name, size)
+            except UnreadableImage:
+                continue
+            names.append(name)
+    if not names:
+        raise ConfigError(source.key, source.origin, "holds no image that decodes (each was skipped above)")
+    return names
+
+
 def _build(cfg: DictConfig, s: SimulateSpec, device, dtype) -> tuple:
     """The camera, the test scenes (names, tensor) and the reports made before any work (phase sampling, a laser
     beyond the sensor, a measured PSF): (camera, names, scenes, reports)."""
     source = build_scene_source(cfg.data)
     camera = build_camera(cfg, device, dtype)
     sim = camera.simulator
-    names = source.split_names("test")[:s.scenes]
-    if len(names) < s.scenes:
-        names = source.split_names("all")[:s.scenes]
+    names = _readable_scenes(source, s.scenes, sim.scene_size)
     scenes = source.fixed_batch(names, sim.scene_size).to(device=device, dtype=dtype)
     log.info("sensor path %s: %d x %d network pixels of %.3g m (bin %.3f), scene crop %d, PSF kernel %d",
              sim.sensor.path, sim.sensor.image_size, sim.sensor.image_size, sim.sensor.coarse_pitch_m,

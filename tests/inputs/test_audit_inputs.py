@@ -49,3 +49,33 @@ def test_a_resume_under_other_trainer_settings_names_each_with_both_values(train
     with caplog.at_level(logging.INFO, logger="codesign.train"):
         resume.resume_if_possible(object(), tiny_cfg(), tmp_path)  # the same settings: nothing said
     assert not [r for r in caplog.records if "other training settings" in r.getMessage()]
+
+
+def _folder_with_a_nan_image(folder):
+    import numpy as np
+    import tifffile
+    from PIL import Image
+
+    folder.mkdir()
+    nan = np.random.default_rng(0).random((48, 48)).astype(np.float32)
+    nan[3, 3] = np.nan
+    tifffile.imwrite(folder / "a_nan.tif", nan)
+    Image.fromarray(np.full((48, 48), 128, np.uint8)).save(folder / "good.png")
+    return folder
+
+
+def test_simulate_skips_a_folder_image_whose_pixels_are_nan_with_the_corrupt_files_warning(tmp_path):
+    """The audit's case: a float TIFF with NaN pixels passed the folder's probe and ended simulate in a traceback."""
+    from codesign.data.images import SceneLoadWarning
+    from codesign.data.source import SceneSource
+    from codesign.experiments.simulate import _readable_scenes
+
+    source = SceneSource.from_folder(_folder_with_a_nan_image(tmp_path / "F"), test_fraction=0.5)
+    skipped = r"^data.folder: skipped unreadable image a_nan.tif \(.*non-finite samples"
+    with pytest.warns(SceneLoadWarning, match=skipped):
+        assert _readable_scenes(source, 2, 32) == ["good.png"]
+    (tmp_path / "F" / "good.png").unlink()
+    source = SceneSource.from_folder(tmp_path / "F")
+    with pytest.warns(SceneLoadWarning), pytest.raises(ConfigError, match=r"^data.folder = .*F': holds no image that "
+                                                                         r"decodes \(each was skipped above\)$"):
+        _readable_scenes(source, 1, 32)
