@@ -11,7 +11,7 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
@@ -28,9 +28,14 @@ from codesign.data.params import alpha_tag, fixed_scene_params
 from codesign.data.simulate_spec import SimulateSpec
 from codesign.design.merit import evaluate_mask, published_reference
 from codesign.errors import ConfigError, require_number
-from codesign.optics import OpticalSystem, OpticsSpec, build_mask
+from codesign.optics import OpticalSystem, OpticsSpec, build_mask as _build_mask
+from codesign.optics.grid import PupilGrid
 from codesign.optics.masks import Mask
 from codesign.train.checkpoint import PRETRAINED, load_checkpoint
+# the arguments' checks (codesign/api_checks.py): each as the command line checks the key it stands for
+from codesign import api_checks as checks
+from codesign.api_checks import check_alpha as _check_alpha, check_cfg as _check_cfg, check_kind as _check_kind, \
+    check_seed as _check_seed
 
 
 __all__ = ["compose", "build_camera", "optical_system", "build_mask", "configured_mask", "published_mask",
@@ -52,9 +57,9 @@ def compose(*overrides: str, experiment: str | None = None) -> DictConfig:
     """
     from hydra import compose as hydra_compose, initialize_config_dir
 
-    args = [str(o) for o in overrides]
+    args = checks.check_overrides("compose", overrides, experiment=experiment is not None)
     if experiment is not None:
-        args = [a for a in args if not a.lstrip("+").startswith("experiment=")] + [f"+experiment={experiment}"]
+        args.append(f"+experiment={checks.check_experiment('compose experiment', experiment)}")
     problem = renamed_key_error(args)
     if problem:
         raise ConfigError(problem.split(" ", 1)[0], None, problem)
@@ -71,6 +76,7 @@ def compose(*overrides: str, experiment: str | None = None) -> DictConfig:
 
 # what a mask argument takes, as a message says it
 MASK = "a Mask (codesign.published_mask(), configured_mask(cfg), build_mask(...))"
+SYSTEM = "an OpticalSystem (codesign.optical_system(cfg))"
 
 
 def _config(cfg: DictConfig | None) -> DictConfig:
@@ -86,7 +92,7 @@ def build_camera(cfg: DictConfig | None = None, device: str | torch.device = "cp
     with S = camera.scene_size; params: a SceneParams, e.g. from fixed_scene_params)."""
     _check_cfg("build_camera cfg", cfg)
     _check_kind("build_camera mask", mask, Mask, MASK)
-    cam = _camera_of(_config(cfg), torch.device(device), dtype)
+    cam = _camera_of(_config(cfg), checks.check_device("build_camera device", device), dtype)
     if mask is not None:
         cam.use_mask(_on_system_grid(mask, cam.system))
     return cam
@@ -96,21 +102,42 @@ def optical_system(cfg: DictConfig | None = None, device: str | torch.device = "
                    dtype: torch.dtype = torch.float32) -> OpticalSystem:
     """The OpticalSystem (pupil grid, propagator) of ``cfg.optics`` (default: the default optics: 633 nm, f and
     aperture in metres as in conf / OpticsSpec). ``system.psf(mask.phase())`` is the PSF on the focal window."""
+    _check_cfg("optical_system cfg", cfg)
+    device = checks.check_device("optical_system device", device)
     spec = OpticsSpec.from_config(to_container(_config(cfg).optics))
-    return OpticalSystem(spec, dtype=dtype, device=torch.device(device))
+    return OpticalSystem(spec, dtype=dtype, device=device)
 
 
 def configured_mask(cfg: DictConfig | None = None, system: OpticalSystem | None = None) -> Mask:
     """The configured mask (``cfg.mask``: mask=<family>, mask.init=PATH) on ``system``'s pupil grid (default:
     optical_system(cfg)). Its ``phase()`` is the pupil phase in radians."""
+    _check_cfg("configured_mask cfg", cfg)
+    _check_kind("configured_mask system", system, OpticalSystem, SYSTEM, "None (optical_system(cfg))")
     cfg = _config(cfg)
     system = system or optical_system(cfg)
-    return build_mask(to_container(cfg.mask), system.grid, system.spec.aperture_diameter_m)
+    return _build_mask(to_container(cfg.mask), system.grid, system.spec.aperture_diameter_m)
+
+
+def build_mask(mask_cfg: Any = None, grid: PupilGrid | None = None, aperture_diameter_m: float | None = None
+               ) -> Mask:
+    """A Mask of any family from a plain mapping (the library's codesign.optics.build_mask, its values validated as
+    ``mask.*`` keys): ``build_mask({"kind": "spiral", ...}, system.grid, system.spec.aperture_diameter_m)``, the
+    grid and aperture [m] of an OpticalSystem (codesign.optical_system(cfg))."""
+    takes = "(build_mask({'kind': FAMILY, ...}, system.grid, system.spec.aperture_diameter_m))"
+    if not isinstance(mask_cfg, Mapping):
+        raise ConfigError("build_mask mask_cfg", checks.Shown(mask_cfg), f"must be a mapping of mask.* settings with "
+                          f"its 'kind' {takes}")
+    if not isinstance(grid, PupilGrid):
+        raise ConfigError("build_mask grid", checks.Shown(grid), f"must be an OpticalSystem's grid {takes}")
+    aperture = require_number("build_mask aperture_diameter_m", aperture_diameter_m, lo=0, lo_open=True)
+    return _build_mask(mask_cfg, grid, aperture)
 
 
 def published_mask(system: OpticalSystem | None = None, cfg: DictConfig | None = None) -> Mask:
     """The published five half-ring mask (Peng et al., Sec. 3.1: radii r_n in metres, angles theta_n in radians),
     frozen, on ``system``'s grid under the configured mask conventions: every experiment's baseline."""
+    _check_cfg("published_mask cfg", cfg)
+    _check_kind("published_mask system", system, OpticalSystem, SYSTEM, "None (optical_system(cfg))")
     cfg = _config(cfg)
     system = system or optical_system(cfg)
     return published_reference(to_container(cfg.mask), system)
@@ -130,7 +157,7 @@ def psf_and_lsr(mask: Mask | None = None, system: OpticalSystem | None = None,
     evaluate_mask's keys."""
     _check_cfg("psf_and_lsr cfg", cfg)
     _check_kind("psf_and_lsr mask", mask, Mask, MASK, "None (the published mask)")
-    _check_kind("psf_and_lsr system", system, OpticalSystem, "an OpticalSystem (codesign.optical_system(cfg))")
+    _check_kind("psf_and_lsr system", system, OpticalSystem, SYSTEM)
     cfg = _config(cfg)
     system = system or optical_system(cfg)
     mask = mask if mask is not None else published_mask(system, cfg)
@@ -143,6 +170,7 @@ def psf_and_lsr(mask: Mask | None = None, system: OpticalSystem | None = None,
 def scene_names(cfg: DictConfig | None = None, split: str | None = None) -> list[str]:
     """The names of the scenes of ``cfg.data`` (default: the built-in scikit-image scenes) in ``split`` ('train',
     'test' or 'all'; None: the test split)."""
+    _check_cfg("scene_names cfg", cfg)
     return build_scene_source(_config(cfg).data).split_names(split or "test")
 
 
@@ -164,62 +192,18 @@ def sensor_image(scene: str | int = 0, alpha_l: float = 1e6, cfg: DictConfig | N
     _check_kind("sensor_image cam", cam, Camera, "a Camera (codesign.build_camera(cfg))")
     seed, alpha_l = _check_seed("sensor_image seed", seed), _check_alpha("sensor_image alpha_l", alpha_l)
     cfg = _config(cfg)
-    cam = cam or build_camera(cfg)
-    sim = cam.simulator
     source = build_scene_source(cfg.data)
+    checks.check_scene("sensor_image scene", scene, source.split_names("test"), source.split_names("all"))
     fixed = SimulateSpec.from_config(to_container(cfg.get("simulate")) or {})
     values = {**fixed.params, "laser_angle_rad": list(fixed.laser_angle_rad), **params, "alpha_l": alpha_l}
+    checks.check_scene_params("sensor_image", values)
+    cam = cam or build_camera(cfg)
+    sim = cam.simulator
     split = "test" if isinstance(scene, int) and not isinstance(scene, bool) else "all"
     scenes = source.fixed_batch([scene], sim.scene_size, split=split).to(cam.device)
     sp = fixed_scene_params(1, device=cam.device, **values)
     with torch.no_grad():
         return cam(scenes, sp, seed=int(cfg.seed) if seed is None else seed)
-
-
-# ---- the arguments' checks: each as the command line checks the key it stands for, a wrong one a ConfigError
-# naming the function and the argument (``sensor_image seed``), the value and what is allowed, before any work (an
-# object of the wrong kind was an AttributeError from deep inside, a number out of range accepted (seed=-5) or a
-# RuntimeError in the simulation (alpha_l=1e300))
-
-class _Shown:
-    """A value as a message shows it: its repr when short, else its type (a tensor, a module)."""
-
-    def __init__(self, value: Any):
-        self.value = value
-
-    def __repr__(self) -> str:
-        text = repr(self.value)
-        return text if len(text) <= 80 else f"<a {type(self.value).__name__}>"
-
-
-def _check_kind(where: str, value: Any, kind: type, what: str, none: str = "None") -> None:
-    """``value`` None or a ``kind``; else ConfigError naming ``where`` (function and argument) with ``what`` (and
-    ``none``: what None means)."""
-    if value is not None and not isinstance(value, kind):
-        raise ConfigError(where, _Shown(value), f"must be {what} or {none}")
-
-
-def _check_cfg(where: str, value: Any) -> None:
-    """A configuration argument: None (the default one) or a composed DictConfig."""
-    _check_kind(where, value, DictConfig, "a configuration (codesign.compose(...))")
-
-
-def _check_seed(where: str, seed: Any) -> int | None:
-    """A noise seed: None (the configuration's) or an integer in the command line's root ``seed`` range."""
-    if seed is None:
-        return None
-    try:
-        return require_number(where, seed, lo=0, hi=1e9, integer=True)
-    except ConfigError as err:
-        raise ConfigError(where, seed, f"{err.allowed} (the noise seed, as the command line's seed)") from None
-
-
-def _check_alpha(where: str, alpha_l: Any) -> float:
-    """A laser strength alpha_l in simulate.laser_strengths' range."""
-    try:
-        return require_number(where, alpha_l, lo=0, hi=1e12)
-    except ConfigError as err:
-        raise ConfigError(where, alpha_l, f"{err.allowed} (the laser strength, as simulate.laser_strengths)") from None
 
 
 def _on_system_grid(mask, system):
@@ -241,6 +225,9 @@ def run(experiment: str, *overrides: str, run_dir: str | Path | None = None) -> 
     this process (codesign.experiments.run_experiment: validation, debug shrink, threads, device), and return its
     ``metrics.json`` as a dict, with ``run_dir`` (a Path) added. run_dir: default outputs/api/<NAME>/<time>.
     A configuration error raises ConfigError (its key, value and what is allowed), before any work."""
+    checks.check_experiment("run experiment", experiment)
+    checks.check_overrides("run", overrides, run=True, experiment=True)
+    checks.check_run_dir("run run_dir", run_dir)
     cfg = compose(*overrides, experiment=experiment)
     run_dir = Path(run_dir) if run_dir is not None else _new_run_dir(experiment)
     for note in rundir.guard(run_dir, experiment, "run_dir", cfg):  # the command's guard: lock, refusals
@@ -270,6 +257,8 @@ def restore(input: str | Path, checkpoint: str | Path, *overrides: str,
     checkpoint.pt written by baseline / joint. Writes
     restored_<name>.png (radiance 0..1 as 0..65535) into run_dir; returns metrics.json (``outputs``,
     ``seconds_per_image``, ...) with ``run_dir``."""
+    checks.check_path("restore input", input, "a 16-bit PNG/TIFF capture or a folder of them")
+    checks.check_path("restore checkpoint", checkpoint, "'pretrained' or a checkpoint.pt")
     named = str(checkpoint) in PRETRAINED  # a shipped checkpoint's name stays a name
     return run("restore", f"input={Path(input).resolve()}",
                f"checkpoint={checkpoint if named else Path(checkpoint).resolve()}", *overrides, run_dir=run_dir)
@@ -293,12 +282,12 @@ def restore_image(counts, checkpoint: str | Path = "pretrained", mask: Mask | No
     _check_kind("restore_image mask", mask, Mask, MASK, "None (the checkpoint's own mask)")
     given = {} if input_bin is None else {"input_bin": input_bin}  # None: RestoreSpec's default, a raw capture
     spec = RestoreSpec(bin=bin, tile=tile, prefix="restore_image", **given)
-    x = torch.as_tensor(counts, dtype=torch.float64)
-    if x.dim() not in (2, 3) or min(x.shape[-2:]) < 8 or not bool(torch.isfinite(x).all()) or float(x.min()) < 0:
-        raise ConfigError("restore_image counts", tuple(x.shape), "must be (H, W) or (C, H, W) finite counts >= 0 "
-                          "of at least 8 x 8 pixels")
-    model, generators, ckpt_cfg, state = load_trained(checkpoint, torch.device(device))
-    cam = _camera_of(ckpt_cfg, torch.device(device), torch.float32)
+    x = checks.check_counts("restore_image counts", counts)
+    device = checks.check_device("restore_image device", device)
+    model, generators, ckpt_cfg, state = load_trained(checkpoint, device)
+    cam = _camera_of(ckpt_cfg, device, torch.float32)
+    checks.check_capture_fits("restore_image counts", x, int(ckpt_cfg.get("model", {}).get("channels", 1) or 1),
+                              cam.sensor.saturation_dn)
     if mask is None:
         apply_checkpoint_mask(cam.mask, state, checkpoint)
     else:  # on the checkpoint's pupil grid (sampled onto it by its family when it was designed on another)
@@ -319,7 +308,7 @@ def quality(restored: torch.Tensor, scene: torch.Tensor) -> dict[str, float]:
     from codesign.models.quality import psnr, ssim
     from codesign.train.evaluation import affine_match
 
-    x, y = (torch.as_tensor(t, dtype=torch.float32) for t in (restored, scene))
+    x, y = checks.check_images("quality", restored, scene)
     if x.shape != y.shape or x.dim() not in (2, 4) or min(x.shape[-2:]) < 11:
         raise ConfigError("quality", (tuple(x.shape), tuple(y.shape)), "restored and scene must have one shape, "
                           "(H, W) or (N, 1, H, W), at least 11 px a side")
@@ -338,11 +327,12 @@ def mask_search(*overrides: str, run_dir: str | Path | None = None) -> dict[str,
     and the figures are written."""
     from codesign.optics.masks import FAMILIES, load_record
 
+    checks.check_overrides("mask_search", overrides, run=True, experiment=True)
     result = run("mask_search", *overrides, run_dir=run_dir)
     record = result["run_dir"] / "best_mask.json"
     kind = load_record(record, "mask.init", "a mask record")["kind"]
     system = optical_system(compose(*overrides, experiment="mask_search"))
-    mask = build_mask({**FAMILIES[kind].Spec.defaults(), "kind": kind, "init": str(record)}, system.grid,
+    mask = _build_mask({**FAMILIES[kind].Spec.defaults(), "kind": kind, "init": str(record)}, system.grid,
                       system.spec.aperture_diameter_m)
     return {**result, "mask": mask.freeze()}
 
@@ -358,4 +348,6 @@ def train_restorer(*overrides: str, run_dir: str | Path | None = None, experimen
     ``psnr_matched``, ``psnr``, ``ssim``), ``gains``, ``goal`` and ``checkpoint`` (the co-designed network's);
     with ``"codesign.protocol=single"`` one joint run's ``psnr``, ``psnr_published``, ``lsr``, ``lsr_published``,
     ... (README, docs/codesign.md)."""
+    checks.check_experiment("train_restorer experiment", experiment, checks.TRAINING)
+    checks.check_overrides("train_restorer", overrides, run=True, experiment=True)
     return run(experiment, *overrides, run_dir=run_dir)

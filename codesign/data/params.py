@@ -133,6 +133,12 @@ class SceneParams:
         return {k: getattr(self, k).detach().cpu().double().tolist() for k in FIELDS}
 
 
+# The largest photon-noise factors a fixed scene takes: c1, the signal-proportional relative std, at most 100 %
+# (the robustness stages go to 20 %, training to 25 %); c2, the Poisson std's modulation, at most 10 (the
+# calibration's 0.9..1.1; 10 is a hundred times the shot-noise variance).
+NOISE_MAX: dict[str, float] = {"c1": 1.0, "c2": 10.0}
+
+
 def _constant(key: str, value: Any, batch: int, dtype: torch.dtype, device) -> torch.Tensor:
     """A (B,) or (B, 2) tensor holding ``value`` (a number; a number or (n_u, n_v) pair for the angle)."""
     if isinstance(value, torch.Tensor):
@@ -152,8 +158,9 @@ def _constant(key: str, value: Any, batch: int, dtype: torch.dtype, device) -> t
         pair = [require_number(key, v) for v in pair]
         return torch.tensor(pair, dtype=dtype, device=device).expand(batch, 2).clone()
     # every scalar field is a physical, non-negative quantity; a zero exposure would make the sensor blind (the
-    # sampled exposures are clipped up to data.params.exposure_min_s > 0 for the same reason)
-    v = require_number(key, value, lo=0.0, lo_open=key == "exposure_s")
+    # sampled exposures are clipped up to data.params.exposure_min_s > 0 for the same reason); the noise factors
+    # are bounded (NOISE_MAX: c2=1e9 was simulated, its image all noise)
+    v = require_number(key, value, lo=0.0, lo_open=key == "exposure_s", hi=NOISE_MAX.get(key))
     return torch.full((batch,), v, dtype=dtype, device=device)
 
 
