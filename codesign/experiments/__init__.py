@@ -47,7 +47,8 @@ log = logging.getLogger("codesign")
 # keys it reads, the files it writes, whether it resumes, trains under torchrun or takes a measured PSF, where its
 # work starts, its debug=smoke shrink). Modules are imported only when their experiment runs (+experiment=psf never
 # loads networks or nlopt).
-_SUPPORT = ("main_job", "protocol", "resume", "rundir", "runlinks", "runlock", "runstart", "specs", "sweepdir")
+_SUPPORT = ("main_job", "protocol", "resume", "rundir", "runlinks", "runlock", "runstart", "specs", "sweepdir",
+            "typed_values")
 EXPERIMENTS: tuple[str, ...] = tuple(sorted(m.name for m in pkgutil.iter_modules(__path__) if m.name not in _SUPPORT))
 
 

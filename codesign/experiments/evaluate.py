@@ -19,6 +19,7 @@ from codesign.train.resume import apply_checkpoint_mask, load_trained
 from codesign.train.model_setup import run_metrics
 from codesign.experiments.specs import camera_reports, eval_settings, with_measured_psf
 from codesign.experiments.protocol import Experiment
+from codesign.experiments.typed_values import log_typed_values
 
 log = logging.getLogger("codesign.evaluate")
 
@@ -129,6 +130,7 @@ def run(cfg: DictConfig, run_dir: Path, device: torch.device) -> float:
     typed = explicit_keys()
     refuse_other_model(cfg, ckpt_cfg, typed, {"kind": model.kind, **model.summary()}, path)
     merged = merged_eval_config(cfg, ckpt_cfg, typed, model.any_size)
+    log_typed_values(log, "evaluate", cfg, merged, typed)
     seed = check_seed(cfg)
     data = simulated_data(merged, cfg, typed, path, device, seed, model.any_size)
     if not mask_typed(typed):  # a co-designed checkpoint's learned mask, unless a mask is given here

@@ -24,6 +24,7 @@ import torch.nn.functional as F
 from omegaconf import OmegaConf
 
 from codesign.camera import build_camera, field_of_view
+from codesign.experiments.typed_values import log_typed_values
 from codesign.config.runtime import explicit_keys, mask_typed, tensorboard_enabled, to_container, with_typed_mask
 from codesign.errors import ConfigError
 from codesign.io import files as io
@@ -191,6 +192,7 @@ def run(cfg, run_dir: Path, device: torch.device) -> float:
     warn_other_mask(model, ckpt_cfg, state, cfg, typed, cfg.checkpoint)
     ckpt_cfg = with_measured_psf(ckpt_cfg, cfg, typed)  # the Wiener stage's OTF then is the measured PSF's
     ckpt_cfg = with_typed_mask(ckpt_cfg, cfg, typed)  # the captures came through this mask (a pool-trained restorer)
+    log_typed_values(log, "restore", cfg, ckpt_cfg, typed)
     try:
         camera = build_camera(ckpt_cfg, device, torch.float32)
     except ConfigError as err:  # the checkpoint's own settings: say so, not just the key

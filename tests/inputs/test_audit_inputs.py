@@ -79,3 +79,47 @@ def test_simulate_skips_a_folder_image_whose_pixels_are_nan_with_the_corrupt_fil
     with pytest.warns(SceneLoadWarning), pytest.raises(ConfigError, match=r"^data.folder = .*F': holds no image that "
                                                                          r"decodes \(each was skipped above\)$"):
         _readable_scenes(source, 1, 32)
+
+
+def test_typed_physics_data_and_training_keys_say_which_value_ran():
+    from tests.inputs._run import compose_cfg
+    from codesign.experiments.typed_values import typed_values_unused
+
+    typed = frozenset({"optics.wavelength_m", "sensor.bit_depth", "data.image_size", "trainer.steps", "seed"})
+    cfg = compose_cfg("+experiment=evaluate", "optics.wavelength_m=5e-7", "sensor.bit_depth=12",
+                      "data.image_size=64", "trainer.steps=100")
+    ckpt = compose_cfg("+experiment=baseline")
+    assert typed_values_unused("evaluate", cfg, ckpt, typed) == [
+        f"data.image_size = 64 typed, {ckpt.data.image_size!r} used (the checkpoint's)",
+        f"optics.wavelength_m = 5e-07 typed, {ckpt.optics.wavelength_m!r} used (the checkpoint's)",
+        f"sensor.bit_depth = 12 typed, {ckpt.sensor.bit_depth!r} used (the checkpoint's)",
+        "trainer.steps = 100 typed, not used (+experiment=evaluate trains nothing)"]
+    assert typed_values_unused("evaluate", ckpt, ckpt, frozenset({"optics.wavelength_m"})) == []  # used as typed
+
+
+def _stop(*args, **kwargs):
+    from tests.inputs._run import WorkStarted
+
+    raise WorkStarted
+
+
+def test_evaluate_logs_the_typed_keys_it_ran_with_the_checkpoints_values(trained, tmp_path, monkeypatch, caplog):
+    import codesign.experiments as experiments
+    from codesign.experiments import evaluate
+    from tests.inputs._run import WorkStarted, compose_cfg, stop_before_work
+
+    path = save_checkpoint(tmp_path / "ck.pt", trained)
+    typed = ("optics.wavelength_m=5e-7", "sensor.bit_depth=12", "trainer.steps=100")
+    stop_before_work(monkeypatch)
+    monkeypatch.setattr(evaluate, "simulated_data", _stop)  # the line is said before the data is built
+    for owner in (evaluate, experiments):  # under Hydra both read the command line: typed keys win over the shrink
+        monkeypatch.setattr(owner, "explicit_keys", lambda: frozenset(k.split("=")[0] for k in typed))
+    cfg = compose_cfg("+experiment=evaluate", "debug=smoke", f"checkpoint={path}", *typed)
+    with caplog.at_level(logging.INFO, logger="codesign.evaluate"), pytest.raises(WorkStarted):
+        experiments.run_experiment(cfg, run_dir=tmp_path / "run")
+    said = [r.getMessage() for r in caplog.records if "runs the checkpoint with its own settings" in r.getMessage()]
+    stored = trained["config"]
+    assert said == [f"+experiment=evaluate runs the checkpoint with its own settings: optics.wavelength_m = 5e-07 "
+                    f"typed, {stored['optics']['wavelength_m']!r} used (the checkpoint's); sensor.bit_depth = 12 "
+                    f"typed, {stored['sensor']['bit_depth']!r} used (the checkpoint's); trainer.steps = 100 typed, "
+                    f"not used (+experiment=evaluate trains nothing)"]
