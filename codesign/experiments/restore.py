@@ -65,6 +65,10 @@ def input_files(path) -> list[Path]:
         files = sorted(f for f in p.iterdir() if f.suffix.lower() in SUFFIXES and not f.name.startswith("."))
         if not files:
             raise ConfigError("input", str(path), f"folder holds no {', '.join(SUFFIXES)} files")
+        skipped = sorted(f.name for f in p.iterdir() if f not in files and not f.name.startswith("."))
+        if skipped:  # a capture saved under another suffix would otherwise go missing without a word
+            log.warning("input = %r: skipped %d entry(ies) that are no %s capture: %s", str(path), len(skipped),
+                        "/".join(SUFFIXES), ", ".join(skipped[:8]) + (" and more" if len(skipped) > 8 else ""))
         stems = [f.stem for f in files]
         clash = sorted({s for s in stems if stems.count(s) > 1})
         if clash:

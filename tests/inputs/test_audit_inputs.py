@@ -123,3 +123,56 @@ def test_evaluate_logs_the_typed_keys_it_ran_with_the_checkpoints_values(trained
                     f"typed, {stored['optics']['wavelength_m']!r} used (the checkpoint's); sensor.bit_depth = 12 "
                     f"typed, {stored['sensor']['bit_depth']!r} used (the checkpoint's); trainer.steps = 100 typed, "
                     f"not used (+experiment=evaluate trains nothing)"]
+
+
+def test_restore_names_the_files_it_skips_in_an_input_folder(tmp_path, caplog):
+    from codesign.experiments import restore
+
+    (tmp_path / "cap.png").write_bytes(b"")
+    (tmp_path / "readme.txt").write_text("notes")
+    (tmp_path / ".hidden").write_text("")
+    with caplog.at_level(logging.WARNING, logger="codesign.restore"):
+        assert restore.input_files(tmp_path) == [tmp_path / "cap.png"]
+    assert [r.getMessage() for r in caplog.records] == [
+        f"input = '{tmp_path}': skipped 1 entry(ies) that are no .png/.tif/.tiff capture: readme.txt"]
+
+
+def test_restore_refuses_a_capture_above_the_sensors_full_scale(tmp_path):
+    """The audit's 1e9 float TIFF: refused naming its sample type (counts are 16-bit); 16-bit counts above the
+    sensor's full scale are refused naming it."""
+    import numpy as np
+    import tifffile
+    from codesign.experiments import restore
+
+    tifffile.imwrite(tmp_path / "big.tif", np.full((8, 8), 1e9, np.float32))
+    with pytest.raises(ConfigError, match=r"big.tif': has float32 samples: expected 16-bit sensor counts"):
+        restore.validate([tmp_path / "big.tif"], None, 65535.0)
+    tifffile.imwrite(tmp_path / "over.tif", np.full((8, 8), 5000, np.uint16))
+    with pytest.raises(ConfigError, match=r"over.tif': has counts up to 5000 DN, above the sensor's 4095 DN "
+                                          r"\(sensor.bit_depth\)$"):
+        restore.validate([tmp_path / "over.tif"], None, 4095.0)
+
+
+def test_restore_logs_a_typed_data_key_it_ran_with_the_checkpoints_value(trained, tmp_path, monkeypatch, caplog):
+    import numpy as np
+    from PIL import Image
+
+    import codesign.experiments as experiments
+    from codesign.config.runtime import command_line_keys
+    from codesign.experiments import restore
+    from tests.inputs._run import WorkStarted, compose_cfg, stop_before_work
+
+    path = save_checkpoint(tmp_path / "ck.pt", trained)
+    size = trained["config"]["data"]["image_size"]
+    Image.fromarray(np.full((size, size), 100, np.uint16)).save(tmp_path / "cap.png")
+    overrides = ["+experiment=restore", "debug=smoke", f"checkpoint={path}", f"input={tmp_path / 'cap.png'}",
+                 "data.image_size=64"]
+    stop_before_work(monkeypatch)
+    monkeypatch.setattr(restore, "build_camera", _stop)  # the line is said before the camera is built
+    for module in (experiments, restore):
+        monkeypatch.setattr(module, "explicit_keys", lambda: command_line_keys(overrides))
+    with caplog.at_level(logging.WARNING, logger="codesign"), pytest.raises(WorkStarted):
+        experiments.run_experiment(compose_cfg(*overrides), run_dir=tmp_path / "run")
+    assert [r.getMessage() for r in caplog.records if "its own settings" in r.getMessage()] == [
+        f"+experiment=restore runs the checkpoint with its own settings: data.image_size = 64 typed, {size!r} used "
+        f"(the checkpoint's)"]
