@@ -53,8 +53,8 @@ def resume_if_possible(trainer, cfg: DictConfig, run_dir: Path, extra_keys: tupl
         resume_trainer(trainer, state, path)
         changed = trainer_changes(state["config"], cfg)
         if changed:
-            log.warning("trainer.resume = %r: resumed with other training settings than the checkpoint's: %s", str(path),
-                        changed)
+            log.warning("trainer.resume = %r: resumed with other training settings than the checkpoint's: %s",
+                        str(path), changed)
 
 
 def trainer_changes(saved, cfg: DictConfig) -> str:
