@@ -62,7 +62,7 @@ Other flags:
 def main() -> None:
     """The console command (``codesign``, ``python -m codesign``): --version and --help answered here, a renamed key
     refused, anything else run by the Hydra entry point on the command line's overrides."""
-    from codesign.config.argv import expand_run_dirs, override_parse_problem
+    from codesign.config.argv import expand_run_dirs, hydra_write_path_error, override_parse_problem
     from codesign.config.runtime import renamed_key_error
     from codesign.train import distributed
 
@@ -80,7 +80,7 @@ def main() -> None:
     if "--help" in args or "-h" in args:
         print(help_text(), end="")
         raise SystemExit(0)
-    problem = renamed_key_error(sys.argv[1:])
+    problem = renamed_key_error(sys.argv[1:]) or hydra_write_path_error(sys.argv[1:])
     if problem:
         print(f"codesign: configuration error: {problem}", file=sys.stderr)
         raise SystemExit(2)

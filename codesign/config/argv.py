@@ -58,3 +58,27 @@ def quoting_hint(overrides: list[str], bad: str) -> str:
     key, _, value = bad.partition("=")
     return (f"a value holding spaces or any of ()[]{{}}=,:'\"\\ must be quoted for Hydra inside the shell's quotes, "
             f"e.g. '{key or 'key'}=\"{value or 'a value'}\"'")
+
+
+# Hydra keys that name a file or folder Hydra writes to itself, outside the run folder's guard: the run's record
+# (codesign writes RUN/.hydra itself, without following links: hydra.output_subdir is null) and the log files of
+# Hydra's logging config (the run's log is RUN/<task>.log, opened by the guard)
+WRITES_ELSEWHERE = ("hydra.output_subdir",)
+LOG_FILE_KEYS = ("hydra.job_logging.", "hydra.hydra_logging.")
+
+
+def hydra_write_path_error(args: list[str]) -> str | None:
+    """The configuration error for an override that would have Hydra write a file where the run-folder guard never
+    looks (hydra.output_subdir, a log handler's filename: an audit had the run's record written outside its folder
+    and its log appended to a user's file), or None."""
+    for arg in args:
+        key, eq, value = arg.partition("=")
+        name = key.lstrip("+~")
+        if not eq:
+            continue
+        by_log = name.startswith(LOG_FILE_KEYS) and name.rsplit(".", 1)[-1] == "filename"
+        if name in WRITES_ELSEWHERE or by_log:
+            return (f"{name} = {value!r}: codesign writes the run's record (.hydra/) and its log into the run folder "
+                    "itself, through the run-folder guard; a file of Hydra's elsewhere is not allowed: choose the "
+                    "folder with hydra.run.dir=PATH (or hydra.sweep.dir=PATH with -m)")
+    return None
