@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import math
+import os
+import stat
 from typing import Any, Sequence
 
 
@@ -67,6 +69,22 @@ def refuse_repeats(key: str, values: Sequence) -> None:
         if value in seen:
             raise ConfigError(key, list(values), f"lists {value:g} twice: give each value once")
         seen.add(value)
+
+
+def special_file(path: Any) -> str | None:
+    """What stands at ``path`` when it exists but is neither a regular file nor a folder ("a character device",
+    "a named pipe (FIFO)", ...), else None. Found by os.stat only, never by opening it: opening a named pipe blocks
+    until a writer comes, and /dev/zero never ends. Every path key calls it, so that a device or a pipe is named
+    as such (it was "no such file", the path being there)."""
+    try:
+        mode = os.stat(os.path.expanduser(os.fspath(path))).st_mode
+    except (OSError, TypeError, ValueError):
+        return None
+    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
+        return None
+    kinds = ((stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+             (stat.S_ISFIFO, "a named pipe (FIFO)"), (stat.S_ISSOCK, "a socket"))
+    return next((name for test, name in kinds if test(mode)), "not a regular file")
 
 
 class OutputWriteError(OSError):

@@ -26,7 +26,7 @@ from omegaconf import OmegaConf
 from codesign.camera import build_camera, field_of_view
 from codesign.experiments.typed_values import log_typed_values
 from codesign.config.runtime import explicit_keys, mask_typed, tensorboard_enabled, to_container, with_typed_mask
-from codesign.errors import ConfigError
+from codesign.errors import ConfigError, special_file
 from codesign.io import files as io
 from codesign.io.captures import read_counts, save_png16
 from codesign.io.tensorboard import log_summary, open_writer
@@ -75,7 +75,9 @@ def input_files(path) -> list[Path]:
             raise ConfigError("input", str(path), f"holds files that would write the same output "
                               f"restored_{clash[0]}.png: rename one of {[f.name for f in files if f.stem == clash[0]]}")
         return files
-    raise ConfigError("input", str(path), "no such file or folder")
+    kind = special_file(p)  # a device or a pipe is there: never opened (a pipe would block), named as what it is
+    raise ConfigError("input", str(path), f"is {kind}, not a regular file: give a 16-bit PNG/TIFF capture or a "
+                      f"folder of them" if kind else "no such file or folder")
 
 
 def validate(files: list[Path], size: int | None, saturation_dn: float, padded: int | None = None) -> list[np.ndarray]:

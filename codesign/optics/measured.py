@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from codesign.errors import ConfigError, round_down, round_up
+from codesign.errors import ConfigError, round_down, round_up, special_file
 
 SIXTEEN_BIT = (".png", ".tif", ".tiff")
 SUFFIXES = SIXTEEN_BIT + (".npy",)
@@ -125,7 +125,8 @@ def _read(path: Path, key: str) -> tuple[np.ndarray, str]:
     if suffix not in SUFFIXES:
         raise ConfigError(key, str(path), f"must be a {', '.join(SUFFIXES)} file: {ALLOWED}")
     if not path.is_file():
-        raise ConfigError(key, str(path), "no such file" if not path.exists() else "is not a file")
+        kind = "a folder" if path.is_dir() else special_file(path)
+        raise ConfigError(key, str(path), f"is {kind}, not a regular file: {ALLOWED}" if kind else "no such file")
     if suffix in SIXTEEN_BIT:
         from codesign.io.captures import read_counts
 

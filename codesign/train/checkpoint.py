@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from codesign.errors import ConfigError, require_number
+from codesign.errors import ConfigError, require_number, special_file
 from codesign.io import files as io
 from codesign.train.spec import MAX_STEPS
 
@@ -64,7 +64,9 @@ def load_checkpoint(path: str | Path, key: str = "checkpoint") -> dict:
         hint = f": give the file, e.g. {key}={inside}" if inside.is_file() else ""
         raise ConfigError(key, str(path), f"is a folder, not a checkpoint file{hint}")
     if not p.is_file():
-        raise ConfigError(key, str(path), "no such checkpoint file")
+        kind = special_file(p)  # a device or a pipe exists: "no such file" would send the user looking for it
+        raise ConfigError(key, str(path), f"is {kind}, not a regular file: give a checkpoint file (checkpoint.pt "
+                          f"of a training run) or pretrained" if kind else "no such checkpoint file")
     try:
         # weights_only: a checkpoint holds tensors and plain Python values only, so a file from elsewhere can
         # never run code while it is read

@@ -26,7 +26,7 @@ from io import BytesIO
 from pathlib import Path
 from typing import Any, Mapping
 
-from codesign.errors import ConfigError, require_number
+from codesign.errors import ConfigError, require_number, special_file
 from codesign.io import files as io
 from codesign.optics.masks.base import NAMED_STARTS, require_levels
 from codesign.optics.spec import OpticsSpec
@@ -143,7 +143,7 @@ def _read(path: Any, key: str, allowed: str) -> Any:
     except OSError as err:
         raise ConfigError(key, path, f"{allowed}; cannot be read ({err.strerror})") from None
     if not stat.S_ISREG(info.st_mode):  # a directory, a FIFO, /dev/zero: never read
-        what = "a directory" if stat.S_ISDIR(info.st_mode) else "not a regular file"
+        what = "a directory" if stat.S_ISDIR(info.st_mode) else f"{special_file(file)}, not a regular file"
         raise ConfigError(key, path, f"{allowed}; it is {what}")
     too_big = f"{allowed}; it holds {max(info.st_size, MAX_RECORD_BYTES + 1) / 2**20:.1f} MiB, more than any " \
               f"mask record (at most {MAX_RECORD_BYTES // 2**20} MiB: a pixel record of ~2.8 million phases): not read"
