@@ -9,7 +9,7 @@ from omegaconf import DictConfig, OmegaConf
 from codesign.camera.camera import Camera
 from codesign.config.runtime import to_container
 from codesign.data.scenes import DataConfig
-from codesign.errors import ConfigError
+from codesign.errors import ConfigError, require_number
 from codesign.optics import OpticalSystem, OpticsSpec, build_mask
 from codesign.optics.lines import LaserLines
 from codesign.optics.materials import Material
@@ -28,8 +28,11 @@ def build_sensor_spec(cfg: DictConfig) -> SensorSpec:
             raise ConfigError(f"sensor.{key}", sensor_cfg[key], f"unknown key: the network resolution is "
                               f"data.{key}")
     dc = DataConfig.from_config(cfg.data)  # data.image_size / padded_size validated under their own names first
-    resolution = sensor_cfg.get("resolution", SensorSpec.resolution)
-    if isinstance(resolution, int) and not isinstance(resolution, bool) and dc.image_size > resolution:
+    # sensor.resolution's own bounds first (SensorSpec's): sensor.resolution=0 was reported as a data.image_size
+    # error, naming a key nobody typed and never the bound of the one typed
+    resolution = require_number("sensor.resolution", sensor_cfg.get("resolution", SensorSpec.resolution), lo=8,
+                                hi=65536, integer=True)
+    if dc.image_size > resolution:
         raise ConfigError("data.image_size", dc.image_size, f"must be <= sensor.resolution ({resolution}): the "
                           "sensor is binned to the network resolution, never upsampled")
     sensor_cfg.update(image_size=dc.image_size, padded_size=dc.padded_size)

@@ -10,6 +10,7 @@ from codesign.errors import ConfigError
 from codesign.experiments.restore import input_files
 from codesign.optics.masks.records import load_record
 from codesign.train.checkpoint import load_checkpoint
+from tests.inputs._run import config_error, fresh_run_folder_state  # noqa: F401 - the fixture, for every test
 
 
 @pytest.fixture
@@ -30,7 +31,8 @@ def test_checkpoint_device_is_named_a_device(device):
 def test_checkpoint_fifo_is_named_a_pipe(fifo):
     with pytest.raises(ConfigError) as err:
         load_checkpoint(fifo, key="init.checkpoint")
-    assert str(err.value).startswith("init.checkpoint = ") and "a named pipe (FIFO), not a regular file" in str(err.value)
+    message = str(err.value)
+    assert message.startswith("init.checkpoint = ") and "a named pipe (FIFO), not a regular file" in message
 
 
 def test_restore_input_device_and_fifo(fifo):
@@ -44,3 +46,9 @@ def test_mask_init_fifo(fifo):
     with pytest.raises(ConfigError) as err:
         load_record(str(fifo), "mask.init", "must be a mask record")
     assert "a named pipe (FIFO), not a regular file" in str(err.value)
+
+
+def test_sensor_resolution_zero_names_sensor_resolution(tmp_path, monkeypatch, capsys):
+    line = config_error(monkeypatch, capsys, tmp_path / "run", "+experiment=simulate", "debug=smoke",
+                        "sensor.resolution=0")
+    assert line.endswith("sensor.resolution = 0: must be an integer >= 8 and <= 65536"), line
