@@ -246,6 +246,7 @@ def run(experiment: str, *overrides: str, run_dir: str | Path | None = None) -> 
 def checkpoint_config(checkpoint: str | Path) -> DictConfig:
     """The configuration a checkpoint.pt was trained with (its optics, mask, sensor, data, model blocks): e.g.
     ``sensor_image(cfg=checkpoint_config(path))`` simulates captures at its network resolution for restore()."""
+    checks.check_path("checkpoint_config checkpoint", checkpoint, "'pretrained' or a checkpoint.pt path")
     return OmegaConf.create(load_checkpoint(checkpoint)["config"])
 
 
@@ -280,6 +281,8 @@ def restore_image(counts, checkpoint: str | Path = "pretrained", mask: Mask | No
     from codesign.train.resume import apply_checkpoint_mask, load_trained
 
     _check_kind("restore_image mask", mask, Mask, MASK, "None (the checkpoint's own mask)")
+    # checkpoint=None was read as the file 'None' ("no such checkpoint file"): say what the argument takes
+    checks.check_path("restore_image checkpoint", checkpoint, "'pretrained' or a checkpoint.pt path")
     given = {} if input_bin is None else {"input_bin": input_bin}  # None: RestoreSpec's default, a raw capture
     spec = RestoreSpec(bin=bin, tile=tile, prefix="restore_image", **given)
     x = checks.check_counts("restore_image counts", counts)

@@ -52,3 +52,16 @@ def test_sensor_resolution_zero_names_sensor_resolution(tmp_path, monkeypatch, c
     line = config_error(monkeypatch, capsys, tmp_path / "run", "+experiment=simulate", "debug=smoke",
                         "sensor.resolution=0")
     assert line.endswith("sensor.resolution = 0: must be an integer >= 8 and <= 65536"), line
+
+
+@pytest.mark.parametrize("call", ["restore_image", "checkpoint_config"])
+def test_api_checkpoint_none_says_what_is_allowed(call):
+    import numpy as np
+
+    import codesign
+
+    args = (np.full((96, 96), 500.0),) if call == "restore_image" else ()
+    with pytest.raises(ConfigError) as err:
+        getattr(codesign, call)(*args, checkpoint=None)
+    assert str(err.value) == f"{call} checkpoint = None: must be 'pretrained' or a checkpoint.pt path (a str or " \
+        "os.PathLike)"
