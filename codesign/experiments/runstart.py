@@ -45,14 +45,20 @@ class OutputDirCheck(Callback):
         from codesign.train import distributed
 
         ctx = distributed.current()
+        refused = None
         if ctx.is_main:  # under torchrun rank 0 alone writes, so it alone checks and records what was there
             folder = Path(str(OmegaConf.select(config, "hydra.run.dir")))
             try:
                 _show_notes(guard(folder, OmegaConf.select(config, "task"), "hydra.run.dir", config))
             except ConfigError as err:
-                _refuse(err)
-        # ... before any other rank's Hydra creates the shared folder (which would look like an earlier run's)
-        distributed.barrier(ctx)
+                refused = err
+        # every rank learns rank 0's verdict before its Hydra creates the shared folder (which would look like an
+        # earlier run's) or its log there: a refused folder gets no rank's log (an audit found <job>.rank1.log in
+        # the user's folder rank 0 had refused)
+        if not distributed.broadcast_flag(refused is None, ctx):
+            if refused is not None:
+                _refuse(refused)
+            raise SystemExit(2)  # rank 0 said why
 
     def on_multirun_start(self, config, **kwargs) -> None:  # runs before Hydra builds the launcher
         """Hydra callback before a sweep: the launcher checked, the sweep's folder and every job folder already

@@ -276,16 +276,20 @@ def test_under_torchrun_rank_0_guards_the_folder(tmp_path, monkeypatch, capsys, 
     run_dir.mkdir()
     (run_dir / "psf.npy").write_bytes(b"the user's own psf")
     monkeypatch.setattr(distributed, "current", lambda: distributed.DistContext(rank, 2, rank))
-    monkeypatch.setattr(distributed, "barrier", lambda ctx: None)
+    sent = []
+    monkeypatch.setattr(distributed, "broadcast_flag", lambda flag, ctx: sent.append(flag) or False)  # refused
     config = OmegaConf.create({"task": "baseline", "hydra": {"run": {"dir": str(run_dir)}}})
-    if rank == 1:  # writes nothing, judges nothing: rank 0 has
-        runstart.OutputDirCheck().on_run_start(config)
+    if rank == 1:  # writes nothing, judges nothing: rank 0 has, and its verdict stops this rank before its Hydra
+        with pytest.raises(SystemExit) as info:  # creates anything there (no <job>.rank1.log in the user's folder)
+            runstart.OutputDirCheck().on_run_start(config)
+        assert info.value.code == 2 and capsys.readouterr().err == ""
         assert sorted(p.name for p in run_dir.iterdir()) == ["psf.npy"] and not runlock.HELD
         return
     with pytest.raises(SystemExit):
         runstart.OutputDirCheck().on_run_start(config)
     assert capsys.readouterr().err.startswith(f"codesign: configuration error: hydra.run.dir = '{run_dir}': holds "
                                               f"files that no codesign run wrote (psf.npy)")
+    assert sent == [False]  # rank 0 told the other ranks before it stopped
 
 
 # ---- resumes ----------------------------------------------------------------------------------------------------
