@@ -6,6 +6,8 @@ import os
 import stat
 from typing import Any, Sequence
 
+import numpy as np
+
 
 class ConfigError(ValueError):
     """A configuration value (or input) is wrong. The message names the key, the value and what is allowed."""
@@ -13,6 +15,15 @@ class ConfigError(ValueError):
     def __init__(self, key: str, value: Any, allowed: str):
         self.key, self.value, self.allowed = key, value, allowed
         super().__init__(f"{key} = {value!r}: {allowed}")
+
+
+def plain_number(value: Any) -> Any:
+    """A numpy scalar (np.float32, np.int64) or 0-d array as the Python number it holds, anything else unchanged:
+    a number computed with numpy is a number (np.float32(1e6) was refused as "must be a finite number"); a numpy
+    bool becomes a bool, which the checks still refuse."""
+    if isinstance(value, np.generic) or (isinstance(value, np.ndarray) and value.ndim == 0):
+        return value.item()
+    return value
 
 
 def require_number(key: str, value: Any, *, lo: float | None = None, hi: float | None = None,
@@ -23,6 +34,7 @@ def require_number(key: str, value: Any, *, lo: float | None = None, hi: float |
     hi_s = "" if hi is None else f"{'<' if hi_open else '<='} {hi:g}"
     allowed = f"must be {kind}" + (f" {lo_s}" if lo_s else "") + (" and" if lo_s and hi_s else "") + \
         (f" {hi_s}" if hi_s else "")
+    value = plain_number(value)
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ConfigError(key, value, allowed)
     if integer and not float(value).is_integer():
@@ -47,6 +59,8 @@ def require_list(key: str, value: Any, allowed: str) -> list:
     """``value`` as a list when it is a list or tuple (an OmegaConf ListConfig counts); else ConfigError with
     ``allowed``. A bare number or string where a list belongs would otherwise fail deep inside with a TypeError
     (or, for a string, be read one character at a time)."""
+    if isinstance(value, np.ndarray) and value.ndim == 1:  # a numpy vector is a list of numbers
+        return value.tolist()
     if isinstance(value, (str, bytes)) or not isinstance(value, Sequence):
         raise ConfigError(key, value, allowed)
     return list(value)

@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import os
 
+import numpy as np
 import pytest
 
-from codesign.errors import ConfigError
+from codesign.errors import ConfigError, require_number, require_numbers
 from codesign.experiments.restore import input_files
 from codesign.optics.masks.records import load_record
 from codesign.train.checkpoint import load_checkpoint
@@ -56,8 +57,6 @@ def test_sensor_resolution_zero_names_sensor_resolution(tmp_path, monkeypatch, c
 
 @pytest.mark.parametrize("call", ["restore_image", "checkpoint_config"])
 def test_api_checkpoint_none_says_what_is_allowed(call):
-    import numpy as np
-
     import codesign
 
     args = (np.full((96, 96), 500.0),) if call == "restore_image" else ()
@@ -65,3 +64,21 @@ def test_api_checkpoint_none_says_what_is_allowed(call):
         getattr(codesign, call)(*args, checkpoint=None)
     assert str(err.value) == f"{call} checkpoint = None: must be 'pretrained' or a checkpoint.pt path (a str or " \
         "os.PathLike)"
+
+
+@pytest.mark.parametrize("value", [np.float32(1e6), np.float64(3.5), np.int64(7), np.array(2.0), np.uint16(9)])
+def test_numpy_scalars_are_numbers(value):
+    assert require_number("k", value, lo=0, hi=1e12) == float(value)
+    assert require_numbers("k", np.array([value, value]), "a list") == [float(value)] * 2
+
+
+@pytest.mark.parametrize("value", [np.bool_(True), True, np.array([1.0]), np.float32("nan"), np.complex64(1)])
+def test_numpy_bools_arrays_and_nonfinite_stay_refused(value):
+    with pytest.raises(ConfigError):
+        require_number("k", value)
+
+
+def test_sensor_image_takes_a_numpy_alpha():
+    from codesign.api_checks import check_alpha
+
+    assert check_alpha("sensor_image alpha_l", np.float32(1e6)) == 1e6
