@@ -55,6 +55,30 @@ def resume_if_possible(trainer, cfg: DictConfig, run_dir: Path, extra_keys: tupl
         if changed:
             log.warning("trainer.resume = %r: resumed with other training settings than the checkpoint's: %s",
                         str(path), changed)
+        unused = unused_init(state["config"], cfg)
+        if unused:
+            log.warning("init.checkpoint = %r: not used: the run resumed from %s (step %d), whose weights replace "
+                        "a warm start's (the run started from %s): to start from %r, give a new run directory",
+                        unused, str(path), int(getattr(trainer, "step", 0)), _started_from(state["config"]), unused)
+
+
+def unused_init(saved, cfg: DictConfig) -> str | None:
+    """The init.checkpoint typed for this run when a resume ignores it: set (not null, not the default 'auto') and
+    other than the one the resumed run started from (the same command line restarted says nothing). A resume
+    loads the run's own weights over the warm start's, so another init.checkpoint changed nothing, silently."""
+    init = cfg.get("init")
+    typed = init.get("checkpoint") if init is not None else None
+    if typed is None or str(typed) == "auto":
+        return None
+    return None if str(typed) == _started_from(saved) else str(typed)
+
+
+def _started_from(saved) -> str:
+    """The init.checkpoint the checkpoint's run was started with ('null': fresh weights)."""
+    saved = _plain(saved)
+    init = _plain(saved.get("init")) if isinstance(saved, dict) else None
+    value = init.get("checkpoint") if isinstance(init, dict) else None
+    return "null" if value is None else str(value)
 
 
 def trainer_changes(saved, cfg: DictConfig) -> str:

@@ -82,3 +82,35 @@ def test_sensor_image_takes_a_numpy_alpha():
     from codesign.api_checks import check_alpha
 
     assert check_alpha("sensor_image alpha_l", np.float32(1e6)) == 1e6
+
+
+def _resume_with_init(monkeypatch, caplog, tmp_path, typed, started):
+    """resume_if_possible on a run folder holding a checkpoint whose run started from ``started``, this run typed
+    init.checkpoint=``typed``; the loading itself stubbed (the warning is what is tested); the warnings logged."""
+    import logging
+    from types import SimpleNamespace
+
+    from omegaconf import OmegaConf
+
+    from codesign.experiments import resume
+
+    saved = {"trainer": {"steps": 4}, "init": {"checkpoint": started}}
+    monkeypatch.setattr(resume, "load_checkpoint", lambda path, key: {"config": saved})
+    for name in ("check_trained", "check_resume_config", "resume_trainer"):
+        monkeypatch.setattr(resume, name, lambda *a, **k: None)
+    (tmp_path / "checkpoint.pt").write_bytes(b"")
+    cfg = OmegaConf.create({"trainer": {"steps": 4, "resume": None}, "init": {"checkpoint": typed}})
+    with caplog.at_level(logging.WARNING, logger="codesign.train"):
+        resume.resume_if_possible(SimpleNamespace(step=5), cfg, tmp_path)
+    return [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+
+
+def test_resume_says_a_typed_init_checkpoint_is_not_used(monkeypatch, caplog, tmp_path):
+    lines = _resume_with_init(monkeypatch, caplog, tmp_path, "/other/checkpoint.pt", None)
+    assert len(lines) == 1 and lines[0].startswith("init.checkpoint = '/other/checkpoint.pt': not used: the run "
+                                                   "resumed from") and "(step 5)" in lines[0], lines
+
+
+@pytest.mark.parametrize("typed, started", [(None, None), ("auto", "auto"), ("/a.pt", "/a.pt")])
+def test_resume_quiet_when_init_checkpoint_is_the_runs_own(monkeypatch, caplog, tmp_path, typed, started):
+    assert _resume_with_init(monkeypatch, caplog, tmp_path, typed, started) == []
