@@ -18,6 +18,7 @@ from codesign.config.runtime import resolve_device
 from codesign.data.params import fixed_scene_params
 from codesign.data.simulate_spec import MAX_ANGLE
 from codesign.errors import ConfigError, require_number, require_numbers
+from codesign.io.captures import saturation_note
 
 # the experiments train_restorer runs: the ones that train a restoration network
 TRAINING = ("baseline", "joint")
@@ -202,6 +203,9 @@ def check_capture_fits(where: str, x: torch.Tensor, channels: int, full_scale_dn
     if top > full_scale_dn:
         warnings.warn(f"{where}: counts up to {top:.4g} DN exceed the sensor's full scale {full_scale_dn:.0f} DN "
                       "(clipped to it): are these sensor counts of this checkpoint's sensor?", stacklevel=3)
+    note = saturation_note(x, full_scale_dn)
+    if note:
+        warnings.warn(f"{where}: {note}", stacklevel=3)
 
 
 def check_images(function: str, restored: Any, scene: Any) -> tuple[torch.Tensor, torch.Tensor]:

@@ -28,7 +28,7 @@ from codesign.experiments.typed_values import log_typed_values
 from codesign.config.runtime import explicit_keys, mask_typed, tensorboard_enabled, to_container, with_typed_mask
 from codesign.errors import ConfigError, special_file
 from codesign.io import files as io
-from codesign.io.captures import read_counts, save_png16
+from codesign.io.captures import read_counts, saturation_note, save_png16
 from codesign.io.tensorboard import log_summary, open_writer
 from codesign.models.capture import RestoreSpec, binned_shape, capture_factor, capture_geometry, restore_capture
 from codesign.train.checkpoint import nonfinite_summary, stored_config_error
@@ -96,6 +96,9 @@ def validate(files: list[Path], size: int | None, saturation_dn: float, padded: 
         if arr.max() > saturation_dn:
             raise ConfigError("input", str(f), f"has counts up to {arr.max():.0f} DN, above the sensor's "
                               f"{saturation_dn:.0f} DN (sensor.bit_depth)")
+        note = saturation_note(arr, saturation_dn)
+        if note:
+            log.warning("input = %r: %s", str(f), note)
         images.append(arr)
     return images
 

@@ -57,3 +57,20 @@ def read_counts(path: Path, key: str = "input") -> np.ndarray:
             "unsigned 16-bit integers, as +experiment=simulate writes them"
         raise ConfigError(key, str(path), f"has {arr.dtype} samples: expected 16-bit sensor counts ({why})")
     return arr.astype(np.float64)
+
+
+# above this fraction of pixels at full scale a capture is called saturated (a warning, not a refusal: a bright
+# but real scene may still restore in its unsaturated part)
+SATURATED_WARN = 0.5
+
+
+def saturation_note(counts, full_scale_dn: float) -> str | None:
+    """'N % of its pixels are at the sensor's full scale ...' when more than SATURATED_WARN of ``counts`` (an array
+    or tensor of DN) reach ``full_scale_dn``, else None: a fully saturated capture was restored without a word,
+    though saturated pixels hold no measurement of the scene."""
+    arr = np.asarray(counts.detach().cpu() if hasattr(counts, "detach") else counts)
+    fraction = float(np.mean(arr >= full_scale_dn)) if arr.size else 0.0
+    if fraction <= SATURATED_WARN:
+        return None
+    return (f"{100 * fraction:.1f} % of its pixels are at the sensor's full scale ({full_scale_dn:.0f} DN): "
+            "saturated pixels hold no measurement of the scene, their restoration is a guess (shorter exposure?)")

@@ -114,3 +114,28 @@ def test_resume_says_a_typed_init_checkpoint_is_not_used(monkeypatch, caplog, tm
 @pytest.mark.parametrize("typed, started", [(None, None), ("auto", "auto"), ("/a.pt", "/a.pt")])
 def test_resume_quiet_when_init_checkpoint_is_the_runs_own(monkeypatch, caplog, tmp_path, typed, started):
     assert _resume_with_init(monkeypatch, caplog, tmp_path, typed, started) == []
+
+
+def test_restore_warns_of_a_saturated_capture(tmp_path, caplog):
+    import logging
+
+    from codesign.experiments.restore import validate
+    from codesign.io.captures import save_png16
+
+    full, half = tmp_path / "full.png", tmp_path / "half.png"
+    save_png16(full, np.full((16, 16), 65535.0))
+    save_png16(half, np.where(np.arange(256).reshape(16, 16) < 128, 65535.0, 100.0))  # 50 %: not over the line
+    with caplog.at_level(logging.WARNING, logger="codesign.restore"):
+        validate([full, half], None, 65535.0)
+    lines = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert len(lines) == 1 and lines[0].startswith(f"input = {str(full)!r}: 100.0 % of its pixels are at the "
+                                                   "sensor's full scale (65535 DN)"), lines
+
+
+def test_api_warns_of_a_saturated_capture():
+    import torch
+
+    from codesign.api_checks import check_capture_fits
+
+    with pytest.warns(UserWarning, match=r"^restore_image counts: 100\.0 % of its pixels are at the sensor's full "):
+        check_capture_fits("restore_image counts", torch.full((16, 16), 4095.0), 1, 4095.0)
