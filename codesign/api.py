@@ -93,6 +93,7 @@ def build_camera(cfg: DictConfig | None = None, device: str | torch.device = "cp
     _check_cfg("build_camera cfg", cfg)
     _check_kind("build_camera mask", mask, Mask, MASK)
     cam = _camera_of(_config(cfg), checks.check_device("build_camera device", device), dtype)
+    cam.check_padding()  # data.padded_size against the PSF kernel, as every experiment that simulates checks it
     if mask is not None:
         cam.use_mask(_on_system_grid(mask, cam.system))
     return cam

@@ -47,8 +47,18 @@ def check_kind(where: str, value: Any, kind: type, what: str, none: str = "None"
 
 
 def check_cfg(where: str, value: Any) -> None:
-    """A configuration argument: None (the default one) or a composed DictConfig."""
+    """A configuration argument: None (the default one) or a composed DictConfig, its mask block checked as the
+    command line checks it before any work (compose() checks key names only: psf_and_lsr took mask.levels=1, which
+    +experiment=psf refuses): the family's settings and a mask.init record, read whole."""
     check_kind(where, value, DictConfig, "a configuration (codesign.compose(...))")
+    if value is None or value.get("mask") is None:
+        return
+    from codesign.config.runtime import to_container
+    from codesign.optics.masks import check_mask_init, check_mask_settings
+
+    mask = to_container(value.mask)
+    check_mask_settings(mask)
+    check_mask_init(mask, to_container(value.get("optics")) or {})
 
 
 def check_seed(where: str, seed: Any) -> int | None:

@@ -139,3 +139,17 @@ def test_api_warns_of_a_saturated_capture():
 
     with pytest.warns(UserWarning, match=r"^restore_image counts: 100\.0 % of its pixels are at the sensor's full "):
         check_capture_fits("restore_image counts", torch.full((16, 16), 4095.0), 1, 4095.0)
+
+
+def test_api_psf_and_lsr_refuses_what_the_command_line_refuses():
+    import codesign
+
+    with pytest.raises(ConfigError, match=r"^mask\.levels = 1: must be an integer >= 2"):
+        codesign.psf_and_lsr(cfg=codesign.compose("debug=smoke", "mask.levels=1"))
+
+
+def test_api_build_camera_refuses_a_padded_size_that_wraps():
+    import codesign
+
+    with pytest.raises(ConfigError, match=r"^data\.padded_size = 50: must be >= data\.image_size \+ PSF kernel - 1"):
+        codesign.build_camera(codesign.compose("debug=smoke", "data.image_size=48", "data.padded_size=50"))

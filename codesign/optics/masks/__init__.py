@@ -63,10 +63,10 @@ def _from_freeform(settings: Mapping[str, Any], prefix: str) -> dict:
     return {"kind": basis, **{k: settings[k] for k in keep if k in settings}}
 
 
-def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix: str = "mask") -> Mask:
-    """Build a mask from a config mapping (``kind`` picks the family; see conf/README of each family's Spec);
-    every value is validated first. ``init``: a record path starts the mask from that record (a record of another
-    family is taken as a phase, where the family can start from one)."""
+def check_mask_settings(cfg: Mapping[str, Any], prefix: str = "mask") -> dict:
+    """The mask settings ``cfg`` checked as ``prefix.*`` keys (family, its keys, each value: levels etc.) without
+    building the mask; returns them as the family's own (mask=freeform as pixel or zernike). build_mask's first
+    step, and the API's check of a composed config's mask block (it was accepted by psf_and_lsr, mask.levels=1)."""
     cfg = dict(cfg)
     require_choice(f"{prefix}.kind", cfg.get("kind"), families() + ("freeform",))
     if cfg.get("kind") == "freeform":
@@ -75,6 +75,16 @@ def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix:
     cls = FAMILIES[kind]
     check_family_keys(cls, cfg, prefix)
     cls.Spec.from_config({k: v for k, v in cfg.items() if k != "kind"} | {"kind": kind}, prefix)  # levels etc.
+    return cfg
+
+
+def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix: str = "mask") -> Mask:
+    """Build a mask from a config mapping (``kind`` picks the family; see conf/README of each family's Spec);
+    every value is validated first. ``init``: a record path starts the mask from that record (a record of another
+    family is taken as a phase, where the family can start from one)."""
+    cfg = check_mask_settings(cfg, prefix)
+    kind = cfg["kind"]
+    cls = FAMILIES[kind]
     init = cfg.get("init")
     named = NAMED_STARTS if cls.fits_phases else ()
     if init is None or init in named:
@@ -212,6 +222,6 @@ for _kind in families():
 register("mask", "freeform", dict(FREEFORM_DEFAULTS), spec=ZernikeSpec)
 
 __all__ = ["Mask", "MaskSpec", "HalfRingMask", "PixelPhaseMask", "ZernikeMask", "SpiralMask", "SplineMask", "FAMILIES",
-           "build_mask", "check_mask_init", "config_of_design", "design_levels", "families", "levels_of_design",
+           "build_mask", "check_mask_init", "check_mask_settings", "config_of_design", "design_levels", "families", "levels_of_design",
            "load_record", "published_halfring", "published_mask_config", "quantize", "record_phase", "write_record",
            "PUBLISHED_R", "PUBLISHED_THETA", "RECORD_PATH"]
