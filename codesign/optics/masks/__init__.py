@@ -222,6 +222,7 @@ for _kind in families():
 register("mask", "freeform", dict(FREEFORM_DEFAULTS), spec=ZernikeSpec)
 
 __all__ = ["Mask", "MaskSpec", "HalfRingMask", "PixelPhaseMask", "ZernikeMask", "SpiralMask", "SplineMask", "FAMILIES",
-           "build_mask", "check_mask_init", "check_mask_settings", "config_of_design", "design_levels", "families", "levels_of_design",
+           "build_mask", "check_mask_init", "check_mask_settings", "config_of_design", "design_levels", "families",
+           "levels_of_design",
            "load_record", "published_halfring", "published_mask_config", "quantize", "record_phase", "write_record",
            "PUBLISHED_R", "PUBLISHED_THETA", "RECORD_PATH"]
