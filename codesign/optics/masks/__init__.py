@@ -63,19 +63,19 @@ def _from_freeform(settings: Mapping[str, Any], prefix: str) -> dict:
     return {"kind": basis, **{k: settings[k] for k in keep if k in settings}}
 
 
-def check_mask_settings(cfg: Mapping[str, Any], prefix: str = "mask") -> dict:
-    """The mask settings ``cfg`` checked as ``prefix.*`` keys (family, its keys, each value: levels etc.) without
+def check_mask_settings(settings: Mapping[str, Any], prefix: str = "mask") -> dict:
+    """The mask ``settings`` checked as ``prefix.*`` keys (family, its keys, each value: levels etc.) without
     building the mask; returns them as the family's own (mask=freeform as pixel or zernike). build_mask's first
     step, and the API's check of a composed config's mask block (it was accepted by psf_and_lsr, mask.levels=1)."""
-    cfg = dict(cfg)
-    require_choice(f"{prefix}.kind", cfg.get("kind"), families() + ("freeform",))
-    if cfg.get("kind") == "freeform":
-        cfg = _from_freeform(cfg, prefix)
-    kind = cfg["kind"]
+    settings = dict(settings)
+    require_choice(f"{prefix}.kind", settings.get("kind"), families() + ("freeform",))
+    if settings.get("kind") == "freeform":
+        settings = _from_freeform(settings, prefix)
+    kind = settings["kind"]
     cls = FAMILIES[kind]
-    check_family_keys(cls, cfg, prefix)
-    cls.Spec.from_config({k: v for k, v in cfg.items() if k != "kind"} | {"kind": kind}, prefix)  # levels etc.
-    return cfg
+    check_family_keys(cls, settings, prefix)
+    cls.Spec.from_config({k: v for k, v in settings.items() if k != "kind"} | {"kind": kind}, prefix)  # levels etc.
+    return settings
 
 
 def build_mask(cfg: Mapping[str, Any], grid, aperture_diameter_m: float, prefix: str = "mask") -> Mask:
