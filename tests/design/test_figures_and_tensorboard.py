@@ -9,7 +9,6 @@ import numpy as np
 
 from codesign.design.tradeoff_figures import evaluations_figure
 from codesign.io.plots import plt, psf_figure
-from tests.cli import run_codesign
 
 
 class _Limit:
@@ -75,12 +74,10 @@ def test_psf_figure_colour_bar_label_clear_of_the_next_panel():
         plt.close(fig)
 
 
-def test_smoke_search_logs_its_progress_and_the_best_design_s_images(tmp_path):
+def test_smoke_search_logs_its_progress_and_the_best_design_s_images(mask_search_smoke):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    run_dir = tmp_path / "run"
-    proc = run_codesign("+experiment=mask_search", "debug=smoke", "threads=1", f"hydra.run.dir={run_dir}")
-    assert proc.returncode == 0, proc.stderr[-4000:]
+    run_dir, _ = mask_search_smoke
     acc = EventAccumulator(str(run_dir), size_guidance={"scalars": 0, "images": 0})
     acc.Reload()
     scalars, images = set(acc.Tags()["scalars"]), set(acc.Tags()["images"])

@@ -20,7 +20,6 @@ from codesign.design.search_spec import SearchSpec
 from codesign.errors import ConfigError
 from codesign.optics import OpticalSystem, OpticsSpec, RadialMTF, build_mask
 from codesign.experiments.mask_search import run as run_mask_search
-from tests.cli import run_codesign
 from tests.conftest import REPO_ROOT
 from tests.tolerances import assert_within_ulps
 
@@ -383,11 +382,8 @@ OUTPUTS = ["evaluations.csv", "best_mask.json", "metrics.json", "phase.png", "ps
 
 
 @pytest.fixture(scope="module")
-def smoke_run(tmp_path_factory):
-    run_dir = tmp_path_factory.mktemp("mask_search") / "run"
-    proc = run_codesign("+experiment=mask_search", "debug=smoke", "threads=1", f"hydra.run.dir={run_dir}")
-    assert proc.returncode == 0, proc.stderr[-4000:]
-    return run_dir, proc.stdout + proc.stderr
+def smoke_run(mask_search_smoke):
+    return mask_search_smoke  # tests/design/conftest.py: one smoke search for this module and the TensorBoard test
 
 
 def test_smoke_run_writes_everything(smoke_run):
