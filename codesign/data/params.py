@@ -168,6 +168,21 @@ def _batch(batch: int) -> int:
     return require_number("batch", batch, lo=1, integer=True)
 
 
+def _checked_inputs(batch, generator, params, *lengths_m) -> tuple[int, ParamConfig, tuple[float, ...]]:
+    """sample_scene_params' arguments checked before any draw: the batch, the ranges (None: the paper's), the
+    sensor's width and height and the focal length (each > 0)."""
+    batch = _batch(batch)
+    pc = ParamConfig() if params is None else params
+    if not isinstance(pc, ParamConfig):
+        raise ConfigError("params", params, "must be a ParamConfig (ParamConfig.from_config of the data.params "
+                          "block) or None")
+    names = ("sensor_width_m", "sensor_height_m", "focal_length_m")
+    lengths = tuple(require_number(n, v, lo=0, lo_open=True) for n, v in zip(names, lengths_m))
+    if not isinstance(generator, torch.Generator):
+        raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}")
+    return batch, pc, lengths
+
+
 def sample_scene_params(batch: int, generator: torch.Generator, params: ParamConfig | None,
                         sensor_width_m: float, sensor_height_m: float, focal_length_m: float, *,
                         dtype: torch.dtype = torch.float32) -> SceneParams:
@@ -199,16 +214,7 @@ def sample_scene_params(batch: int, generator: torch.Generator, params: ParamCon
     Reproducibility: the draws are made in the fixed order of the fields above from ``generator`` (CPU), in
     float64, then cast to ``dtype``; the same generator state gives identical parameters.
     """
-    batch = _batch(batch)
-    pc = ParamConfig() if params is None else params
-    if not isinstance(pc, ParamConfig):
-        raise ConfigError("params", params, "must be a ParamConfig (ParamConfig.from_config of the data.params "
-                          "block) or None")
-    w = require_number("sensor_width_m", sensor_width_m, lo=0, lo_open=True)
-    h = require_number("sensor_height_m", sensor_height_m, lo=0, lo_open=True)
-    f = require_number("focal_length_m", focal_length_m, lo=0, lo_open=True)
-    if not isinstance(generator, torch.Generator):
-        raise TypeError(f"generator must be a torch.Generator, got {type(generator).__name__}")
+    batch, pc, (w, h, f) = _checked_inputs(batch, generator, params, sensor_width_m, sensor_height_m, focal_length_m)
     g, f64 = generator, torch.float64
 
     def uniform(lo_hi: tuple[float, float]) -> torch.Tensor:
