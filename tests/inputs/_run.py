@@ -48,6 +48,32 @@ def compose_cfg(*overrides: str):
         return compose("config", overrides=list(overrides))
 
 
+def restore_messages(monkeypatch, caplog, tmp_path, trained: dict, *extra: str,
+                     stops: tuple = (WorkStarted,)) -> list[str]:
+    """The warnings of ``+experiment=restore`` of the checkpoint ``trained`` (saved in ``tmp_path``) on one flat
+    capture of its image size, ``extra`` typed on the command line, up to the first work (``stops``: what may end
+    the run there)."""
+    import logging
+
+    import numpy as np
+    from PIL import Image
+
+    from codesign.experiments import restore
+    from codesign.train.checkpoint import save_checkpoint
+
+    path = save_checkpoint(tmp_path / "ck.pt", trained)
+    size = trained["config"]["data"]["image_size"]
+    Image.fromarray(np.full((size, size), 100, np.uint16)).save(tmp_path / "cap.png")
+    overrides = ["+experiment=restore", "debug=smoke", f"checkpoint={path}", f"input={tmp_path / 'cap.png'}",
+                 *extra]
+    stop_before_work(monkeypatch)
+    for module in (experiments, restore):
+        monkeypatch.setattr(module, "explicit_keys", lambda: command_line_keys(overrides))
+    with caplog.at_level(logging.WARNING, logger="codesign"), pytest.raises(stops):
+        experiments.run_experiment(compose_cfg(*overrides), run_dir=tmp_path / "run")
+    return [r.getMessage() for r in caplog.records]
+
+
 def config_error(monkeypatch, capsys, run_dir, *overrides: str) -> str:
     """The ``codesign: configuration error: ...`` line of a run that must exit with 2 before any work."""
     stop_before_work(monkeypatch)

@@ -154,25 +154,12 @@ def test_restore_refuses_a_capture_above_the_sensors_full_scale(tmp_path):
 
 
 def test_restore_logs_a_typed_data_key_it_ran_with_the_checkpoints_value(trained, tmp_path, monkeypatch, caplog):
-    import numpy as np
-    from PIL import Image
-
-    import codesign.experiments as experiments
-    from codesign.config.runtime import command_line_keys
     from codesign.experiments import restore
-    from tests.inputs._run import WorkStarted, compose_cfg, stop_before_work
+    from tests.inputs._run import restore_messages
 
-    path = save_checkpoint(tmp_path / "ck.pt", trained)
-    size = trained["config"]["data"]["image_size"]
-    Image.fromarray(np.full((size, size), 100, np.uint16)).save(tmp_path / "cap.png")
-    overrides = ["+experiment=restore", "debug=smoke", f"checkpoint={path}", f"input={tmp_path / 'cap.png'}",
-                 "data.image_size=64"]
-    stop_before_work(monkeypatch)
     monkeypatch.setattr(restore, "build_camera", _stop)  # the line is said before the camera is built
-    for module in (experiments, restore):
-        monkeypatch.setattr(module, "explicit_keys", lambda: command_line_keys(overrides))
-    with caplog.at_level(logging.WARNING, logger="codesign"), pytest.raises(WorkStarted):
-        experiments.run_experiment(compose_cfg(*overrides), run_dir=tmp_path / "run")
-    assert [r.getMessage() for r in caplog.records if "its own settings" in r.getMessage()] == [
+    said = restore_messages(monkeypatch, caplog, tmp_path, trained, "data.image_size=64")
+    size = trained["config"]["data"]["image_size"]
+    assert [m for m in said if "its own settings" in m] == [
         f"+experiment=restore runs the checkpoint with its own settings: data.image_size = 64 typed, {size!r} used "
         f"(the checkpoint's)"]

@@ -7,17 +7,13 @@ from __future__ import annotations
 import logging
 from types import SimpleNamespace
 
-import numpy as np
 import pytest
 from omegaconf import OmegaConf
-from PIL import Image
 
 import codesign.experiments as experiments
-from codesign.config.runtime import command_line_keys
 from codesign.experiments import restore
 from codesign.models.restorer import REGISTRY, restorer_kinds
-from codesign.train.checkpoint import save_checkpoint
-from tests.inputs._run import WorkStarted, compose_cfg, stop_before_work
+from tests.inputs._run import WorkStarted, restore_messages
 
 restorer_kinds()
 SGAN = SimpleNamespace(kind="sgan", mask_conditioned=REGISTRY["sgan"].mask_conditioned)
@@ -58,15 +54,5 @@ def test_no_warning_where_the_network_knows_the_mask(caplog, case):
 
 
 def test_restore_warns_before_any_work(trained, tmp_path, monkeypatch, caplog):
-    path = save_checkpoint(tmp_path / "ck.pt", trained)
-    size = trained["config"]["data"]["image_size"]
-    Image.fromarray(np.full((size, size), 100, np.uint16)).save(tmp_path / "cap.png")
-    overrides = ["+experiment=restore", "debug=smoke", f"checkpoint={path}", f"input={tmp_path / 'cap.png'}",
-                 "mask=spline"]
-    stop_before_work(monkeypatch)
-    for module in (experiments, restore):
-        monkeypatch.setattr(module, "explicit_keys", lambda: command_line_keys(overrides))
-    with caplog.at_level(logging.WARNING, logger="codesign"), pytest.raises((WorkStarted, SystemExit)):
-        experiments.run_experiment(compose_cfg(*overrides), run_dir=tmp_path / "run")
-    assert any("this run restores through the typed mask=spline, which the network never saw" in r.getMessage()
-               for r in caplog.records)
+    said = restore_messages(monkeypatch, caplog, tmp_path, trained, "mask=spline", stops=(WorkStarted, SystemExit))
+    assert any("this run restores through the typed mask=spline, which the network never saw" in m for m in said)
