@@ -10,7 +10,6 @@ from types import SimpleNamespace
 import pytest
 from omegaconf import OmegaConf
 
-import codesign.experiments as experiments
 from codesign.experiments import restore
 from codesign.models.restorer import REGISTRY, restorer_kinds
 from tests.inputs._run import WorkStarted, restore_messages
